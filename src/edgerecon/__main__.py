@@ -1,0 +1,3 @@
+from edgerecon.cli import main
+
+raise SystemExit(main())

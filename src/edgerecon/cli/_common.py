@@ -1,0 +1,63 @@
+"""Shared helpers of the CLI subcommands: consoles, JSON output, tables, common options."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+console = Console(highlight=False)
+error_console = Console(stderr=True, highlight=False)
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if hasattr(obj, "to_dict"):
+        return obj.to_dict()
+    return str(obj)
+
+
+def to_json(data: Any, indent: int | None = 2) -> str:
+    return json.dumps(data, indent=indent, default=_json_default)
+
+
+def emit_json(data: Any) -> None:
+    """Print machine-readable results to stdout (and nothing else goes to stdout)."""
+    sys.stdout.write(to_json(data) + "\n")
+    sys.stdout.flush()
+
+
+def add_json_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true",
+                        help="print machine-readable results (JSON) to stdout instead of tables")
+
+
+def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]],
+                stderr: bool = False) -> None:
+    table = Table(title=title)
+    for col in columns:
+        table.add_column(col, justify="right" if col not in ("stage", "camera", "name") else "left")
+    for row in rows:
+        table.add_row(*[_fmt(v) for v in row])
+    (error_console if stderr else console).print(table)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float | np.floating):
+        return f"{v:.4g}" if abs(v) < 1e4 else f"{v:,.0f}"
+    return str(v)
+
+
+def parse_float_list(text: str) -> list[float]:
+    return [float(x) for x in text.replace(",", " ").split()]

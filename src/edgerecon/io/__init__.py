@@ -1,0 +1,1 @@
+"""Readers and writers at the system's edges: calibration formats, frame sources, PLY."""

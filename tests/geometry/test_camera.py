@@ -1,0 +1,103 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+from edgerecon.geometry import Camera, Rig, fundamental_matrix, look_at, triangulation_angle_deg
+from edgerecon.types import CalibrationError
+from tests.conftest import ring_rig
+
+
+def test_project_backproject_roundtrip_with_distortion():
+    rig = ring_rig(3, dist=(-0.2, 0.05, 1e-3, -5e-4, 0.01))
+    cam = rig[0]
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (200, 3)) + [0, 0, 1]
+    uv, depth = cam.project(pts)
+    assert np.all(depth > 0)
+    back = cam.backproject(uv, depth)
+    np.testing.assert_allclose(back, pts, atol=1e-7)
+
+
+def test_project_behind_camera_is_nan():
+    cam = ring_rig(3)[0]
+    behind = cam.center - 2 * cam.viewing_direction
+    uv, depth = cam.project(behind[None])
+    assert depth[0] < 0 and np.isnan(uv).all()
+
+
+def test_scaled_camera_maps_pixel_grid():
+    cam = ring_rig(3, width=640, height_px=480)[1]
+    half = cam.scaled(0.5)
+    assert half.size == (320, 240)
+    pts = np.array([[0.3, -0.2, 1.1], [0.0, 0.0, 1.0]])
+    uv, _ = cam.project(pts)
+    uvh, _ = half.project(pts)
+    np.testing.assert_allclose(uvh, (uv + 0.5) * 0.5 - 0.5, atol=1e-9)
+    # Image borders map onto each other.
+    assert half.scaled(2.0) == cam
+
+
+def test_undistort_maps_produce_pinhole_image():
+    cam = ring_rig(3, dist=(-0.25, 0.08, 0, 0, 0))[0]
+    target = cam.scaled(0.5).undistorted()
+    mx, my = cam.undistort_maps(0.5)
+    assert mx.shape == (target.height, target.width)
+    # A pixel of the target maps to where the distorted camera sees the same ray.
+    pts = cam.backproject(np.array([[100.0, 80.0]]), np.array([2.0]))
+    uv_t, _ = target.project(pts)
+    uv_d, _ = cam.project(pts)
+    x, y = np.rint(uv_t[0]).astype(int)
+    # Evaluate the map at the exact target pixel by projecting the pixel centre.
+    ray_pt = target.backproject(np.array([[x, y]], float), np.array([1.0]))
+    uv_expected, _ = cam.project(ray_pt)
+    np.testing.assert_allclose([mx[y, x], my[y, x]], uv_expected[0], atol=0.02)
+    assert cam.undistort_maps(0.5) is cam.undistort_maps(0.5)  # cached
+    assert np.isfinite(uv_d).all()
+
+
+def test_prepare_image_rejects_wrong_size():
+    cam = ring_rig(3)[0]
+    with pytest.raises(CalibrationError, match="cam0.*frame is 100x50"):
+        cam.prepare_image(np.zeros((50, 100, 3), np.uint8))
+
+
+def test_validation_messages_name_camera():
+    cam = ring_rig(3)[0]
+    with pytest.raises(CalibrationError, match="cam0.*not orthonormal"):
+        dataclasses.replace(cam, R=cam.R * 1.01)
+    with pytest.raises(CalibrationError, match="cam0.*focal"):
+        dataclasses.replace(cam, K=np.diag([-1.0, 1.0, 1.0]))
+    with pytest.raises(CalibrationError, match="at least 3 cameras"):
+        Rig(cameras=(cam, dataclasses.replace(cam, name="b", t=cam.t + 1)))
+
+
+def test_fundamental_matrix_epipolar_constraint():
+    rig = ring_rig(4)
+    pts = np.random.default_rng(1).uniform(-0.5, 0.5, (50, 3)) + [0, 0, 1]
+    a, b = rig[0], rig[1]
+    F = fundamental_matrix(a, b)
+    ua, _ = a.project(pts)
+    ub, _ = b.project(pts)
+    ha = np.hstack([ua, np.ones((50, 1))])
+    hb = np.hstack([ub, np.ones((50, 1))])
+    lines = ha @ F.T
+    dist = np.abs(np.einsum("ij,ij->i", hb, lines)) / np.linalg.norm(lines[:, :2], axis=1)
+    assert dist.max() < 1e-8
+    assert triangulation_angle_deg(a, b, pts).min() > 30
+
+
+def test_rig_json_roundtrip_is_exact():
+    rig = ring_rig(5, dist=(-0.1, 0.01, 0.001, 0.002, 0.0))
+    again = Rig.from_dict(rig.to_dict())
+    assert all(x == y for x, y in zip(rig, again, strict=True))
+    assert rig.subset([4, 0, 2]).names == ["cam4", "cam0", "cam2"]
+    assert rig.index("cam3") == 3 and rig.index("2") == 2
+
+
+def test_look_at_points_optical_axis_at_target():
+    R, t = look_at((3, 0, 1), (0, 0, 1))
+    cam = Camera(name="c", width=10, height=10, K=np.eye(3), R=R, t=t)
+    np.testing.assert_allclose(cam.viewing_direction, [-1, 0, 0], atol=1e-12)
+    # image 'down' (+y) points to world -z
+    np.testing.assert_allclose(R[1], [0, 0, -1], atol=1e-12)
