@@ -1,0 +1,104 @@
+"""Views: the undistorted, rescaled images of one task that the reconstruction stages consume.
+
+Sparse and dense reconstruction never see distortion or the original resolution: they work on
+``View`` objects whose camera is an ideal pinhole at the task's image scale r.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.types import DataError, FrameSet, Image, Mask
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class View:
+    """One camera's image of a task, ready for reconstruction."""
+
+    camera_id: int
+    """Index of the camera in the full rig (stable across camera subsets)."""
+    camera: Camera
+    """Undistorted pinhole camera at the working scale (``camera.size`` = image size)."""
+    image: Image
+    """(H, W, 3) BGR uint8, undistorted and resized."""
+    mask: Mask | None = None
+    """(H, W) bool region of interest (True = reconstruct here); None = whole image."""
+
+    def __post_init__(self) -> None:
+        h, w = self.image.shape[:2]
+        if (w, h) != self.camera.size:
+            raise ValueError(
+                f"view {self.camera.name!r}: image is {w}x{h}, camera expects "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        if self.camera.has_distortion:
+            raise ValueError(f"view {self.camera.name!r}: view cameras must be undistorted")
+        if self.mask is not None and self.mask.shape != (h, w):
+            raise ValueError(f"view {self.camera.name!r}: mask shape {self.mask.shape} != {(h, w)}")
+
+    @property
+    def name(self) -> str:
+        return self.camera.name
+
+
+def resize_mask(mask: Mask, size: tuple[int, int]) -> Mask:
+    """Resize a boolean mask to ``size`` = (width, height) (nearest neighbour)."""
+    if (mask.shape[1], mask.shape[0]) == size:
+        return mask.astype(bool, copy=False)
+    out = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    return out.astype(bool)
+
+
+def undistort_mask(camera: Camera, mask: Mask, scale: float) -> Mask:
+    """Map a full-resolution mask of a (possibly distorted) camera to its view at ``scale``."""
+    if not camera.has_distortion:
+        return resize_mask(mask, camera.scaled(scale).size)
+    mx, my = camera.undistort_maps(scale)
+    out = cv2.remap(mask.astype(np.uint8) * 255, mx, my, interpolation=cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out > 127
+
+
+def prepare_views(
+    frames: FrameSet,
+    rig: Rig,
+    scale: float = 1.0,
+    camera_ids: Sequence[int] | None = None,
+    masks: Sequence[Mask | None] | None = None,
+) -> list[View]:
+    """Undistort and rescale the frames of ``camera_ids`` (default: all with a frame).
+
+    ``masks``, when given, holds one full-resolution mask (or None) per rig camera. Cameras
+    without a frame are left out (the caller sees which in ``View.camera_id``).
+    """
+    if len(frames.images) != len(rig):
+        raise DataError(
+            f"frame set of time {frames.time_index} has {len(frames.images)} images for a rig of "
+            f"{len(rig)} cameras"
+        )
+    if not 0.0 < scale <= 1.0:
+        raise ValueError(f"scale must be in (0, 1], got {scale}")
+    ids = list(range(len(rig))) if camera_ids is None else [rig.index(i) for i in camera_ids]
+    views = []
+    for i in ids:
+        image = frames.images[i]
+        if image is None:
+            continue
+        cam = rig[i]
+        mask = None
+        if masks is not None and masks[i] is not None:
+            m = masks[i]
+            if m.shape != (cam.height, cam.width):  # type: ignore[union-attr]
+                raise DataError(
+                    f"camera {cam.name!r}: mask is {m.shape[1]}x{m.shape[0]} but frames are "  # type: ignore[union-attr]
+                    f"{cam.width}x{cam.height}"
+                )
+            mask = undistort_mask(cam, m, scale)  # type: ignore[arg-type]
+        views.append(View(camera_id=i, camera=cam.scaled(scale).undistorted(),
+                          image=cam.prepare_image(image, scale), mask=mask))
+    return views

@@ -1,0 +1,60 @@
+import math
+
+import numpy as np
+import pytest
+
+from edgerecon.quality import evaluate_clouds, fscore
+from edgerecon.types import PointCloud
+
+
+def grid(n=20, spacing=0.01):
+    g = np.stack(np.meshgrid(*[np.arange(n) * spacing] * 2, indexing="ij"), -1).reshape(-1, 2)
+    return np.hstack([g, np.zeros((len(g), 1))])
+
+
+def test_identical_clouds_score_one():
+    pts = grid()
+    (s,) = evaluate_clouds(pts, pts, 0.001)
+    assert s.precision == s.recall == s.fscore == 1.0
+    assert s.accuracy_mean == 0.0 and s.completeness_median == 0.0
+
+
+def test_shift_beyond_threshold_scores_zero():
+    pts = grid()
+    shifted = pts + [0, 0, 0.05]
+    s1, s2 = evaluate_clouds(shifted, pts, [0.01, 0.06])
+    assert s1.fscore == 0.0
+    assert s2.fscore == 1.0
+    assert s1.accuracy_mean == pytest.approx(0.05)
+
+
+def test_partial_overlap_precision_recall():
+    ref = grid()  # 400 points
+    pred = ref[:100]
+    (s,) = evaluate_clouds(pred, ref, 0.001)
+    assert s.precision == 1.0
+    assert s.recall == pytest.approx(0.25)
+    assert s.fscore == pytest.approx(2 * 0.25 / 1.25)
+    outliers = np.vstack([pred, pred[:50] + [0, 0, 1.0]])
+    (s,) = evaluate_clouds(outliers, ref, 0.001)
+    assert s.precision == pytest.approx(100 / 150)
+
+
+def test_empty_clouds_have_defined_scores():
+    pts = grid(5)
+    empty = np.zeros((0, 3))
+    (s,) = evaluate_clouds(empty, pts, 0.01)
+    assert (s.precision, s.recall, s.fscore) == (1.0, 0.0, 0.0)
+    assert math.isinf(s.accuracy_mean) and s.to_dict()["accuracy_mean"] is None
+    (s,) = evaluate_clouds(pts, empty, 0.01)
+    assert (s.precision, s.recall, s.fscore) == (0.0, 1.0, 0.0)
+    assert fscore(PointCloud.empty(), PointCloud.empty(), 0.01) == 1.0
+
+
+def test_rejects_bad_threshold_and_nan():
+    with pytest.raises(ValueError, match="threshold"):
+        evaluate_clouds(grid(3), grid(3), 0.0)
+    bad = grid(3)
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        evaluate_clouds(bad, grid(3), 0.1)
