@@ -20,15 +20,23 @@ def shared_data(name: str) -> Path:
     return path
 
 
-def ring_rig(num_cameras: int = 5, radius: float = 4.0, height: float = 1.5,
-             width: int = 640, height_px: int = 480, focal_px: float = 500.0,
-             dist: tuple[float, ...] = (0, 0, 0, 0, 0)) -> Rig:
+def ring_rig(
+    num_cameras: int = 5,
+    radius: float = 4.0,
+    height: float = 1.5,
+    width: int = 640,
+    height_px: int = 480,
+    focal_px: float = 500.0,
+    dist: tuple[float, ...] = (0, 0, 0, 0, 0),
+) -> Rig:
     """Cameras on a circle around the origin, looking at (0, 0, 1), metres, z up."""
     cams = []
     for i in range(num_cameras):
         a = 2 * np.pi * i / num_cameras
         R, t = look_at((radius * np.cos(a), radius * np.sin(a), height), (0, 0, 1.0))
-        K = np.array([[focal_px, 0, (width - 1) / 2], [0, focal_px, (height_px - 1) / 2], [0, 0, 1]])
+        K = np.array(
+            [[focal_px, 0, (width - 1) / 2], [0, focal_px, (height_px - 1) / 2], [0, 0, 1]]
+        )
         cams.append(Camera(name=f"cam{i}", width=width, height=height_px, K=K, R=R, t=t, dist=dist))
     return Rig(cameras=tuple(cams), unit="m")
 

@@ -114,9 +114,14 @@ class PointCloud:
 
     def with_labels(self, labels: NDArray[np.int32] | int) -> PointCloud:
         lab = np.full(len(self), labels, np.int32) if np.isscalar(labels) else labels
-        return PointCloud(points3D=self.points3D, colors=self.colors, normals=self.normals,
-                          labels=lab, confidence=self.confidence,  # type: ignore[arg-type]
-                          attributes=dict(self.attributes))
+        return PointCloud(
+            points3D=self.points3D,
+            colors=self.colors,
+            normals=self.normals,
+            labels=lab,
+            confidence=self.confidence,  # type: ignore[arg-type]
+            attributes=dict(self.attributes),
+        )
 
     @staticmethod
     def concatenate(clouds: Sequence[PointCloud]) -> PointCloud:

@@ -59,8 +59,14 @@ def undistort_mask(camera: Camera, mask: Mask, scale: float) -> Mask:
     if not camera.has_distortion:
         return resize_mask(mask, camera.scaled(scale).size)
     mx, my = camera.undistort_maps(scale)
-    out = cv2.remap(mask.astype(np.uint8) * 255, mx, my, interpolation=cv2.INTER_NEAREST,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out = cv2.remap(
+        mask.astype(np.uint8) * 255,
+        mx,
+        my,
+        interpolation=cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
     return out > 127
 
 
@@ -99,6 +105,12 @@ def prepare_views(
                     f"{cam.width}x{cam.height}"
                 )
             mask = undistort_mask(cam, m, scale)  # type: ignore[arg-type]
-        views.append(View(camera_id=i, camera=cam.scaled(scale).undistorted(),
-                          image=cam.prepare_image(image, scale), mask=mask))
+        views.append(
+            View(
+                camera_id=i,
+                camera=cam.scaled(scale).undistorted(),
+                image=cam.prepare_image(image, scale),
+                mask=mask,
+            )
+        )
     return views

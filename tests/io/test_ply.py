@@ -14,8 +14,10 @@ def test_ply_roundtrip_all_attributes(tmp_path):
         normals=rng.normal(size=(n, 3)),
         labels=rng.integers(-1, 4, n),
         confidence=rng.random(n),
-        attributes={"bg_version": rng.integers(0, 9, n).astype(np.int32),
-                    "num_views": rng.integers(2, 7, n).astype(np.uint8)},
+        attributes={
+            "bg_version": rng.integers(0, 9, n).astype(np.int32),
+            "num_views": rng.integers(2, 7, n).astype(np.uint8),
+        },
     )
     path = write_ply(tmp_path / "c.ply", cloud, double=True)
     back = read_ply(path)
@@ -39,9 +41,11 @@ def test_ply_float32_and_empty(tmp_path):
 
 def test_ascii_ply_and_errors(tmp_path):
     p = tmp_path / "a.ply"
-    p.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
-                 "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
-                 "end_header\n0 0 0 255 0 0\n1 2 3 0 255 0\n")
+    p.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+        "end_header\n0 0 0 255 0 0\n1 2 3 0 255 0\n"
+    )
     c = read_ply(p)
     np.testing.assert_array_equal(c.points3D[1], [1, 2, 3])
     np.testing.assert_array_equal(c.colors[0], [255, 0, 0])

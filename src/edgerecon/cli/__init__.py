@@ -27,8 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Multi-view 3D reconstruction of dynamic scenes on edge devices.",
     )
     parser.add_argument("--version", action="version", version=f"edgerecon {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more log output (-vv for debug)")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)"
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     names = sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
@@ -42,8 +43,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s",
-                        stream=sys.stderr)
+    logging.basicConfig(
+        level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
     # Progress bars only on an interactive terminal and never when JSON goes to stdout.
     progress.enable(error_console.is_terminal and not getattr(args, "json", False))
     try:

@@ -39,12 +39,16 @@ def emit_json(data: Any) -> None:
 
 
 def add_json_flag(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", action="store_true",
-                        help="print machine-readable results (JSON) to stdout instead of tables")
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print machine-readable results (JSON) to stdout instead of tables",
+    )
 
 
-def print_table(title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]],
-                stderr: bool = False) -> None:
+def print_table(
+    title: str, columns: Sequence[str], rows: Iterable[Sequence[Any]], stderr: bool = False
+) -> None:
     table = Table(title=title)
     for col in columns:
         table.add_column(col, justify="right" if col not in ("stage", "camera", "name") else "left")

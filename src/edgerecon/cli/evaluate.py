@@ -10,13 +10,22 @@ from edgerecon.quality import evaluate_clouds
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("evaluate", help="score a point cloud against a reference cloud",
-                       description="Precision, recall, F-score (at each threshold), accuracy and "
-                                   "completeness of PRED against REF.")
+    p = sub.add_parser(
+        "evaluate",
+        help="score a point cloud against a reference cloud",
+        description="Precision, recall, F-score (at each threshold), accuracy and "
+        "completeness of PRED against REF.",
+    )
     p.add_argument("pred", help="predicted cloud (PLY)")
     p.add_argument("ref", help="reference cloud (PLY)")
-    p.add_argument("--threshold", "-d", type=float, nargs="+", default=[0.01, 0.02],
-                   help="distance threshold(s) d in the clouds' unit (default: 0.01 0.02)")
+    p.add_argument(
+        "--threshold",
+        "-d",
+        type=float,
+        nargs="+",
+        default=[0.01, 0.02],
+        help="distance threshold(s) d in the clouds' unit (default: 0.01 0.02)",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -30,9 +39,28 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print_table(
         f"{args.pred} vs {args.ref} ({len(pred):,} vs {len(ref):,} points)",
-        ["d", "precision", "recall", "F-score", "acc. mean", "acc. median", "compl. mean",
-         "compl. median"],
-        [[s.threshold, s.precision, s.recall, s.fscore, s.accuracy_mean, s.accuracy_median,
-          s.completeness_mean, s.completeness_median] for s in scores],
+        [
+            "d",
+            "precision",
+            "recall",
+            "F-score",
+            "acc. mean",
+            "acc. median",
+            "compl. mean",
+            "compl. median",
+        ],
+        [
+            [
+                s.threshold,
+                s.precision,
+                s.recall,
+                s.fscore,
+                s.accuracy_mean,
+                s.accuracy_median,
+                s.completeness_mean,
+                s.completeness_median,
+            ]
+            for s in scores
+        ],
     )
     return 0

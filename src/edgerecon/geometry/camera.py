@@ -35,7 +35,9 @@ ORTHONORMAL_TOL = 1e-5
 def _as_matrix(value: Any, shape: tuple[int, ...], name: str, camera: str) -> NDArray[np.float64]:
     arr = np.asarray(value, dtype=np.float64)
     if arr.size != int(np.prod(shape)):
-        raise CalibrationError(f"camera {camera!r}: {name} must have shape {shape}, got {arr.shape}")
+        raise CalibrationError(
+            f"camera {camera!r}: {name} must have shape {shape}, got {arr.shape}"
+        )
     arr = arr.reshape(shape).copy()
     if not np.all(np.isfinite(arr)):
         raise CalibrationError(f"camera {camera!r}: {name} contains NaN or infinite values")
@@ -120,8 +122,17 @@ class Camera:
         )
 
     def __hash__(self) -> int:
-        return hash((self.name, self.width, self.height, self.K.tobytes(), self.R.tobytes(),
-                     self.t.tobytes(), self.dist.tobytes()))
+        return hash(
+            (
+                self.name,
+                self.width,
+                self.height,
+                self.K.tobytes(),
+                self.R.tobytes(),
+                self.t.tobytes(),
+                self.dist.tobytes(),
+            )
+        )
 
     # ----------------------------------------------------------------------------- derived
     @property
@@ -223,7 +234,12 @@ class Camera:
             return np.zeros((0, 3))
         if self.has_distortion:
             und = cv2.undistortPoints(
-                pts.reshape(-1, 1, 2), self.K, self.dist, None, None, None,
+                pts.reshape(-1, 1, 2),
+                self.K,
+                self.dist,
+                None,
+                None,
+                None,
                 (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12),
             ).reshape(-1, 2)
             und = _refine_undistortion(und, pts, self.K, self.dist)
@@ -278,8 +294,9 @@ class Camera:
             sigma = 0.5 / scale
             image = cv2.GaussianBlur(image, (0, 0), sigmaX=sigma * 0.8)
         mx, my = self.undistort_maps(scale)
-        return cv2.remap(image, mx, my, interpolation=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_CONSTANT)
+        return cv2.remap(
+            image, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe representation (floats written with full precision by ``json``)."""
@@ -296,8 +313,15 @@ class Camera:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Camera:
         try:
-            return cls(name=str(d["name"]), width=d["width"], height=d["height"], K=d["K"],
-                       R=d["R"], t=d["t"], dist=d.get("dist", np.zeros(5)))
+            return cls(
+                name=str(d["name"]),
+                width=d["width"],
+                height=d["height"],
+                K=d["K"],
+                R=d["R"],
+                t=d["t"],
+                dist=d.get("dist", np.zeros(5)),
+            )
         except KeyError as exc:
             raise CalibrationError(
                 f"camera {d.get('name', '?')!r}: missing field {exc.args[0]!r}"
@@ -316,8 +340,11 @@ def _undistort_maps_cached(
 
 
 def _refine_undistortion(
-    und: NDArray[np.float64], pixels: NDArray[np.float64], K: NDArray[np.float64],
-    dist: NDArray[np.float64], iterations: int = 4,
+    und: NDArray[np.float64],
+    pixels: NDArray[np.float64],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    iterations: int = 4,
 ) -> NDArray[np.float64]:
     """Newton steps on ``distort(x) = observed`` (OpenCV's fixed-point iteration stalls near
     the borders of strongly distorted lenses)."""
@@ -420,7 +447,8 @@ class Rig:
         """The rig restricted to ``camera_ids`` (in that order)."""
         ids = [self.index(i) for i in camera_ids]
         return dataclasses.replace(
-            self, cameras=tuple(self.cameras[i] for i in ids),
+            self,
+            cameras=tuple(self.cameras[i] for i in ids),
             min_cameras=self.min_cameras if min_cameras is None else min_cameras,
         )
 
@@ -455,8 +483,9 @@ class Rig:
         if d.get("format") != "edgerecon-rig":
             raise CalibrationError("not an edgerecon rig file (missing format: edgerecon-rig)")
         cams = tuple(Camera.from_dict(c) for c in d.get("cameras", []))
-        return cls(cameras=cams, unit=str(d.get("unit", "m")),
-                   up=tuple(d.get("up", (0.0, 0.0, 1.0))))  # type: ignore[arg-type]
+        return cls(
+            cameras=cams, unit=str(d.get("unit", "m")), up=tuple(d.get("up", (0.0, 0.0, 1.0)))
+        )  # type: ignore[arg-type]
 
 
 def fundamental_matrix(cam_a: Camera, cam_b: Camera) -> NDArray[np.float64]:
@@ -469,7 +498,9 @@ def fundamental_matrix(cam_a: Camera, cam_b: Camera) -> NDArray[np.float64]:
     return F / np.linalg.norm(F)
 
 
-def triangulation_angle_deg(cam_a: Camera, cam_b: Camera, points3D: Points3D) -> NDArray[np.float64]:
+def triangulation_angle_deg(
+    cam_a: Camera, cam_b: Camera, points3D: Points3D
+) -> NDArray[np.float64]:
     """(N,) angle in degrees between the rays from both camera centres to each point."""
     pts = np.asarray(points3D, dtype=np.float64).reshape(-1, 3)
     da = pts - cam_a.center

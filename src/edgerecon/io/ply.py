@@ -18,13 +18,33 @@ import numpy as np
 from edgerecon.types import DataError, PointCloud
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
-_NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
-                 "u4": "uint", "f4": "float", "f8": "double"}
+_NUMPY_TO_PLY = {
+    "i1": "char",
+    "u1": "uchar",
+    "i2": "short",
+    "u2": "ushort",
+    "i4": "int",
+    "u4": "uint",
+    "f4": "float",
+    "f8": "double",
+}
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], write: Any) -> Path:
@@ -86,8 +106,12 @@ def write_ply(path: str | os.PathLike[str], cloud: PointCloud, *, double: bool =
     data = np.empty(n, dtype=np.dtype(fields))
     for (name, _), col in zip(fields, cols, strict=True):
         data[name] = col
-    header = ["ply", "format binary_little_endian 1.0", "comment written by edgerecon",
-              f"element vertex {n}"]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment written by edgerecon",
+        f"element vertex {n}",
+    ]
     for name, code in fields:
         header.append(f"property {_NUMPY_TO_PLY[code.lstrip('<')]} {name}")
     header.append("end_header")
@@ -150,7 +174,9 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
         dtype = np.dtype([(name, endian + code) for name, code in props])
         raw = f.read(dtype.itemsize * n)
         if len(raw) < dtype.itemsize * n:
-            raise DataError(f"{path}: truncated PLY body ({len(raw)} of {dtype.itemsize * n} bytes)")
+            raise DataError(
+                f"{path}: truncated PLY body ({len(raw)} of {dtype.itemsize * n} bytes)"
+            )
         arr = np.frombuffer(raw, dtype=dtype, count=n)
         data = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name, _ in props}
     for key in "xyz":
@@ -162,7 +188,11 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
     if all(k in data for k in ("nx", "ny", "nz")):
         normals = np.stack([data["nx"], data["ny"], data["nz"]], axis=1)
         used |= {"nx", "ny", "nz"}
-    for names in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+    for names in (
+        ("red", "green", "blue"),
+        ("r", "g", "b"),
+        ("diffuse_red", "diffuse_green", "diffuse_blue"),
+    ):
         if all(k in data for k in names):
             colors = np.stack([data[k] for k in names], axis=1)
             used |= set(names)
@@ -172,5 +202,11 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
     if "confidence" in data:
         confidence, used = data["confidence"], used | {"confidence"}
     attrs = {k: v for k, v in data.items() if k not in used}
-    return PointCloud(points3D=pts, colors=colors, normals=normals, labels=labels,
-                      confidence=confidence, attributes=attrs)
+    return PointCloud(
+        points3D=pts,
+        colors=colors,
+        normals=normals,
+        labels=labels,
+        confidence=confidence,
+        attributes=attrs,
+    )

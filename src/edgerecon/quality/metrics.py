@@ -44,8 +44,10 @@ class QualityScore:
     num_ref: int
 
     def to_dict(self) -> dict[str, float | int | None]:
-        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                for k, v in asdict(self).items()}
+        return {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in asdict(self).items()
+        }
 
 
 def _as_points(cloud: PointCloud | Points3D) -> NDArray[np.float64]:
@@ -101,12 +103,20 @@ def evaluate_clouds(
             precision = float(np.count_nonzero(d_pr <= th)) / len(p)
             recall = float(np.count_nonzero(d_rp <= th)) / len(r)
             f = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
-        scores.append(QualityScore(
-            threshold=th, precision=precision, recall=recall, fscore=f,
-            accuracy_mean=stat(d_pr, "mean"), accuracy_median=stat(d_pr, "median"),
-            completeness_mean=stat(d_rp, "mean"), completeness_median=stat(d_rp, "median"),
-            num_pred=len(p), num_ref=len(r),
-        ))
+        scores.append(
+            QualityScore(
+                threshold=th,
+                precision=precision,
+                recall=recall,
+                fscore=f,
+                accuracy_mean=stat(d_pr, "mean"),
+                accuracy_median=stat(d_pr, "median"),
+                completeness_mean=stat(d_rp, "mean"),
+                completeness_median=stat(d_rp, "median"),
+                num_pred=len(p),
+                num_ref=len(r),
+            )
+        )
     return scores
 
 
