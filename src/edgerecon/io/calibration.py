@@ -1,0 +1,780 @@
+"""Calibration readers and writers: every format returns an ``edgerecon.geometry.Rig``.
+
+Formats (``load_rig`` detects them from a file or a folder):
+
+* **edgerecon rig JSON** (``rig.json``; ``save_rig`` / ``read_rig_json``): ``Rig.to_dict()``
+  written with ``repr``-exact floats, so a round trip is bit-identical.
+* **openMVG** ``sfm_data.json``: intrinsics ``pinhole``, ``pinhole_radial_k1``,
+  ``pinhole_radial_k3`` (k1, k2, k3 -> OpenCV (k1, k2, 0, 0, k3)) and ``pinhole_brown_t2``
+  (k1, k2, k3, t1, t2). openMVG's Brown model is
+  ``x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + t2 (r^2 + 2 x^2) + 2 t1 x y`` and
+  ``y_d = y (...) + t1 (r^2 + 2 y^2) + 2 t2 x y``, which is OpenCV's with ``p1 = t1`` and
+  ``p2 = t2``. Poses: ``rotation`` is the world->camera R and ``center`` the camera centre C,
+  so ``t = -R C``. Views without a pose are skipped with a warning. Camera names are the view
+  file stems (``000.png`` -> ``"000"``), or ``"cam{key}"`` when they are not unique. The
+  principal point is used as written (openMVG, like edgerecon, puts pixel centres on integer
+  coordinates). openMVG stores no unit: SfM scales are arbitrary, pass ``unit=`` if known.
+* **OpenCV FileStorage XML**, one file per camera as in utrecht4cam's ``camN/config.xml``:
+  ``CameraMatrix`` (3x3), ``DistortionCoeffs`` (k1 k2 p1 p2 [k3]), ``Rotation`` (3x1 Rodrigues
+  vector or 3x3 matrix) and ``Translation`` (3x1), world->camera. These files carry no image
+  size: it comes from ``image_sizes`` or from a video / image next to the file (a folder of
+  ``camN/config.xml`` uses ``camN/video.avi``). A folder of such cameras reads as unit "mm"
+  and up = (0, 0, -1): utrecht4cam's checkerboard world frame has Z pointing down.
+* **Middlebury** ``*_par.txt``: a count line, then per image
+  ``name k11..k33 r11..r33 t1 t2 t3`` (``K [R | t]`` world->camera, metres). Image sizes
+  are read from the image files next to it. Camera names are the image stems.
+* **COLMAP text model** (``cameras.txt`` + ``images.txt``; ``read_colmap_text`` /
+  ``write_colmap_text``). Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
+  FULL_OPENCV (when k4..k6 are zero, the rest is OpenCV's k1 k2 p1 p2 k3). Poses are
+  ``cam_from_world`` quaternions (QW QX QY QZ) and translations. COLMAP puts the centre of the
+  top-left pixel at (0.5, 0.5): principal points are shifted by 0.5 pixel each way. Camera
+  names are the image names without their extension. The writer records the rig's unit and up
+  direction in a comment that the reader understands (COLMAP ignores comments).
+
+Every malformed or inconsistent input raises ``CalibrationError`` naming the file, the camera
+when there is one, and the problem.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.io.frames import (
+    IMAGE_EXTENSIONS,
+    VIDEO_EXTENSIONS,
+    natural_key,
+    probe_image_size,
+    probe_video,
+)
+from edgerecon.io.ply import atomic_write_text
+from edgerecon.types import CalibrationError, DataError
+
+logger = logging.getLogger(__name__)
+
+ImageSizes = Mapping[str, tuple[int, int]] | tuple[int, int]
+"""Image sizes ``(width, height)`` per camera name, or one size for every camera."""
+
+#: Names of the calibration formats ``detect_calibration_format`` returns.
+FORMATS = ("edgerecon", "openmvg", "opencv-xml", "middlebury", "colmap")
+
+
+@contextlib.contextmanager
+def _in_file(path: Path | str) -> Iterator[None]:
+    """Prefix CalibrationErrors raised inside (e.g. by Camera/Rig validation) with a file."""
+    try:
+        yield
+    except CalibrationError as exc:
+        msg = str(exc)
+        if str(path) in msg:
+            raise
+        raise CalibrationError(f"{path}: {msg}") from None
+
+
+def _size_for(image_sizes: ImageSizes | None, name: str) -> tuple[int, int] | None:
+    if image_sizes is None:
+        return None
+    if (
+        isinstance(image_sizes, tuple)
+        and len(image_sizes) == 2
+        and not isinstance(image_sizes[0], str)
+    ):
+        return (int(image_sizes[0]), int(image_sizes[1]))
+    assert isinstance(image_sizes, Mapping)
+    size = image_sizes.get(name)
+    return None if size is None else (int(size[0]), int(size[1]))
+
+
+# ============================================================================== rig JSON
+def save_rig(path: str | os.PathLike[str], rig: Rig) -> Path:
+    """Write ``rig`` as edgerecon rig JSON, atomically. ``json`` writes floats with ``repr``,
+    which round-trips every float64 exactly."""
+    return atomic_write_text(path, json.dumps(rig.to_dict(), indent=2) + "\n")
+
+
+def read_rig_json(path: str | os.PathLike[str]) -> Rig:
+    """Read an edgerecon rig JSON file (``save_rig``'s output)."""
+    path = Path(path)
+    data = _read_json(path)
+    if not isinstance(data, dict):
+        raise CalibrationError(f"{path}: not an edgerecon rig file (top level is not an object)")
+    with _in_file(path):
+        for i, cam in enumerate(data.get("cameras", [])):
+            if not isinstance(cam, dict):
+                raise CalibrationError(f"camera #{i}: not a JSON object")
+        try:
+            return Rig.from_dict(data)
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, CalibrationError):
+                raise
+            raise CalibrationError(f"malformed rig file ({exc})") from None
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None
+
+
+# ============================================================================== openMVG
+_OPENMVG_UNDEFINED = 4294967295  # openMVG's UndefinedIndexT
+
+
+def read_openmvg_sfm_data(path: str | os.PathLike[str], *, unit: str = "m") -> Rig:
+    """Read the posed views of an openMVG ``sfm_data.json`` as a rig."""
+    path = Path(path)
+    data = _read_json(path)
+    with _in_file(path):
+        if not isinstance(data, dict) or "views" not in data:
+            raise CalibrationError("not an openMVG sfm_data file (no 'views')")
+        intrinsics = _openmvg_intrinsics(data.get("intrinsics", []))
+        poses: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+        for item in data.get("extrinsics", []):
+            try:
+                key = int(item["key"])
+                value = item["value"]
+                R = np.asarray(value["rotation"], dtype=np.float64)
+                C = np.asarray(value["center"], dtype=np.float64)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise CalibrationError(f"malformed extrinsic entry ({_describe(exc)})") from None
+            poses[key] = (R, C)
+        views = []
+        for item in data["views"]:
+            try:
+                key = int(item["key"])
+                view = item["value"]["ptr_wrapper"]["data"]
+                id_pose = int(view["id_pose"])
+                id_intrinsic = int(view["id_intrinsic"])
+                filename = str(view.get("filename", ""))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise CalibrationError(f"malformed view entry ({_describe(exc)})") from None
+            views.append((key, filename, id_pose, id_intrinsic))
+        stems = [Path(f).stem for _, f, _, _ in views]
+        unique_stems = all(stems) and len(set(stems)) == len(stems)
+        cameras = []
+        for (key, filename, id_pose, id_intrinsic), stem in zip(views, stems, strict=True):
+            name = stem if unique_stems else f"cam{key}"
+            if id_pose == _OPENMVG_UNDEFINED or id_pose not in poses:
+                logger.warning("%s: view %d (%s) has no pose; skipped", path, key, filename)
+                continue
+            if id_intrinsic not in intrinsics:
+                raise CalibrationError(
+                    f"camera {name!r}: view {key} refers to intrinsic {id_intrinsic}, "
+                    "which the file does not define"
+                )
+            width, height, K, dist = intrinsics[id_intrinsic]
+            R, C = poses[id_pose]
+            if R.shape != (3, 3) or C.shape != (3,):
+                raise CalibrationError(
+                    f"camera {name!r}: rotation must be 3x3 and center 3-vector, got "
+                    f"{R.shape} and {C.shape}"
+                )
+            cameras.append(
+                Camera(name=name, width=width, height=height, K=K, R=R, t=-R @ C, dist=dist)
+            )
+        return Rig(cameras=tuple(cameras), unit=unit)
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, KeyError):
+        return f"missing field {exc.args[0]!r}"
+    return str(exc)
+
+
+def _openmvg_intrinsics(
+    items: list[Any],
+) -> dict[int, tuple[int, int, NDArray[np.float64], NDArray[np.float64]]]:
+    """Intrinsics by id. cereal writes a polymorphic type's name only at its first use;
+    later entries refer to it by ``polymorphic_id`` (the first one has bit 31 set)."""
+    names: dict[int, str] = {}
+    out = {}
+    for item in items:
+        try:
+            key = int(item["key"])
+            value = item["value"]
+            pid = int(value["polymorphic_id"]) & 0x7FFFFFFF
+            if "polymorphic_name" in value:
+                names[pid] = str(value["polymorphic_name"])
+            model = names.get(pid)
+            if model is None:
+                raise CalibrationError(f"intrinsic {key}: unknown polymorphic id {pid}")
+            d = value["ptr_wrapper"]["data"]
+            width, height = int(d["width"]), int(d["height"])
+            f = float(d["focal_length"])
+            cx, cy = (float(v) for v in d["principal_point"])
+            dist = np.zeros(5)
+            if model == "pinhole":
+                pass
+            elif model == "pinhole_radial_k1":
+                dist[0] = float(d["disto_k1"][0])
+            elif model == "pinhole_radial_k3":
+                k1, k2, k3 = (float(v) for v in d["disto_k3"])
+                dist[:] = (k1, k2, 0.0, 0.0, k3)
+            elif model == "pinhole_brown_t2":
+                k1, k2, k3, t1, t2 = (float(v) for v in d["disto_t2"])
+                dist[:] = (k1, k2, t1, t2, k3)
+            else:
+                raise CalibrationError(
+                    f"intrinsic {key}: unsupported openMVG camera model {model!r} (supported: "
+                    "pinhole, pinhole_radial_k1, pinhole_radial_k3, pinhole_brown_t2)"
+                )
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, CalibrationError):
+                raise
+            raise CalibrationError(f"malformed intrinsic entry ({_describe(exc)})") from None
+        K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        out[key] = (width, height, K, dist)
+    return out
+
+
+# ============================================================================== OpenCV XML
+def read_opencv_camera_xml(
+    path: str | os.PathLike[str], *, name: str, image_size: tuple[int, int] | None
+) -> Camera:
+    """Read one camera from an OpenCV FileStorage file (utrecht4cam's ``config.xml``).
+
+    ``image_size`` (width, height) is required: these files do not record it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"camera {name!r}: calibration file not found: {path}")
+    if image_size is None:
+        raise CalibrationError(
+            f"camera {name!r}: {path} has no image size and none was found: give image_sizes "
+            "or put the camera's video/images next to it"
+        )
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise CalibrationError(
+            f"camera {name!r}: {path} is not a readable OpenCV FileStorage file "
+            f"({str(exc).strip().splitlines()[-1]})"
+        ) from None
+    try:
+        if not fs.isOpened():
+            raise CalibrationError(f"camera {name!r}: cannot open {path} as OpenCV FileStorage")
+
+        def matrix(key: str, required: bool = True) -> NDArray[np.float64] | None:
+            node = fs.getNode(key)
+            if node.empty():
+                if required:
+                    raise CalibrationError(f"camera {name!r}: {path} has no {key!r} entry")
+                return None
+            mat = node.mat()
+            if mat is None:
+                raise CalibrationError(f"camera {name!r}: {path}: {key!r} is not a matrix")
+            return np.asarray(mat, dtype=np.float64)
+
+        K = matrix("CameraMatrix")
+        dist = matrix("DistortionCoeffs", required=False)
+        rot = matrix("Rotation")
+        trans = matrix("Translation")
+    finally:
+        fs.release()
+    assert K is not None and rot is not None and trans is not None
+    with _in_file(path):
+        if rot.size == 3:
+            R = np.asarray(cv2.Rodrigues(rot.reshape(3, 1))[0], dtype=np.float64)
+        elif rot.size == 9:
+            R = rot.reshape(3, 3)
+        else:
+            raise CalibrationError(
+                f"camera {name!r}: Rotation must be a 3x1 Rodrigues vector or a 3x3 matrix, "
+                f"got shape {rot.shape}"
+            )
+        if dist is not None and dist.size not in (4, 5, 8, 12, 14):
+            raise CalibrationError(
+                f"camera {name!r}: DistortionCoeffs must have 4, 5, 8, 12 or 14 entries, "
+                f"got {dist.size}"
+            )
+        return Camera(
+            name=name,
+            width=image_size[0],
+            height=image_size[1],
+            K=K,
+            R=R,
+            t=trans.ravel(),
+            dist=np.zeros(5) if dist is None else dist.ravel(),
+        )
+
+
+def opencv_xml_cameras(root: str | os.PathLike[str]) -> list[tuple[str, Path]]:
+    """(camera name, config file) of a utrecht4cam-style folder: sub-folders holding a
+    ``config.xml``, named after the folder, in natural order. Empty if there are none."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    found = [
+        (d.name, d / "config.xml")
+        for d in root.iterdir()
+        if d.is_dir() and (d / "config.xml").is_file()
+    ]
+    return sorted(found, key=lambda item: natural_key(item[0]))
+
+
+def camera_folder_frame_size(folder: Path, camera: str) -> tuple[int, int] | None:
+    """Frame size of a camera folder from ``video.avi``, another video or an image in it."""
+    candidates = [folder / "video.avi"] + sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in VIDEO_EXTENSIONS),
+        key=lambda p: natural_key(p.name),
+    )
+    for video in candidates:
+        if video.is_file():
+            info = probe_video(video, camera)
+            return (info.width, info.height)
+    images = sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
+        key=lambda p: natural_key(p.name),
+    )
+    if images:
+        return probe_image_size(images[0])
+    return None
+
+
+def read_opencv_xml_rig(
+    root: str | os.PathLike[str],
+    image_sizes: ImageSizes | None = None,
+    *,
+    unit: str = "mm",
+    up: tuple[float, float, float] = (0.0, 0.0, -1.0),
+) -> Rig:
+    """Read a utrecht4cam-style folder: ``camN/config.xml`` per camera.
+
+    Image sizes come from ``image_sizes`` or from each camera folder's ``video.avi`` (or any
+    video / image there). Defaults to utrecht4cam's unit (mm) and up direction (-Z).
+    """
+    root = Path(root)
+    entries = opencv_xml_cameras(root)
+    if not entries:
+        raise CalibrationError(f"{root}: no camera folders with a config.xml")
+    cameras = []
+    for name, config in entries:
+        size = _size_for(image_sizes, name)
+        if size is None:
+            try:
+                size = camera_folder_frame_size(config.parent, name)
+            except DataError as exc:
+                raise CalibrationError(
+                    f"camera {name!r}: {config} has no image size and the frames next to it "
+                    f"cannot tell it ({exc})"
+                ) from None
+        cameras.append(read_opencv_camera_xml(config, name=name, image_size=size))
+    with _in_file(root):
+        return Rig(cameras=tuple(cameras), unit=unit, up=up)
+
+
+# ============================================================================== Middlebury
+def read_middlebury_par(
+    path: str | os.PathLike[str], image_sizes: ImageSizes | None = None, *, unit: str = "m"
+) -> Rig:
+    """Read a Middlebury multi-view ``*_par.txt`` file; image sizes come from the images
+    next to it unless ``image_sizes`` gives them."""
+    path = Path(path)
+    try:
+        lines = [ln.split() for ln in path.read_text(encoding="utf-8").splitlines()]
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: cannot read ({exc})") from None
+    lines = [ln for ln in lines if ln]
+    if not lines:
+        raise CalibrationError(f"{path}: empty Middlebury parameter file")
+    try:
+        declared = int(lines[0][0])
+    except ValueError:
+        raise CalibrationError(
+            f"{path}: first line must be the number of images, got {' '.join(lines[0])!r}"
+        ) from None
+    rows = lines[1:]
+    if len(rows) != declared:
+        raise CalibrationError(f"{path}: declares {declared} images but lists {len(rows)}")
+    cameras = []
+    with _in_file(path):
+        for lineno, row in enumerate(rows, start=2):
+            if len(row) != 22:
+                raise CalibrationError(
+                    f"line {lineno}: expected 'name' + 21 numbers (K, R, t), got {len(row)} fields"
+                )
+            image_name = row[0]
+            name = Path(image_name).stem
+            try:
+                values = np.array([float(v) for v in row[1:]])
+            except ValueError as exc:
+                raise CalibrationError(f"camera {name!r} (line {lineno}): {exc}") from None
+            size = _size_for(image_sizes, name)
+            if size is None:
+                image_path = path.parent / image_name
+                try:
+                    size = probe_image_size(image_path)
+                except DataError as exc:
+                    raise CalibrationError(
+                        f"camera {name!r}: image size unknown ({exc}); pass image_sizes"
+                    ) from None
+            cameras.append(
+                Camera(
+                    name=name,
+                    width=size[0],
+                    height=size[1],
+                    K=values[:9],
+                    R=values[9:18],
+                    t=values[18:21],
+                )
+            )
+        return Rig(cameras=tuple(cameras), unit=unit)
+
+
+def middlebury_par_files(root: str | os.PathLike[str]) -> list[Path]:
+    root = Path(root)
+    return sorted(root.glob("*_par.txt")) if root.is_dir() else []
+
+
+# ============================================================================== COLMAP
+# model name -> number of parameters
+_COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": 3,
+    "PINHOLE": 4,
+    "SIMPLE_RADIAL": 4,
+    "RADIAL": 5,
+    "OPENCV": 8,
+    "FULL_OPENCV": 12,
+}
+_META = re.compile(r"#\s*edgerecon:\s*(.*)")
+
+
+def _colmap_intrinsics(
+    model: str, params: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(K, dist) of a COLMAP camera in edgerecon's pixel convention."""
+    dist = np.zeros(5)
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = params[0]
+        cx, cy = params[1], params[2]
+        if model == "SIMPLE_RADIAL":
+            dist[0] = params[3]
+        elif model == "RADIAL":
+            dist[:2] = params[3:5]
+    else:
+        fx, fy, cx, cy = params[:4]
+        if model in ("OPENCV", "FULL_OPENCV"):
+            dist[:4] = params[4:8]
+        if model == "FULL_OPENCV":
+            if np.any(params[9:12] != 0):
+                raise CalibrationError(
+                    "FULL_OPENCV with non-zero rational coefficients k4..k6 is not supported"
+                )
+            dist[4] = params[8]
+    # COLMAP: centre of the top-left pixel at (0.5, 0.5); edgerecon: at (0, 0).
+    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
+    return K, dist
+
+
+def _strip_image_ext(name: str) -> str:
+    base, ext = os.path.splitext(name)
+    return base if ext.lower() in IMAGE_EXTENSIONS else name
+
+
+def read_colmap_text(path: str | os.PathLike[str], *, unit: str | None = None) -> Rig:
+    """Read a COLMAP text model (a folder with ``cameras.txt`` and ``images.txt``).
+
+    ``unit`` overrides the unit recorded by ``write_colmap_text`` (default "m").
+    """
+    folder = Path(path)
+    if folder.is_file():
+        folder = folder.parent
+    cam_file, img_file = folder / "cameras.txt", folder / "images.txt"
+    for f in (cam_file, img_file):
+        if not f.is_file():
+            raise CalibrationError(f"COLMAP model incomplete: {f} not found")
+    meta: dict[str, str] = {}
+    intrinsics: dict[int, tuple[int, int, NDArray[np.float64], NDArray[np.float64]]] = {}
+    for lineno, line in enumerate(cam_file.read_text(encoding="utf-8").splitlines(), start=1):
+        m = _META.match(line.strip())
+        if m:
+            for word in m.group(1).split():
+                if "=" in word:
+                    k, v = word.split("=", 1)
+                    meta[k] = v
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        words = line.split()
+        where = f"{cam_file}:{lineno}"
+        try:
+            cam_id, model = int(words[0]), words[1]
+            width, height = int(words[2]), int(words[3])
+            params = np.array([float(v) for v in words[4:]])
+        except (IndexError, ValueError) as exc:
+            raise CalibrationError(f"{where}: malformed camera line ({exc})") from None
+        if model not in _COLMAP_MODELS:
+            raise CalibrationError(
+                f"{where}: unsupported COLMAP camera model {model!r} "
+                f"(supported: {', '.join(_COLMAP_MODELS)})"
+            )
+        if params.size != _COLMAP_MODELS[model]:
+            raise CalibrationError(
+                f"{where}: {model} takes {_COLMAP_MODELS[model]} parameters, got {params.size}"
+            )
+        with _in_file(where):
+            K, dist = _colmap_intrinsics(model, params)
+        intrinsics[cam_id] = (width, height, K, dist)
+
+    lines = [
+        ln
+        for ln in img_file.read_text(encoding="utf-8").splitlines()
+        if not ln.lstrip().startswith("#")
+    ]
+    # Two lines per image: the pose line, then its (possibly empty) 2D points line.
+    entries = []
+    for i in range(0, len(lines), 2):
+        words = lines[i].split()
+        if not words:
+            continue
+        where = f"{img_file} (image line {i // 2 + 1})"
+        if len(words) < 10:
+            raise CalibrationError(
+                f"{where}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', "
+                f"got {len(words)} fields"
+            )
+        try:
+            q = np.array([float(v) for v in words[1:5]])
+            t = np.array([float(v) for v in words[5:8]])
+            cam_id = int(words[8])
+        except ValueError as exc:
+            raise CalibrationError(f"{where}: {exc}") from None
+        image_name = " ".join(words[9:])
+        entries.append((image_name, q, t, cam_id, where))
+    names = [_strip_image_ext(n) for n, *_ in entries]
+    cameras = []
+    for (_, q, t, cam_id, where), name in zip(entries, names, strict=True):
+        if cam_id not in intrinsics:
+            raise CalibrationError(
+                f"{where}: camera {name!r} uses CAMERA_ID {cam_id}, not in {cam_file}"
+            )
+        norm = float(np.linalg.norm(q))
+        if not abs(norm - 1.0) < 1e-3:
+            raise CalibrationError(
+                f"{where}: camera {name!r}: quaternion norm is {norm:.6g}, expected 1"
+            )
+        width, height, K, dist = intrinsics[cam_id]
+        with _in_file(where):
+            cameras.append(
+                Camera(
+                    name=name,
+                    width=width,
+                    height=height,
+                    K=K,
+                    R=quaternion_to_rotation(q / norm),
+                    t=t,
+                    dist=dist,
+                )
+            )
+    up = tuple(float(v) for v in meta["up"].split(",")) if "up" in meta else (0.0, 0.0, 1.0)
+    with _in_file(folder):
+        return Rig(
+            cameras=tuple(cameras),
+            unit=unit if unit is not None else meta.get("unit", "m"),
+            up=up,  # type: ignore[arg-type]
+        )
+
+
+def write_colmap_text(path: str | os.PathLike[str], rig: Rig) -> Path:
+    """Write ``rig`` as a COLMAP text model (``cameras.txt``, ``images.txt``, empty
+    ``points3D.txt``) into the folder ``path``. Each camera becomes one COLMAP camera of the
+    simplest model that holds it exactly (PINHOLE, OPENCV or FULL_OPENCV) and one image
+    named ``<camera name>.png``."""
+    folder = Path(path)
+    folder.mkdir(parents=True, exist_ok=True)
+    cam_lines = [
+        "# Camera list with one line of data per camera:",
+        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+        f"# Number of cameras: {len(rig)}",
+        f"# edgerecon: unit={rig.unit} up={','.join(repr(v) for v in rig.up)}",
+    ]
+    img_lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+        f"# Number of images: {len(rig)}, mean observations per image: 0",
+    ]
+    for i, cam in enumerate(rig, start=1):
+        if cam.K[0, 1] != 0:
+            raise CalibrationError(f"camera {cam.name!r}: COLMAP cannot represent a skewed K")
+        if any(ch.isspace() for ch in cam.name):
+            raise CalibrationError(
+                f"camera {cam.name!r}: COLMAP image names cannot contain whitespace"
+            )
+        fx, fy = cam.K[0, 0], cam.K[1, 1]
+        cx, cy = cam.K[0, 2] + 0.5, cam.K[1, 2] + 0.5
+        k1, k2, p1, p2, k3 = cam.dist
+        if not cam.has_distortion:
+            model, params = "PINHOLE", [fx, fy, cx, cy]
+        elif k3 == 0:
+            model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
+        else:
+            model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+        cam_lines.append(
+            f"{i} {model} {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in params)
+        )
+        q = rotation_to_quaternion(cam.R)
+        img_lines.append(
+            f"{i} " + " ".join(repr(float(v)) for v in (*q, *cam.t)) + f" {i} {cam.name}.png"
+        )
+        img_lines.append("")
+    atomic_write_text(folder / "cameras.txt", "\n".join(cam_lines) + "\n")
+    atomic_write_text(folder / "images.txt", "\n".join(img_lines) + "\n")
+    atomic_write_text(
+        folder / "points3D.txt",
+        "# 3D point list with one line of data per point:\n"
+        "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n",
+    )
+    return folder
+
+
+def quaternion_to_rotation(q: Sequence[float] | NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation matrix of a unit quaternion (w, x, y, z) (COLMAP's order)."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_to_quaternion(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix (Shepperd's method:
+    pivot on the largest diagonal term for accuracy)."""
+    m = np.asarray(R, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    cands = [tr, m[0, 0], m[1, 1], m[2, 2]]
+    k = int(np.argmax(cands))
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0))
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 + m[1, 1] - m[0, 0] - m[2, 2], 0.0))
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + m[2, 2] - m[0, 0] - m[1, 1], 0.0))
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    qa = np.array(q)
+    qa /= np.linalg.norm(qa)
+    return -qa if qa[0] < 0 else qa
+
+
+# ============================================================================== detection
+def detect_calibration_format(path: str | os.PathLike[str]) -> str:
+    """Which of ``FORMATS`` a calibration file or folder is in (``CalibrationError`` if none).
+
+    Folders: ``rig.json`` > COLMAP (``cameras.txt`` + ``images.txt``, also under
+    ``sparse/`` or ``sparse/0``) > ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise CalibrationError(f"calibration not found: {path}")
+    if path.is_dir():
+        return _detect_in_folder(path)[0]
+    name = path.name.lower()
+    if name.endswith("_par.txt"):
+        return "middlebury"
+    if name in ("cameras.txt", "images.txt"):
+        return "colmap"
+    if path.suffix.lower() in (".xml", ".yml", ".yaml"):
+        return "opencv-xml"
+    if path.suffix.lower() == ".json":
+        data = _read_json(path)
+        if isinstance(data, dict) and data.get("format") == "edgerecon-rig":
+            return "edgerecon"
+        if isinstance(data, dict) and "views" in data and "sfm_data_version" in data:
+            return "openmvg"
+        raise CalibrationError(
+            f"{path}: JSON file is neither an edgerecon rig (format: edgerecon-rig) nor an "
+            "openMVG sfm_data file"
+        )
+    raise CalibrationError(f"{path}: unknown calibration format (supported: {', '.join(FORMATS)})")
+
+
+def _detect_in_folder(folder: Path) -> tuple[str, Path]:
+    if (folder / "rig.json").is_file():
+        return "edgerecon", folder / "rig.json"
+    for sub in (folder, folder / "sparse", folder / "sparse" / "0"):
+        if (sub / "cameras.txt").is_file() and (sub / "images.txt").is_file():
+            return "colmap", sub
+    par = middlebury_par_files(folder)
+    if len(par) == 1:
+        return "middlebury", par[0]
+    if len(par) > 1:
+        raise CalibrationError(
+            f"{folder}: several Middlebury parameter files ({', '.join(p.name for p in par)}); "
+            "pass one of them"
+        )
+    if opencv_xml_cameras(folder):
+        return "opencv-xml", folder
+    sfm = sorted(folder.glob("sfm_data*.json"))
+    if len(sfm) == 1:
+        return "openmvg", sfm[0]
+    raise CalibrationError(
+        f"{folder}: no calibration found (looked for rig.json, COLMAP cameras.txt/images.txt, "
+        "*_par.txt, camN/config.xml, sfm_data*.json)"
+    )
+
+
+def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None) -> Rig:
+    """Read a rig from any supported calibration file or folder (format auto-detected).
+
+    ``image_sizes`` ((width, height) per camera name, or one for all) is needed only by
+    formats that do not store sizes and have no frames next to them (OpenCV XML); for other
+    formats it is checked against the stored sizes.
+    """
+    path = Path(path)
+    fmt = detect_calibration_format(path)
+    target = _detect_in_folder(path)[1] if path.is_dir() else path
+    if fmt == "edgerecon":
+        rig = read_rig_json(target)
+    elif fmt == "openmvg":
+        rig = read_openmvg_sfm_data(target)
+    elif fmt == "middlebury":
+        rig = read_middlebury_par(target, image_sizes)
+    elif fmt == "colmap":
+        rig = read_colmap_text(target)
+    elif target.is_dir():
+        rig = read_opencv_xml_rig(target, image_sizes)
+    else:
+        raise CalibrationError(
+            f"{target}: a single OpenCV XML file holds one camera; pass the folder of camN/ "
+            "sub-folders (or use read_opencv_camera_xml)"
+        )
+    if image_sizes is not None and fmt not in ("middlebury", "opencv-xml"):
+        check_image_sizes(rig, image_sizes, str(target))
+    return rig
+
+
+def check_image_sizes(rig: Rig, image_sizes: ImageSizes, source: str) -> None:
+    """Raise ``CalibrationError`` for a camera whose calibrated size differs from the one
+    given (e.g. measured on its frames)."""
+    for cam in rig:
+        size = _size_for(image_sizes, cam.name)
+        if size is not None and size != cam.size:
+            raise CalibrationError(
+                f"{source}: camera {cam.name!r} is calibrated for {cam.width}x{cam.height} "
+                f"but its frames are {size[0]}x{size[1]}"
+            )
