@@ -261,10 +261,12 @@ def read_opencv_camera_xml(
         )
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
+    except (cv2.error, SystemError) as exc:
+        # OpenCV's parser errors surface as SystemError wrapping a cv2.error.
+        cause = exc.__cause__ or exc.__context__ or exc
+        detail = str(cause).strip().splitlines()[-1] if str(cause).strip() else type(cause).__name__
         raise CalibrationError(
-            f"camera {name!r}: {path} is not a readable OpenCV FileStorage file "
-            f"({str(exc).strip().splitlines()[-1]})"
+            f"camera {name!r}: {path} is not a readable OpenCV FileStorage file ({detail})"
         ) from None
     try:
         if not fs.isOpened():
