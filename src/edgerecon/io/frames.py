@@ -220,6 +220,10 @@ class _CameraReader(ABC):
     def location(self) -> str:
         """Where the frames come from (for messages)."""
 
+    def frame_location(self, t: int) -> str:
+        """Where frame ``t`` comes from (for messages)."""
+        return f"{self.location} (frame {t})"
+
     @abstractmethod
     def read(self, t: int) -> Image:
         """Frame ``t``; raises ``_FrameUnavailable(reason)``."""
@@ -335,6 +339,9 @@ class _ImageReader(_CameraReader):
     @property
     def location(self) -> str:
         return self._text
+
+    def frame_location(self, t: int) -> str:
+        return str(self.path(t))
 
     def path(self, t: int) -> Path:
         if self._files is not None:
@@ -539,7 +546,7 @@ class _PerCameraSource(FrameSource):
                 continue
             if self._rig is not None:
                 h, w = image.shape[:2]
-                check_frame_size(self._rig, reader.camera, (w, h), f"{reader.location} [{t}]")
+                check_frame_size(self._rig, reader.camera, (w, h), reader.frame_location(t))
             images.append(image)
         return FrameSet(
             time_index=t,
