@@ -1,0 +1,144 @@
+"""``edgerecon info``: what a dataset holds (rig, baselines, frames)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.geometry.camera import Rig
+from edgerecon.io.dataset import Dataset, open_dataset
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "info",
+        help="describe a dataset: cameras, baselines, frames",
+        description="Print a dataset's rig (size, focal, principal point, centre, distortion "
+        "per camera), the baseline angle between every pair of cameras, the frame count and "
+        "rate, the unit, and whether a background clip and ground truth exist.",
+    )
+    p.add_argument("--dataset", required=True, metavar="DIR", help="dataset folder")
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+def convergence_point(rig: Rig) -> NDArray[np.float64] | None:
+    """(3,) point closest (least squares) to all optical axes, or None when the axes are
+    (nearly) parallel and no such point is well defined."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam in rig:
+        d = cam.R[2]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+    if np.linalg.cond(A) > 1e6:
+        return None
+    return np.asarray(np.linalg.solve(A, b), dtype=np.float64)
+
+
+def baseline_angles_deg(rig: Rig) -> NDArray[np.float64]:
+    """(N, N) angle in degrees between cameras i and j as seen from the point their optical
+    axes converge on (the triangulation angle of the scene centre); where there is no such
+    point (parallel axes), the angle between the optical axes."""
+    target = convergence_point(rig)
+    if target is None:
+        dirs = np.array([cam.R[2] for cam in rig])
+    else:
+        dirs = target - rig.centers
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    cos = np.clip(dirs @ dirs.T, -1.0, 1.0)
+    return np.asarray(np.degrees(np.arccos(cos)), dtype=np.float64)
+
+
+def describe(ds: Dataset) -> dict[str, Any]:
+    """Everything ``info`` prints, as JSON-safe data."""
+    rig = ds.rig
+    background_frames = None
+    if ds.background is not None:
+        with ds.background.open(rig) as bg:
+            background_frames = bg.num_frames
+    target = convergence_point(rig)
+    return {
+        **ds.to_dict(),
+        "up": list(rig.up),
+        "scene_scale": rig.scene_scale(),
+        "duration_s": None if ds.fps is None else ds.num_frames / ds.fps,
+        "background_frames": background_frames,
+        "cameras": [
+            {
+                "id": i,
+                "name": cam.name,
+                "width": cam.width,
+                "height": cam.height,
+                "fx": float(cam.K[0, 0]),
+                "fy": float(cam.K[1, 1]),
+                "cx": float(cam.K[0, 2]),
+                "cy": float(cam.K[1, 2]),
+                "center": cam.center.tolist(),
+                "dist": cam.dist.tolist(),
+            }
+            for i, cam in enumerate(rig)
+        ],
+        "convergence_point": None if target is None else target.tolist(),
+        "baseline_angles_deg": np.round(baseline_angles_deg(rig), 3).tolist(),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    ds = open_dataset(args.dataset)
+    info = describe(ds)
+    if args.json:
+        emit_json(info)
+        return 0
+    unit = ds.rig.unit
+    fps = "unknown" if ds.fps is None else f"{ds.fps:g}"
+    console.print(f"[bold]{ds.name}[/] ({ds.layout}) at {ds.root}")
+    console.print(
+        f"{len(ds.rig)} cameras, {ds.num_frames} frames ({ds.frames.kind}), fps {fps}, "
+        f"unit {unit}, up {tuple(ds.rig.up)}, scene scale {info['scene_scale']:.4g} {unit}"
+    )
+    bg = info["background_frames"]
+    console.print(
+        "background clip: "
+        + ("no" if bg is None else f"yes ({bg} frames)")
+        + "; ground truth: "
+        + ("no" if ds.ground_truth is None else str(ds.ground_truth))
+    )
+    print_table(
+        "cameras",
+        ["id", "name", "size", "fx", "fy", "cx", "cy", f"x ({unit})", "y", "z"],
+        [
+            [
+                c["id"],
+                c["name"],
+                f"{c['width']}x{c['height']}",
+                c["fx"],
+                c["fy"],
+                c["cx"],
+                c["cy"],
+                *[float(v) for v in c["center"]],
+            ]
+            for c in info["cameras"]
+        ],
+    )
+    if any(any(c["dist"]) for c in info["cameras"]):
+        print_table(
+            "distortion (OpenCV)",
+            ["name", "k1", "k2", "p1", "p2", "k3"],
+            [[c["name"], *[float(v) for v in c["dist"]]] for c in info["cameras"]],
+        )
+    else:
+        console.print("distortion: none (ideal pinhole cameras)")
+    angles = np.asarray(info["baseline_angles_deg"])
+    names = ds.rig.names
+    print_table(
+        "baseline angles (degrees, seen from the point the optical axes converge on)",
+        ["camera", *names],
+        [[n, *[f"{a:.1f}" for a in row]] for n, row in zip(names, angles, strict=True)],
+    )
+    return 0

@@ -1,0 +1,91 @@
+"""``edgerecon info`` on a synthetic dataset (known answers) and on utrecht4cam."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.cli import main
+from edgerecon.cli.info import baseline_angles_deg, convergence_point
+from edgerecon.io import write_dataset_descriptor
+from tests.conftest import ring_rig, shared_data
+
+
+def _tiny_dataset(root, num_cameras=4):
+    rig = ring_rig(num_cameras, width=32, height_px=24, focal_px=30.0)
+    cams = {}
+    for cam in rig:
+        for t in range(3):
+            path = root / "frames" / cam.name / f"{t:04d}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(path), np.zeros((24, 32, 3), np.uint8))
+        cams[cam.name] = f"frames/{cam.name}/{{index:04d}}.png"
+    (root / "gt").mkdir()
+    write_dataset_descriptor(
+        root,
+        rig=rig,
+        frames={"kind": "images", "cameras": cams},
+        name="tiny",
+        fps=5.0,
+        ground_truth="gt",
+    )
+    return rig
+
+
+def test_baseline_angles_known_answer():
+    # Four cameras on a ring looking at (0, 0, 1) from height 1.5, radius 4: neighbours are
+    # 90 degrees apart around the ring; seen from the convergence point (0, 0, 1)...
+    rig = ring_rig(4, radius=4.0, height=1.5)
+    np.testing.assert_allclose(convergence_point(rig), [0, 0, 1.0], atol=1e-9)
+    angles = baseline_angles_deg(rig)
+    d = np.array([4.0, 0.0, 0.5]) / np.hypot(4.0, 0.5)
+    opposite = np.degrees(np.arccos(-(d[0] ** 2) + d[2] ** 2))
+    neighbour = np.degrees(np.arccos(d[2] ** 2))
+    np.testing.assert_allclose(angles[0], [0, neighbour, opposite, neighbour], atol=1e-9)
+    np.testing.assert_allclose(angles, angles.T)
+
+
+def test_info_json_on_synthetic_dataset(tmp_path, capsys):
+    rig = _tiny_dataset(tmp_path)
+    assert main(["info", "--dataset", str(tmp_path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["name"] == "tiny" and info["num_cameras"] == 4 and info["num_frames"] == 3
+    assert info["fps"] == 5.0 and info["duration_s"] == pytest.approx(0.6)
+    assert info["unit"] == "m" and info["background"] is False
+    assert info["ground_truth"].endswith("gt")
+    cam = info["cameras"][2]
+    assert cam["name"] == "cam2" and (cam["width"], cam["height"]) == (32, 24)
+    assert cam["fx"] == 30.0 and cam["cx"] == 15.5
+    np.testing.assert_allclose(cam["center"], rig[2].center)
+    np.testing.assert_allclose(info["baseline_angles_deg"], baseline_angles_deg(rig), atol=1e-3)
+
+
+def test_info_table_and_clean_errors(tmp_path, capsys):
+    _tiny_dataset(tmp_path)
+    assert main(["info", "--dataset", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "tiny" in out and "baseline angles" in out and "cam3" in out
+    assert "ground truth:" in out and "distortion: none" in out
+    assert main(["info", "--dataset", str(tmp_path / "missing")]) == 2
+    assert "dataset not found" in capsys.readouterr().err
+    (tmp_path / "frames" / "cam1" / "0000.png").unlink()
+    for f in (tmp_path / "frames" / "cam1").iterdir():
+        f.unlink()
+    assert main(["info", "--dataset", str(tmp_path)]) == 2
+    assert "cam1" in capsys.readouterr().err
+
+
+def test_info_utrecht(capsys):
+    root = shared_data("utrecht4cam")
+    assert main(["info", "--dataset", str(root), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["layout"] == "utrecht4cam" and info["unit"] == "mm"
+    assert info["num_frames"] == 426 and info["fps"] == 50.0
+    assert info["background_frames"] == 132
+    angles = np.array(info["baseline_angles_deg"])
+    # Cameras in the room's corners: wide baselines, 44 to 144 degrees apart.
+    off = angles[~np.eye(4, dtype=bool)]
+    assert off.min() > 40 and off.max() < 150
