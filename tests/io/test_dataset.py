@@ -131,3 +131,68 @@ def test_middlebury_autodetect_is_static():
         with pytest.raises(DataError, match="out of range"):
             src.read(1)
     assert all(im.shape == (480, 640, 3) for im in fs.images)
+
+
+def _write_video(path, color, num_frames, size=(64, 48)):
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20.0, size)
+    for _ in range(num_frames):
+        writer.write(np.full((size[1], size[0], 3), color, np.uint8))
+    writer.release()
+
+
+def test_descriptor_with_frame_specs_videos_and_background(tmp_path):
+    import pickle
+
+    rig = ring_rig(3, width=64, height_px=48, focal_px=50.0)
+    for i, cam in enumerate(rig):
+        (tmp_path / cam.name).mkdir()
+        _write_video(tmp_path / cam.name / "scene.avi", (40 * i, 0, 0), 6)
+        _write_video(tmp_path / cam.name / "empty.avi", (0, 40 * i, 0), 4)
+    frames = FrameSpec(
+        kind="video", cameras=tuple((c.name, str(tmp_path / c.name / "scene.avi")) for c in rig)
+    )
+    background = FrameSpec(
+        kind="video", cameras=tuple((c.name, str(tmp_path / c.name / "empty.avi")) for c in rig)
+    )
+    path = write_dataset_descriptor(tmp_path, rig=rig, frames=frames, background=background)
+    data = json.loads(path.read_text())
+    assert data["frames"]["cameras"]["cam1"] == "cam1/scene.avi"  # written relative to root
+    assert data["rig"] == "rig.json" and "fps" not in data
+    ds = open_dataset(tmp_path / "dataset.json")
+    assert ds.num_frames == 6 and ds.fps == 20.0  # the videos' own rate
+    ds = pickle.loads(pickle.dumps(ds))  # datasets travel to other processes
+    with ds.open_background() as bg:
+        assert bg.num_frames == 4
+        assert int(bg.read(3).images[2][10, 10, 1]) == pytest.approx(80, abs=4)
+    with pytest.raises(ValueError, match="do not match"):
+        write_dataset_descriptor(
+            tmp_path, rig=rig, frames={"kind": "video", "cameras": {"cam0": "x.avi"}}
+        )
+
+
+def test_descriptor_camera_pattern_start_and_xml_rig(tmp_path):
+    rig = ring_rig(3, width=64, height_px=48, focal_px=50.0)
+    for i, cam in enumerate(rig):
+        folder = tmp_path / "calib" / cam.name
+        folder.mkdir(parents=True)
+        fs = cv2.FileStorage(str(folder / "config.xml"), cv2.FILE_STORAGE_WRITE)
+        fs.write("CameraMatrix", cam.K)
+        fs.write("DistortionCoeffs", cam.dist[None])
+        fs.write("Rotation", cv2.Rodrigues(cam.R)[0])
+        fs.write("Translation", cam.t[:, None])
+        fs.release()
+        for t in (1, 2, 3):
+            p = tmp_path / "img" / cam.name / f"{t:03d}.png"
+            p.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(p), np.full((48, 64, 3), 10 * i + t, np.uint8))
+    write_dataset_descriptor(
+        tmp_path,
+        rig="calib",
+        frames={"kind": "images", "pattern": "img/{camera}/{index:03d}.png", "start": 1},
+    )
+    ds = open_dataset(tmp_path)
+    assert ds.rig.unit == "mm"  # the OpenCV-XML folder convention
+    assert [c.size for c in ds.rig] == [(64, 48)] * 3  # sizes taken from the frames
+    assert ds.num_frames == 3
+    with ds.open_frames() as src:
+        assert [int(im[0, 0, 0]) for im in src.read(0).images] == [1, 11, 21]

@@ -202,7 +202,7 @@ def _open_middlebury(root: Path) -> Dataset:
 
 
 def _spec_from_section(
-    section: Any, rig: Rig, root: Path, what: str, descriptor: Path, fps: float | None
+    section: Any, names: list[str], root: Path, what: str, descriptor: Path, fps: float | None
 ) -> FrameSpec:
     if not isinstance(section, Mapping):
         raise DataError(f"{descriptor}: {what!r} must be an object with 'kind' and 'cameras'")
@@ -213,24 +213,24 @@ def _spec_from_section(
     pattern = section.get("pattern")
     if cameras is None and isinstance(pattern, str):
         # Extension: one pattern for all cameras with a {camera} field.
-        cameras = {name: pattern.replace("{camera}", name) for name in rig.names}
+        cameras = {name: pattern.replace("{camera}", name) for name in names}
     if not isinstance(cameras, Mapping) or not cameras:
         raise DataError(
             f"{descriptor}: {what}.cameras must map camera names to files, folders or patterns"
         )
-    unknown = sorted(set(cameras) - set(rig.names))
+    unknown = sorted(set(cameras) - set(names))
     if unknown:
         raise DataError(
             f"{descriptor}: {what} names cameras {unknown} that the rig does not have "
-            f"(rig cameras: {rig.names})"
+            f"(rig cameras: {names})"
         )
-    absent = [n for n in rig.names if n not in cameras]
+    absent = [n for n in names if n not in cameras]
     if absent:
         raise DataError(f"{descriptor}: {what} has no entry for rig cameras {absent}")
     start = section.get("start", 0)
     if not isinstance(start, int) or start < 0:
         raise DataError(f"{descriptor}: {what}.start must be a non-negative integer")
-    paths = tuple((n, str(root / str(cameras[n]))) for n in rig.names)
+    paths = tuple((n, str(root / str(cameras[n]))) for n in names)
     try:
         return FrameSpec(kind=kind, cameras=paths, start=start, fps=fps)
     except ValueError as exc:
@@ -262,12 +262,12 @@ def _open_descriptor(descriptor: Path) -> Dataset:
     if not rig_path.exists():
         raise DataError(f"{descriptor}: rig file {rig_path} not found")
     rig = _load_descriptor_rig(rig_path, data, root, descriptor)
-    frames = _spec_from_section(data["frames"], rig, root, "frames", descriptor, fps)
+    frames = _spec_from_section(data["frames"], rig.names, root, "frames", descriptor, fps)
     num_frames, source_fps = _check_source(frames, rig, f"{descriptor} frames")
     background = None
     if data.get("background") is not None:
         background = _spec_from_section(
-            data["background"], rig, root, "background", descriptor, fps
+            data["background"], rig.names, root, "background", descriptor, fps
         )
         _check_source(background, rig, f"{descriptor} background")
     ground_truth = None
@@ -291,17 +291,12 @@ def _open_descriptor(descriptor: Path) -> Dataset:
 def _load_descriptor_rig(rig_path: Path, data: dict[str, Any], root: Path, descriptor: Path) -> Rig:
     """The descriptor's rig; formats without image sizes (OpenCV XML folders) take them from
     the first frame of each camera's source."""
-    if detect_calibration_format(rig_path) != "opencv-xml":
+    if detect_calibration_format(rig_path) != "opencv-xml" or not rig_path.is_dir():
         return load_rig(rig_path)
-    section = data["frames"]
-    cameras = section.get("cameras") if isinstance(section, Mapping) else None
-    if not isinstance(cameras, Mapping) or section.get("kind") not in ("video", "images"):
-        raise DataError(f"{descriptor}: frames must have 'kind' and 'cameras'")
-    sizes = {}
-    for name, rel in cameras.items():
-        spec = FrameSpec(kind=section["kind"], cameras=((str(name), str(root / str(rel))),))
-        with spec.open() as src:
-            sizes[str(name)] = src.frame_sizes[str(name)]  # type: ignore[attr-defined]
+    names = [name for name, _ in opencv_xml_cameras(rig_path)]
+    spec = _spec_from_section(data["frames"], names, root, "frames", descriptor, None)
+    with spec.open() as source:
+        sizes = source.frame_sizes
     return load_rig(rig_path, sizes)
 
 

@@ -424,6 +424,11 @@ class FrameSource(ABC):
     def fps(self) -> float | None:
         """Frames per second, or None when unknown (image folders)."""
 
+    @property
+    @abstractmethod
+    def frame_sizes(self) -> dict[str, tuple[int, int]]:
+        """(width, height) of each camera's frames."""
+
     @abstractmethod
     def read(self, t: int) -> FrameSet:
         """The frames of time index ``t`` (random access)."""
