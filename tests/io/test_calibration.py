@@ -266,6 +266,15 @@ def test_openmvg_views_without_pose_are_skipped(tmp_path, caplog):
         read_openmvg_sfm_data(_brown_sfm(tmp_path, 0, 0, n_views=3, drop_pose=0))
 
 
+def test_openmvg_names_fall_back_to_view_keys(tmp_path):
+    path = _brown_sfm(tmp_path, 0, 0)
+    data = json.loads(path.read_text())
+    for k, view in enumerate(data["views"]):
+        view["value"]["ptr_wrapper"]["data"]["filename"] = f"take{k % 2}/frame.png"
+    path.write_text(json.dumps(data))
+    assert read_openmvg_sfm_data(path).names == ["cam0", "cam1", "cam2", "cam3"]
+
+
 def test_openmvg_errors(tmp_path):
     path = _brown_sfm(tmp_path, 0, 0)
     data = json.loads(path.read_text())
@@ -648,6 +657,14 @@ def test_colmap_known_answer_models(tmp_path):
     np.testing.assert_allclose(
         rig[1].center, [3 * np.cos(2 * np.pi / 3), 3 * np.sin(2 * np.pi / 3), 1.0], atol=1e-12
     )
+    # Points lines may be missing (hand-written files) or hold observations.
+    lines = _colmap_images()
+    lines[1] = "12.5 30.25 -1 100.0 40.0 7"
+    cameras = (tmp_path / "cameras.txt").read_text().splitlines()[1:]
+    _write_colmap(tmp_path, cameras, [lines[0], lines[1], lines[2], lines[4]])
+    again = read_colmap_text(tmp_path)
+    assert again.names == ["img0", "img1", "img2"]
+    np.testing.assert_array_equal(again[2].R, rig[2].R)
     # Quaternion convention: (w, x, y, z), a 90 degree turn about z.
     q = np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])
     np.testing.assert_allclose(
@@ -685,10 +702,10 @@ def test_colmap_errors(tmp_path):
         read_colmap_text(tmp_path)
     bad_q = [images[0].replace(images[0].split()[1], "0.5", 1), *images[1:]]
     _write_colmap(tmp_path, good_cams, bad_q)
-    with pytest.raises(CalibrationError, match=r"images\.txt.*'img0'.*quaternion norm"):
+    with pytest.raises(CalibrationError, match=r"images\.txt:2: camera 'img0'.*quaternion norm"):
         read_colmap_text(tmp_path)
     _write_colmap(tmp_path, good_cams, ["1 1 0 0 0 0 0 0 1"])
-    with pytest.raises(CalibrationError, match=r"images\.txt.*expected 'IMAGE_ID"):
+    with pytest.raises(CalibrationError, match=r"images\.txt:2: expected 'IMAGE_ID"):
         read_colmap_text(tmp_path)
     _write_colmap(tmp_path, good_cams, images[:4])
     with pytest.raises(CalibrationError, match="at least 3 cameras"):

@@ -486,6 +486,14 @@ def _colmap_intrinsics(
     return K, dist
 
 
+def _is_number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
 def _strip_image_ext(name: str) -> str:
     base, ext = os.path.splitext(name)
     return base if ext.lower() in IMAGE_EXTENSIONS else name
@@ -535,18 +543,23 @@ def read_colmap_text(path: str | os.PathLike[str], *, unit: str | None = None) -
             K, dist = _colmap_intrinsics(model, params)
         intrinsics[cam_id] = (width, height, K, dist)
 
-    lines = [
-        ln
-        for ln in img_file.read_text(encoding="utf-8").splitlines()
-        if not ln.lstrip().startswith("#")
-    ]
-    # Two lines per image: the pose line, then its (possibly empty) 2D points line.
+    # Each image has a pose line, normally followed by its (possibly empty) 2D points line
+    # (X Y POINT3D_ID triples). Hand-written files often leave the points lines out, so a line
+    # counts as a points line only if it directly follows a pose line and looks like one.
     entries = []
-    for i in range(0, len(lines), 2):
-        words = lines[i].split()
+    expect_points = False
+    text = img_file.read_text(encoding="utf-8")
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        if line.lstrip().startswith("#"):
+            continue
+        words = line.split()
+        if expect_points:
+            expect_points = False
+            if not words or (len(words) % 3 == 0 and all(_is_number(w) for w in words)):
+                continue
         if not words:
             continue
-        where = f"{img_file} (image line {i // 2 + 1})"
+        where = f"{img_file}:{lineno}"
         if len(words) < 10:
             raise CalibrationError(
                 f"{where}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', "
@@ -558,8 +571,8 @@ def read_colmap_text(path: str | os.PathLike[str], *, unit: str | None = None) -
             cam_id = int(words[8])
         except ValueError as exc:
             raise CalibrationError(f"{where}: {exc}") from None
-        image_name = " ".join(words[9:])
-        entries.append((image_name, q, t, cam_id, where))
+        entries.append((" ".join(words[9:]), q, t, cam_id, where))
+        expect_points = True
     names = [_strip_image_ext(n) for n, *_ in entries]
     cameras = []
     for (_, q, t, cam_id, where), name in zip(entries, names, strict=True):
