@@ -15,6 +15,7 @@ later stages can trust ``Dataset``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -22,6 +23,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.calibration import (
@@ -190,6 +193,9 @@ def _open_middlebury(root: Path) -> Dataset:
         images.append((cam.name, str(root / row[0])))
     frames = FrameSpec(kind="images", cameras=tuple(images))
     num_frames, fps = _check_source(frames, rig, f"{root} images")
+    up = ring_axis_up(rig)
+    if up is not None:
+        rig = dataclasses.replace(rig, up=up)
     return Dataset(
         root=root,
         name=par[0].name.removesuffix("_par.txt"),
@@ -199,6 +205,24 @@ def _open_middlebury(root: Path) -> Dataset:
         fps=fps,
         layout="middlebury",
     )
+
+
+def ring_axis_up(rig: Rig, max_flatness: float = 0.1) -> tuple[float, float, float] | None:
+    """The axis of a ring of cameras (the normal of the plane through their centres), signed
+    so that the cameras look slightly down; None when the centres are not close to a plane.
+
+    Middlebury's world frames carry no 'up'; its ring captures circle the object around its
+    vertical axis, which is what ground-plane hypotheses and viewers need.
+    """
+    centers = rig.centers - rig.centers.mean(axis=0)
+    _, s, vt = np.linalg.svd(centers)
+    if s[1] <= 0 or s[2] > max_flatness * s[1]:
+        return None
+    axis = vt[2]
+    looks = np.array([cam.viewing_direction for cam in rig]) @ axis
+    if np.median(looks) > 0:
+        axis = -axis
+    return (float(axis[0]), float(axis[1]), float(axis[2]))
 
 
 def _spec_from_section(
