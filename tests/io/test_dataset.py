@@ -199,8 +199,6 @@ def test_descriptor_camera_pattern_start_and_xml_rig(tmp_path):
 
 
 def test_middlebury_ring_gets_vertical_up():
-    from tests.conftest import shared_data
-
     ds = open_dataset(shared_data("middlebury_templeSparseRing"))
     # The temple stands along +y (its bounding box is tallest in y) and the cameras look down.
     assert ds.rig.up[1] > 0.99
