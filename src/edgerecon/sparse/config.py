@@ -1,0 +1,113 @@
+"""Configuration of sparse reconstruction with known camera poses."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, kw_only=True)
+class SparseConfig:
+    """Options of :func:`edgerecon.sparse.reconstruct_sparse`.
+
+    Pixel thresholds (``*_px``) are in the pixels of the views given to the stage (i.e. at the
+    task's image scale); lengths are in rig units.
+    """
+
+    # ------------------------------------------------------------------ features
+    max_features: int = 8000
+    """Most SIFT keypoints kept per view (strongest responses); 0 = no limit."""
+    contrast_threshold: float = 0.02
+    """SIFT contrast threshold (OpenCV's default is 0.04; lower finds more keypoints on the
+    weakly textured walls and floors of real rooms)."""
+    edge_threshold: float = 10.0
+    """SIFT edge threshold (OpenCV's default)."""
+    feature_max_size_px: int = 1100
+    """Longest image side used for feature detection: larger views are downscaled first
+    (OpenCV's SIFT doubles the image internally, so 1920x1080 costs ~15x more than 960x540
+    for a similar number of useful keypoints). 0 = always detect at full size."""
+    root_sift: bool = True
+    """Use RootSIFT descriptors (Hellinger kernel: L1-normalise, square root)."""
+    num_threads: int = 2
+    """Worker threads for per-view feature extraction and per-pair matching (OpenCV and NumPy
+    release the GIL)."""
+
+    # ------------------------------------------------------------------ matching
+    epipolar_threshold_px: float = 3.0
+    """Largest distance of a candidate match from the epipolar line of its partner (both
+    directions)."""
+    ratio: float = 0.85
+    """Lowe ratio among the *epipolar candidates*: best / second-best descriptor distance
+    (second best taken at a different location) must be below this for a match to enter a
+    track; tracks confirmed by three or more views need no stricter test."""
+    two_view_ratio: float = 0.75
+    """Stricter ratio for points observed by only two views (nothing else confirms them)."""
+    max_descriptor_distance: float = 0.75
+    """Largest (Root)SIFT descriptor distance of a match (unit-norm descriptors: 0..sqrt 2)."""
+    mutual: bool = True
+    """Keep only matches that are each other's best candidate in both directions."""
+    min_depth: float = 0.0
+    """Smallest depth (rig units) of a triangulated match in both cameras (cheirality: > 0)."""
+    max_depth: float = math.inf
+    """Largest depth (rig units) of a match in either camera (a room's size bounds it)."""
+    max_pair_angle_deg: float = 180.0
+    """Camera pairs whose optical axes differ by more than this are not matched (180 = all
+    pairs with any overlap of their viewing frusta)."""
+
+    # ------------------------------------------------------------------ triangulation
+    max_reprojection_error_px: float = 2.0
+    """Observations reprojecting farther than this are dropped (point rejected if fewer than
+    two remain)."""
+    min_triangulation_angle_deg: float = 1.5
+    """Smallest largest angle between two observing rays of a point."""
+    refine_iterations: int = 5
+    """Gauss-Newton steps on the reprojection error after the linear (DLT) triangulation."""
+    guided_matching: bool = True
+    """Project each point into the views that do not observe it and add the nearest keypoint
+    whose descriptor is close (extends tracks: denser visibility matrix)."""
+    guided_radius_px: float = 3.0
+    """Search radius around the projection for guided matching."""
+    guided_max_descriptor_distance: float = 0.5
+    """Largest descriptor distance between a guided keypoint and the closest of the track's
+    descriptors (stricter than pairwise matching: nothing else tests it)."""
+
+    def __post_init__(self) -> None:
+        def check(name: str, ok: bool, allowed: str) -> None:
+            if not ok:
+                raise ValueError(
+                    f"SparseConfig.{name} = {getattr(self, name)!r} is invalid: {allowed}"
+                )
+
+        check("max_features", self.max_features >= 0, "must be >= 0")
+        check("contrast_threshold", self.contrast_threshold > 0, "must be > 0")
+        check("edge_threshold", self.edge_threshold > 0, "must be > 0")
+        check("feature_max_size_px", self.feature_max_size_px >= 0, "must be >= 0")
+        check("num_threads", self.num_threads >= 1, "must be >= 1")
+        check("epipolar_threshold_px", self.epipolar_threshold_px > 0, "must be > 0")
+        check("ratio", 0 < self.ratio <= 1, "must be in (0, 1]")
+        check("two_view_ratio", 0 < self.two_view_ratio <= 1, "must be in (0, 1]")
+        check(
+            "max_descriptor_distance",
+            0 < self.max_descriptor_distance <= 2,
+            "must be in (0, 2]",
+        )
+        check("min_depth", self.min_depth >= 0, "must be >= 0")
+        check("max_depth", self.max_depth > self.min_depth, "must be > min_depth")
+        check("max_pair_angle_deg", 0 < self.max_pair_angle_deg <= 180, "must be in (0, 180]")
+        check("max_reprojection_error_px", self.max_reprojection_error_px > 0, "must be > 0")
+        check(
+            "min_triangulation_angle_deg",
+            0 <= self.min_triangulation_angle_deg < 180,
+            "must be in [0, 180)",
+        )
+        check("refine_iterations", self.refine_iterations >= 0, "must be >= 0")
+        check("guided_radius_px", self.guided_radius_px > 0, "must be > 0")
+        check(
+            "guided_max_descriptor_distance",
+            0 < self.guided_max_descriptor_distance <= 2,
+            "must be in (0, 2]",
+        )
+
+
+#: The default configuration (a shared immutable instance, used as the default argument).
+DEFAULT_CONFIG = SparseConfig()
