@@ -1,0 +1,632 @@
+"""Scene descriptions: configs, rig presets and the deterministic scene builder.
+
+A ``SceneConfig`` (frozen, validated) says what to generate; ``build_scene(config)`` turns it
+into a ``SynthScene``: the rig (``edgerecon.geometry.Rig``), the static room with furniture,
+the textures, the actors and the realism parameters (per-camera exposure, illumination over
+time). Everything is derived from ``config.seed``: the same config gives the same scene, bit
+for bit.
+
+World frame: metres, z up, floor at z = 0, the room centred on the origin.
+
+Presets (``preset_config(name, **overrides)``):
+
+* ``ring``: N (default 8) cameras around the scene, 1280x720.
+* ``arc7``: 7 cameras at 1920x1080, ~1720 px focal length, 15 degrees apart on an arc, looking
+  at the scene centre, with Dance1-like barrel distortion (the paper's studio rig).
+* ``demo``: 5 cameras at 640x480, 40 timestamps, 2 actors (the README's main job).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass, field, fields
+from functools import lru_cache
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.geometry.camera import Camera, Rig, look_at
+from edgerecon.synth import motion
+from edgerecon.synth.primitives import Box, Cylinder, Room
+from edgerecon.synth.textures import Texture, make_texture
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: Largest texture side in texels (larger surfaces get coarser texels).
+MAX_TEXTURE_SIDE = 2048
+#: Dance1-like lens: OpenCV (k1, k2, p1, p2, k3) of a wide studio lens with barrel distortion.
+STUDIO_DISTORTION = (-0.22, 0.27, 0.0, 0.0, -0.038)
+
+
+def _check(cond: bool, name: str, value: Any, allowed: str) -> None:
+    if not cond:
+        raise ValueError(f"{name} = {value!r} is invalid: {allowed}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RigSpec:
+    """How to place the cameras (generated from these parameters, deterministic)."""
+
+    layout: Literal["ring", "arc"] = "ring"
+    """'ring': evenly spaced all around the target; 'arc': ``spacing_deg`` apart on one side."""
+    num_cameras: int = 8
+    """Number of cameras N (>= 3)."""
+    width: int = 1280
+    """Image width, pixels."""
+    height: int = 720
+    """Image height, pixels."""
+    focal_px: float = 1000.0
+    """Focal length, pixels (square pixels)."""
+    radius_m: float = 3.4
+    """Horizontal distance of the cameras from the target, metres."""
+    camera_height_m: float = 2.2
+    """Mean camera height above the floor, metres."""
+    target: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    """Point all cameras look at, metres."""
+    spacing_deg: float = 15.0
+    """Angle between neighbouring cameras on an arc (layout 'arc'), degrees."""
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    """OpenCV distortion (k1, k2, p1, p2, k3) of every camera; zeros = ideal pinhole."""
+    principal_offset_px: tuple[float, float] = (0.0, 0.0)
+    """Principal point minus the image centre, pixels."""
+    jitter_m: float = 0.1
+    """Random perturbation of camera positions (and aim), metres; 0 = perfectly regular."""
+
+    def __post_init__(self) -> None:
+        _check(self.layout in ("ring", "arc"), "layout", self.layout, "'ring' or 'arc'")
+        _check(self.num_cameras >= 3, "num_cameras", self.num_cameras, "need >= 3")
+        _check(16 <= self.width <= 8192, "width", self.width, "16..8192 pixels")
+        _check(16 <= self.height <= 8192, "height", self.height, "16..8192 pixels")
+        _check(self.focal_px > 0, "focal_px", self.focal_px, "must be > 0")
+        _check(self.radius_m > 0.5, "radius_m", self.radius_m, "must be > 0.5 m")
+        _check(0.3 < self.camera_height_m, "camera_height_m", self.camera_height_m, "> 0.3 m")
+        _check(0 < self.spacing_deg < 180, "spacing_deg", self.spacing_deg, "in (0, 180)")
+        _check(len(self.distortion) == 5, "distortion", self.distortion, "5 coefficients")
+        _check(self.jitter_m >= 0, "jitter_m", self.jitter_m, "must be >= 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RealismConfig:
+    """Imaging effects, on at mild levels by default (0 turns each off)."""
+
+    noise_sigma: float = 2.0
+    """Standard deviation of additive Gaussian sensor noise, grey levels (0..255)."""
+    exposure_spread: float = 0.04
+    """Per-camera exposure gains are drawn from 1 +- this (relative)."""
+    white_balance_spread: float = 0.02
+    """Per-camera, per-channel colour gains are drawn from 1 +- this (relative)."""
+    illumination_change: float = 0.0
+    """Global light dims linearly by this fraction from the first background frame to the
+    last frame (0 = constant light; e.g. 0.2 = 20 % darker at the end)."""
+    blur_sigma_px: float = 0.5
+    """Optical blur (Gaussian sigma, pixels) applied to every frame; 0 = none."""
+    brightness: float = 1.0
+    """Overall exposure scale."""
+
+    def __post_init__(self) -> None:
+        _check(self.noise_sigma >= 0, "noise_sigma", self.noise_sigma, "must be >= 0")
+        _check(0 <= self.exposure_spread < 0.5, "exposure_spread", self.exposure_spread, "[0, 0.5)")
+        _check(
+            0 <= self.white_balance_spread < 0.5,
+            "white_balance_spread",
+            self.white_balance_spread,
+            "[0, 0.5)",
+        )
+        _check(
+            0 <= self.illumination_change < 0.9,
+            "illumination_change",
+            self.illumination_change,
+            "[0, 0.9)",
+        )
+        _check(0 <= self.blur_sigma_px <= 5, "blur_sigma_px", self.blur_sigma_px, "[0, 5] px")
+        _check(0 < self.brightness <= 4, "brightness", self.brightness, "(0, 4]")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneConfig:
+    """Everything that defines a synthetic sequence; ``build_scene`` is deterministic in it."""
+
+    name: str = "synthetic"
+    """Dataset name (written to dataset.json)."""
+    rig: RigSpec = field(default_factory=RigSpec)
+    """Camera placement and intrinsics."""
+    num_frames: int = 40
+    """Number of timestamps T."""
+    num_actors: int = 2
+    """Number of moving actors K (0 = empty scene)."""
+    seed: int = 0
+    """Seed of every random choice (layout, textures, paths, noise)."""
+    fps: float = 25.0
+    """Frame rate, frames per second (actors walk ~1 m/s)."""
+    background_frames: int = 10
+    """Frames of the empty scene before the sequence (the background-only clip); 0 = none."""
+    room_size_m: tuple[float, float, float] = (8.0, 8.0, 3.0)
+    """Room extent x, y, z (metres), centred on the origin, floor at z = 0."""
+    num_furniture: int = 8
+    """Boxes and cylinders standing around the capture area."""
+    capture_radius_m: float = 1.8
+    """Actors walk within this distance of the rig's target (horizontally), metres."""
+    texel_m: float | None = None
+    """Texture resolution, metres per texel; None = matched to the cameras' pixel footprint."""
+    realism: RealismConfig = field(default_factory=RealismConfig)
+    """Imaging effects."""
+    gt_voxel_foreground_m: float = 0.003
+    """Voxel size deduplicating the foreground ground-truth cloud, metres."""
+    gt_voxel_background_m: float = 0.006
+    """Voxel size deduplicating the background ground-truth cloud, metres."""
+
+    def __post_init__(self) -> None:
+        _check(bool(self.name), "name", self.name, "must be non-empty")
+        _check(self.num_frames >= 1, "num_frames", self.num_frames, "need >= 1")
+        _check(0 <= self.num_actors <= 20, "num_actors", self.num_actors, "0..20")
+        _check(self.fps > 0, "fps", self.fps, "must be > 0")
+        _check(self.background_frames >= 0, "background_frames", self.background_frames, ">= 0")
+        _check(
+            len(self.room_size_m) == 3 and min(self.room_size_m) >= 2.5,
+            "room_size_m",
+            self.room_size_m,
+            "three sizes >= 2.5 m",
+        )
+        _check(0 <= self.num_furniture <= 40, "num_furniture", self.num_furniture, "0..40")
+        _check(self.capture_radius_m > 0.3, "capture_radius_m", self.capture_radius_m, "> 0.3 m")
+        _check(
+            self.texel_m is None or 0.0005 <= self.texel_m <= 0.05,
+            "texel_m",
+            self.texel_m,
+            "None or 0.0005..0.05 m",
+        )
+        _check(
+            self.gt_voxel_foreground_m > 0,
+            "gt_voxel_foreground_m",
+            self.gt_voxel_foreground_m,
+            "> 0",
+        )
+        _check(
+            self.gt_voxel_background_m > 0,
+            "gt_voxel_background_m",
+            self.gt_voxel_background_m,
+            "> 0",
+        )
+        half = min(self.room_size_m[:2]) / 2
+        _check(
+            self.rig.radius_m < half - 0.15,
+            "rig.radius_m",
+            self.rig.radius_m,
+            f"cameras must stand inside the room (< {half - 0.15:.2f} m from the centre)",
+        )
+        _check(
+            self.rig.camera_height_m < self.room_size_m[2] - 0.15,
+            "rig.camera_height_m",
+            self.rig.camera_height_m,
+            "cameras must be below the ceiling",
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SceneConfig:
+        d = dict(d)
+        rig_d: dict[str, Any] = {
+            k: (tuple(v) if isinstance(v, list) else v) for k, v in d.pop("rig").items()
+        }
+        rig = RigSpec(**rig_d)
+        realism = RealismConfig(**d.pop("realism"))
+        if "room_size_m" in d:
+            d["room_size_m"] = tuple(d["room_size_m"])
+        return cls(rig=rig, realism=realism, **d)
+
+
+# ----------------------------------------------------------------------------------- presets
+def _ring() -> SceneConfig:
+    return SceneConfig(
+        name="synthetic-ring",
+        rig=RigSpec(layout="ring", num_cameras=8, width=1280, height=720, focal_px=1000.0),
+        num_frames=60,
+        num_actors=3,
+    )
+
+
+def _arc7() -> SceneConfig:
+    return SceneConfig(
+        name="synthetic-arc7",
+        rig=RigSpec(
+            layout="arc",
+            num_cameras=7,
+            width=1920,
+            height=1080,
+            focal_px=1720.0,
+            radius_m=3.6,
+            camera_height_m=1.9,
+            spacing_deg=15.0,
+            distortion=STUDIO_DISTORTION,
+            principal_offset_px=(-21.7, 10.7),
+            jitter_m=0.06,
+        ),
+        num_frames=60,
+        num_actors=2,
+    )
+
+
+def _demo() -> SceneConfig:
+    return SceneConfig(
+        name="synthetic-demo",
+        rig=RigSpec(layout="ring", num_cameras=5, width=640, height=480, focal_px=540.0),
+        num_frames=40,
+        num_actors=2,
+    )
+
+
+PRESETS = {"ring": _ring, "arc7": _arc7, "demo": _demo}
+"""Named scene presets."""
+
+
+def preset_config(name: str, **overrides: Any) -> SceneConfig:
+    """The preset ``name`` with ``overrides``: any field of ``SceneConfig``, ``RigSpec`` or
+    ``RealismConfig`` by its name (e.g. ``num_cameras=5, width=320, noise_sigma=0``)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    config = PRESETS[name]()
+    rig_names = {f.name for f in fields(RigSpec)}
+    real_names = {f.name for f in fields(RealismConfig)}
+    scene_names = {f.name for f in fields(SceneConfig)}
+    rig_kw = {k: v for k, v in overrides.items() if k in rig_names}
+    real_kw = {k: v for k, v in overrides.items() if k in real_names}
+    scene_kw = {k: v for k, v in overrides.items() if k in scene_names}
+    unknown = set(overrides) - rig_names - real_names - scene_names
+    if unknown:
+        raise ValueError(f"unknown scene option(s) {sorted(unknown)}")
+    if {"width", "height"} & set(rig_kw) and "focal_px" not in rig_kw:
+        # Keep the field of view when only the resolution changes.
+        w = rig_kw.get("width", config.rig.width)
+        rig_kw["focal_px"] = config.rig.focal_px * w / config.rig.width
+    if "principal_offset_px" not in rig_kw and "width" in rig_kw:
+        s = rig_kw["width"] / config.rig.width
+        off = config.rig.principal_offset_px
+        rig_kw["principal_offset_px"] = (off[0] * s, off[1] * s)
+    return dataclasses.replace(
+        config,
+        rig=dataclasses.replace(config.rig, **rig_kw),
+        realism=dataclasses.replace(config.realism, **real_kw),
+        **scene_kw,
+    )
+
+
+# ----------------------------------------------------------------------------------- the rig
+def make_rig(spec: RigSpec, seed: int = 0) -> Rig:
+    """Cameras named cam0..cam{N-1}, placed by ``spec`` (metres, z up)."""
+    rng = np.random.default_rng([seed, 101])
+    n = spec.num_cameras
+    target = np.asarray(spec.target, float)
+    if spec.layout == "ring":
+        angles = 2 * np.pi * np.arange(n) / n + rng.uniform(-0.5, 0.5) * 2 * np.pi / n
+    else:
+        # Centred on the -y side, so that +x is to the right of the middle camera's image.
+        angles = -np.pi / 2 + np.radians(spec.spacing_deg) * (np.arange(n) - (n - 1) / 2)
+    cameras = []
+    w, h = spec.width, spec.height
+    for i, a in enumerate(angles):
+        jitter = rng.normal(0.0, spec.jitter_m, 3) if spec.jitter_m > 0 else np.zeros(3)
+        center = target + np.array([spec.radius_m * np.cos(a), spec.radius_m * np.sin(a), 0.0])
+        center[2] = spec.camera_height_m + jitter[2] * 2
+        center[:2] += jitter[:2] * 0.5
+        aim = target + (rng.normal(0.0, spec.jitter_m, 3) if spec.jitter_m > 0 else 0.0)
+        R, t = look_at(center.tolist(), np.asarray(aim, float).tolist())
+        cx = (w - 1) / 2 + spec.principal_offset_px[0]
+        cy = (h - 1) / 2 + spec.principal_offset_px[1]
+        K = np.array([[spec.focal_px, 0.0, cx], [0.0, spec.focal_px, cy], [0.0, 0.0, 1.0]])
+        cameras.append(
+            Camera(name=f"cam{i}", width=w, height=h, K=K, R=R, t=t, dist=np.array(spec.distortion))
+        )
+    return Rig(cameras=tuple(cameras), unit="m")
+
+
+# ----------------------------------------------------------------------------------- scene
+@dataclass(frozen=True, kw_only=True)
+class Lighting:
+    """View-independent (Lambertian) lighting: ambient + a directional key + a ceiling lamp."""
+
+    ambient: float = 0.42
+    key_direction: tuple[float, float, float] = (0.35, -0.25, 0.9)
+    """Direction towards the key light (normalised on use)."""
+    key: float = 0.4
+    lamp_position: tuple[float, float, float] = (0.3, 0.2, 2.8)
+    lamp: float = 2.2
+    """Lamp intensity: irradiance lamp * cos / distance^2."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class SynthScene:
+    """A built scene: geometry, textures, actors, rig and per-camera imaging parameters."""
+
+    config: SceneConfig
+    rig: Rig
+    room: Room
+    furniture: tuple[Box | Cylinder, ...]
+    textures: tuple[Texture, ...]
+    texture_kinds: tuple[str, ...]
+    actors: tuple[motion.Actor, ...]
+    lighting: Lighting
+    camera_gains: NDArray[np.float32]
+    """(N, 3) per-camera BGR gains (exposure x white balance)."""
+
+    @property
+    def num_frames(self) -> int:
+        return self.config.num_frames
+
+    def illumination(self, t: int | float) -> float:
+        """Global light level at frame ``t`` (background frames are t < 0)."""
+        c = self.config
+        a = c.realism.illumination_change
+        if a == 0:
+            return 1.0
+        start, end = -c.background_frames, c.num_frames - 1
+        frac = (t - start) / max(end - start, 1)
+        return float(1.0 - a * np.clip(frac, 0.0, 1.0))
+
+    def actors_at(self, t: float) -> list[motion.Actor]:
+        return [a for a in self.actors if a.present(t)]
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-safe summary (what ground truth's scene.json records)."""
+        return {
+            "room_size_m": list(self.config.room_size_m),
+            "textures": list(self.texture_kinds),
+            "furniture": [
+                {
+                    "kind": "box",
+                    "center": f.center.tolist(),
+                    "half": f.half.tolist(),
+                    "yaw": f.yaw,
+                }
+                if isinstance(f, Box)
+                else {
+                    "kind": "cylinder",
+                    "center_xy": list(f.center_xy),
+                    "radius": f.radius,
+                    "z": [f.z0, f.z1],
+                }
+                for f in self.furniture
+            ],
+            "actors": [
+                {
+                    "id": a.actor_id,
+                    "height_m": a.height_m,
+                    "enter_frame": a.enter_frame,
+                    "leave_frame": a.leave_frame,
+                }
+                for a in self.actors
+            ],
+            "camera_gains": self.camera_gains.tolist(),
+            "illumination": [
+                self.illumination(t)
+                for t in range(-self.config.background_frames, self.config.num_frames)
+            ],
+        }
+
+
+def auto_texel(rig: Rig, target: F64) -> float:
+    """Texel size matching the finest pixel footprint at the rig's target, metres."""
+    fp = min(float(np.linalg.norm(c.center - target)) / c.focal_px for c in rig)
+    return float(np.clip(fp, 0.002, 0.02))
+
+
+class _TextureBank:
+    """Collects texture requests; generation is cached per (kind, seed, shape, texel)."""
+
+    def __init__(self, seed: int, texel_m: float) -> None:
+        self.seed = seed
+        self.texel_m = texel_m
+        self.textures: list[Texture] = []
+        self.kinds: list[str] = []
+
+    def add(self, kind: str, extent_m: tuple[float, float], texel_scale: float = 1.0) -> int:
+        texel = self.texel_m * texel_scale
+        texel = max(texel, max(extent_m) / MAX_TEXTURE_SIDE)
+        w = _round_side(extent_m[0] / texel)
+        h = _round_side(extent_m[1] / texel)
+        index = len(self.textures)
+        self.textures.append(_cached_texture(kind, self.seed, index, (h, w), round(texel, 7)))
+        self.kinds.append(kind)
+        return index
+
+
+def _round_side(n: float) -> int:
+    """Texture side: a multiple of 64 (so that 6 mip levels tile exactly), at least 64."""
+    return int(min(MAX_TEXTURE_SIDE, max(64, 64 * math.ceil(n / 64))))
+
+
+@lru_cache(maxsize=256)
+def _cached_texture(
+    kind: str, seed: int, index: int, shape: tuple[int, int], texel: float
+) -> Texture:
+    return make_texture(kind, (seed, 7, index), shape, texel)
+
+
+def build_scene(config: SceneConfig) -> SynthScene:
+    """Build the scene of ``config`` (deterministic in ``config``)."""
+    rng = np.random.default_rng([config.seed, 1])
+    rig = make_rig(config.rig, config.seed)
+    sx, sy, sz = config.room_size_m
+    target = np.asarray(config.rig.target, float)
+    texel = config.texel_m if config.texel_m is not None else auto_texel(rig, target)
+    bank = _TextureBank(config.seed, texel)
+
+    floor_kind = str(rng.choice(["planks", "tiles", "stone"]))
+    wall_kinds = ["posters", "bricks", "stone", "paint"]
+    rng.shuffle(wall_kinds)
+    floor = bank.add(floor_kind, (sx, sy))
+    ceiling = bank.add("paint", (sx, sy), texel_scale=4.0)
+    walls = []
+    for i, kind in enumerate(wall_kinds):
+        extent = (sy if i < 2 else sx, sz)
+        walls.append(bank.add(kind, extent))
+    room = Room(
+        half_x=sx / 2,
+        half_y=sy / 2,
+        height=sz,
+        materials=(floor, ceiling, walls[0], walls[1], walls[2], walls[3]),
+    )
+    furniture = _place_furniture(rng, config, rig, bank)
+    actors = _make_actors(rng, config, bank, target)
+
+    n = len(rig)
+    real = config.realism
+    exposure = 1.0 + rng.uniform(-1, 1, (n, 1)) * real.exposure_spread
+    wb = 1.0 + rng.uniform(-1, 1, (n, 3)) * real.white_balance_spread
+    gains = (exposure * wb * real.brightness).astype(np.float32)
+    scene = SynthScene(
+        config=config,
+        rig=rig,
+        room=room,
+        furniture=tuple(furniture),
+        textures=tuple(bank.textures),
+        texture_kinds=tuple(bank.kinds),
+        actors=tuple(actors),
+        lighting=Lighting(),
+        camera_gains=gains,
+    )
+    for cam in rig:
+        if not room.contains(cam.center, margin=0.05):
+            raise ValueError(f"camera {cam.name!r} at {cam.center.round(2)} is outside the room")
+    return scene
+
+
+def _place_furniture(
+    rng: np.random.Generator, config: SceneConfig, rig: Rig, bank: _TextureBank
+) -> list[Box | Cylinder]:
+    """Boxes and cylinders around the capture area, never in front of a camera."""
+    sx, sy, _ = config.room_size_m
+    target = np.asarray(config.rig.target, float)[:2]
+    centers = rig.centers
+    placed: list[tuple[F64, float]] = []
+    items: list[Box | Cylinder] = []
+    side_kinds = ["stone", "planks", "tiles", "posters", "paint", "fabric"]
+    tries = 0
+    while len(items) < config.num_furniture and tries < 400:
+        tries += 1
+        is_box = rng.random() < 0.65
+        if is_box:
+            half = np.array([rng.uniform(0.2, 0.6), rng.uniform(0.2, 0.45), rng.uniform(0.2, 0.6)])
+            footprint = float(np.hypot(half[0], half[1]))
+        else:
+            radius = float(rng.uniform(0.15, 0.4))
+            tall = float(rng.uniform(0.4, 2.2))
+            footprint = radius
+        r = rng.uniform(config.capture_radius_m + 0.4 + footprint, 0.5 * min(sx, sy) - footprint)
+        ang = rng.uniform(0, 2 * np.pi)
+        xy = target + r * np.array([np.cos(ang), np.sin(ang)])
+        if abs(xy[0]) > sx / 2 - footprint - 0.02 or abs(xy[1]) > sy / 2 - footprint - 0.02:
+            continue
+        if any(np.linalg.norm(xy - p) < footprint + q + 0.1 for p, q in placed):
+            continue
+        # Keep clear of the cameras and of their lines of sight to the capture area.
+        blocked = False
+        for c in centers:
+            if np.linalg.norm(xy - c[:2]) < footprint + 0.6:
+                blocked = True
+                break
+            seg = target - c[:2]
+            tt = np.clip(np.dot(xy - c[:2], seg) / np.dot(seg, seg), 0, 1)
+            if np.linalg.norm(xy - (c[:2] + tt * seg)) < footprint + 0.5:
+                blocked = True
+                break
+        if blocked:
+            continue
+        side = bank.add(str(rng.choice(side_kinds)), (2.0, 2.0))
+        top = bank.add(str(rng.choice(["planks", "stone", "paint"])), (1.0, 1.0))
+        if is_box:
+            items.append(
+                Box(
+                    center=np.array([xy[0], xy[1], half[2]]),
+                    half=half,
+                    yaw=float(rng.uniform(0, np.pi)),
+                    side_material=side,
+                    top_material=top,
+                )
+            )
+        else:
+            items.append(
+                Cylinder(
+                    center_xy=(float(xy[0]), float(xy[1])),
+                    radius=radius,
+                    z0=0.0,
+                    z1=tall,
+                    side_material=side,
+                    top_material=top,
+                )
+            )
+        placed.append((xy, footprint))
+    if len(items) < config.num_furniture:
+        logger.info(
+            "placed %d of %d furniture items (no free space)", len(items), config.num_furniture
+        )
+    return items
+
+
+def _make_actors(
+    rng: np.random.Generator, config: SceneConfig, bank: _TextureBank, target: F64
+) -> list[motion.Actor]:
+    T = config.num_frames
+    actors: list[motion.Actor] = []
+    center = target[:2]
+    half = min(config.room_size_m[:2]) / 2
+    edge = min(config.capture_radius_m + 1.0, half - 0.5)
+    for k in range(config.num_actors):
+        aid = k + 1
+        # Actor 1 is there throughout; the others may enter late and/or leave early.
+        enters = k > 0 and T >= 10 and rng.random() < 0.7
+        leaves = k > 0 and T >= 10 and not enters and rng.random() < 0.6
+        enter = float(rng.uniform(0.1, 0.35) * T) if enters else 0.0
+        leave = float(rng.uniform(0.6, 0.9) * T) if leaves else float(T)
+        times, points = motion.random_path(
+            rng,
+            start_frame=enter,
+            end_frame=leave,
+            fps=config.fps,
+            area_radius_m=config.capture_radius_m,
+            edge_radius_m=edge,
+            enters=enters,
+            leaves=leaves,
+            center=center,
+        )
+        if leaves:
+            leave = float(times[-1])
+        if k == 1 and actors:
+            lo = max(enter, actors[0].enter_frame) + 0.2 * config.fps
+            hi = min(leave, actors[0].leave_frame) - 0.2 * config.fps
+            points = motion.steer_close(
+                times, points, actors[0], distance_m=0.75, window=(lo, hi), sigma_frames=config.fps
+            )
+        look = motion.ActorLook(
+            shirt=bank.add("fabric", (0.4, 0.8), texel_scale=0.75),
+            trousers=bank.add(str(rng.choice(["fabric", "stone"])), (0.4, 0.8), texel_scale=0.75),
+            skin=bank.add("skin", (0.3, 0.3), texel_scale=1.5),
+            hair=bank.add("hair", (0.3, 0.3), texel_scale=0.75),
+            shoes=bank.add("stone", (0.3, 0.3)),
+            shirt_period_m=bank.textures[-5].period_m[0],
+            trousers_period_m=bank.textures[-4].period_m[0],
+            skin_period_m=bank.textures[-3].period_m[0],
+            hair_period_m=bank.textures[-2].period_m[0],
+            shoes_period_m=bank.textures[-1].period_m[0],
+        )
+        actors.append(
+            motion.Actor(
+                actor_id=aid,
+                height_m=float(rng.uniform(1.6, 1.9)),
+                width_scale=float(rng.uniform(0.9, 1.15)),
+                enter_frame=enter,
+                leave_frame=leave,
+                key_times=times,
+                key_positions=points,
+                stride_m=float(rng.uniform(1.2, 1.5)),
+                phase0=float(rng.uniform(0, 2 * np.pi)),
+                look=look,
+            )
+        )
+    return actors
