@@ -1,0 +1,116 @@
+"""Configuration of dense multi-view stereo (:func:`edgerecon.dense.reconstruct_dense`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+#: Plane families the coarse sweep can test (see ``DenseConfig.sweep_families``).
+SWEEP_FAMILIES = ("fronto", "ground")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DenseConfig:
+    """Settings of the dense stage. Lengths are in rig units unless the name ends in ``_px``
+    (pixels at the working resolution) or ``_deg``; ``rel`` means relative to depth."""
+
+    resolution_level: int = 1
+    """Depth maps are computed at ``2**-resolution_level`` of the view images (openMVS also
+    densifies at half resolution by default); 0 = full view resolution."""
+    coarse_levels: int = 2
+    """The plane sweep runs ``coarse_levels`` octaves below the working resolution; each finer
+    octave refines the depths by a local search (coarse-to-fine)."""
+    max_source_views: int = 3
+    """Source views matched against each reference view (the best by overlap and angle)."""
+    min_source_angle_deg: float = 2.0
+    """Sources whose median triangulation angle with the reference is smaller are skipped."""
+    max_source_angle_deg: float = 110.0
+    """Sources whose median triangulation angle with the reference is larger are skipped."""
+    window_radius: int = 3
+    """NCC window half-size in pixels (3 -> 7x7 windows), at every pyramid level."""
+    ncc_top_k: int = 2
+    """Matching score of a depth = mean of the best ``ncc_top_k`` source NCCs (occlusion-robust)."""
+    sweep_families: tuple[str, ...] = SWEEP_FAMILIES
+    """Plane orientations of the coarse sweep: "fronto" (parallel to the reference image) and
+    "ground" (perpendicular to the scene's up direction: floors, tables, seats)."""
+    plane_step_px: float = 1.0
+    """Largest image motion in any source between consecutive sweep planes, in coarse pixels."""
+    max_planes: int = 192
+    """Cap on planes per family; the step grows when the depth range needs more."""
+    refine_radius: int = 2
+    """The local search at each finer level tests depths at +-refine_radius steps."""
+    refine_step_px: float = 1.0
+    """Image motion in the most sensitive source per local-search step, in pixels of that level."""
+    propagation_iterations: int = 1
+    """Rounds of whole-map propagation per level (neighbours' depths as hypotheses)."""
+    min_ncc: float = 0.5
+    """Depths whose aggregated NCC is lower are discarded."""
+    min_texture: float = 1.5
+    """Reference windows with a grey-level standard deviation below this (0..255 scale) are
+    discarded: NCC is meaningless on flat patches."""
+    consistency_rel_depth: float = 0.01
+    """A depth agrees with another view when their depths differ by less than this share."""
+    min_consistent_views: int = 1
+    """A depth is kept only if at least this many other views agree (1 -> seen by >= 2 views)."""
+    voxel_size: float | None = None
+    """Fusion merges points within one voxel of this edge (rig units); None = the median pixel
+    footprint of the depth maps."""
+    max_depth_rel_scene: float = 6.0
+    """Without sparse points or given ranges, depths run up to this multiple of the rig's
+    median camera distance."""
+    range_margin_rel: float = 0.15
+    """Depth ranges from sparse points are widened by this share at both ends."""
+    min_sparse_points: int = 12
+    """A view needs this many sparse points to take its depth range from them."""
+    roi_margin_px: int = 8
+    """Masks are grown by this many working pixels before cropping (window support)."""
+    num_threads: int = 2
+    """Reference views processed in parallel (OpenCV releases the GIL)."""
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, name: str, what: str) -> None:
+            if not ok:
+                raise ValueError(f"DenseConfig.{name} must be {what}, got {getattr(self, name)!r}")
+
+        need(0 <= self.resolution_level <= 4, "resolution_level", "in 0..4")
+        need(0 <= self.coarse_levels <= 4, "coarse_levels", "in 0..4")
+        need(self.max_source_views >= 1, "max_source_views", ">= 1")
+        need(0.0 <= self.min_source_angle_deg < 180.0, "min_source_angle_deg", "in [0, 180)")
+        need(
+            self.min_source_angle_deg < self.max_source_angle_deg <= 180.0,
+            "max_source_angle_deg",
+            "in (min_source_angle_deg, 180]",
+        )
+        need(1 <= self.window_radius <= 15, "window_radius", "in 1..15")
+        need(self.ncc_top_k >= 1, "ncc_top_k", ">= 1")
+        need(
+            len(self.sweep_families) > 0
+            and all(f in SWEEP_FAMILIES for f in self.sweep_families)
+            and len(set(self.sweep_families)) == len(self.sweep_families),
+            "sweep_families",
+            f"a non-empty tuple of distinct names from {SWEEP_FAMILIES}",
+        )
+        need(0.0 < self.plane_step_px <= 16.0, "plane_step_px", "in (0, 16]")
+        need(self.max_planes >= 4, "max_planes", ">= 4")
+        need(0 <= self.refine_radius <= 8, "refine_radius", "in 0..8")
+        need(0.0 < self.refine_step_px <= 8.0, "refine_step_px", "in (0, 8]")
+        need(0 <= self.propagation_iterations <= 8, "propagation_iterations", "in 0..8")
+        need(-1.0 <= self.min_ncc < 1.0, "min_ncc", "in [-1, 1)")
+        need(self.min_texture >= 0.0, "min_texture", ">= 0")
+        need(0.0 < self.consistency_rel_depth < 1.0, "consistency_rel_depth", "in (0, 1)")
+        need(self.min_consistent_views >= 0, "min_consistent_views", ">= 0")
+        need(
+            self.voxel_size is None or (self.voxel_size > 0 and math.isfinite(self.voxel_size)),
+            "voxel_size",
+            "None or a positive length",
+        )
+        need(self.max_depth_rel_scene > 0, "max_depth_rel_scene", "> 0")
+        need(0.0 <= self.range_margin_rel < 1.0, "range_margin_rel", "in [0, 1)")
+        need(self.min_sparse_points >= 1, "min_sparse_points", ">= 1")
+        need(self.roi_margin_px >= 0, "roi_margin_px", ">= 0")
+        need(self.num_threads >= 1, "num_threads", ">= 1")
+
+    @property
+    def working_scale(self) -> float:
+        """Scale of the depth maps relative to the view images."""
+        return 0.5**self.resolution_level

@@ -1,0 +1,653 @@
+"""Per-view depth maps: a coarse multi-view plane sweep, refined coarse-to-fine.
+
+For one reference view and a few source views:
+
+1. **Plane sweep** at the coarsest level. Each plane of a family (``fronto``: parallel to the
+   reference image; ``ground``: perpendicular to the scene's up direction) maps every source
+   onto the reference by a homography (``cv2.warpPerspective``); the windowed NCC of each
+   source is aggregated over the best sources (:mod:`edgerecon.dense.cost`). Planes are spaced
+   so that consecutive planes move the image of every sampled ray by at most
+   ``plane_step_px`` coarse pixels in every source, which adapts the number of planes to the
+   baseline and to the depth range. Winner-take-all with a parabola through the neighbouring
+   planes gives sub-plane precision. The "ground" family makes windows on floors match across
+   wide baselines, where fronto-parallel windows would be sheared beyond recognition.
+2. **Refinement** at each finer octave: the inverse depth map is upsampled; every pixel tests
+   its own depth at +-``refine_radius`` steps (one step moves its image in the most sensitive
+   source by ``refine_step_px`` pixels) by resampling each source through the whole
+   hypothesis map with ``cv2.remap``. Because neighbouring pixels carry neighbouring
+   hypotheses, each NCC window is compared along the current surface estimate: slanted
+   surfaces are matched without explicit normals. Whole-map propagation (each pixel tries its
+   neighbours' depths, as in PatchMatch but for all pixels at once) repairs coarse errors.
+
+All work happens on the crop of the reference that holds the region of interest, so cost
+scales with the ROI's area; ``DepthEstimate.work`` counts pixel x source evaluations.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.dense.config import DenseConfig
+from edgerecon.dense.cost import F32, WindowStats, aggregate, as_f32, ncc, window_stats
+from edgerecon.geometry.camera import Camera
+
+logger = logging.getLogger(__name__)
+
+#: Rays closer than this angle to a ground plane get no hypotheses from that family.
+_MIN_GRAZING_SIN = np.sin(np.radians(4.0))
+#: Sub-sampling of the inverse-depth axis when placing sweep planes.
+_FINE_SAMPLES = 2048
+#: Smallest crop side (pixels) worth a level of the pyramid.
+_MIN_LEVEL_SIDE = 24
+
+
+@dataclass(frozen=True, eq=False)
+class ViewPyramid:
+    """A view's grey images and cameras at the working resolution and the octaves below."""
+
+    camera_id: int
+    cameras: tuple[Camera, ...]
+    """``cameras[l]`` is the camera at 2**-l of the working resolution."""
+    greys: tuple[F32, ...]
+    """Grey images (``cost.to_grey``) matching ``cameras``."""
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.cameras)
+
+
+def build_pyramid(camera_id: int, camera: Camera, grey: F32, levels: int) -> ViewPyramid:
+    """Pyramid of ``levels`` octaves below the working image ``grey`` of ``camera``."""
+    cams = [camera]
+    greys = [grey]
+    for level in range(1, levels + 1):
+        cam = camera.scaled(0.5**level)
+        if min(cam.width, cam.height) < 8:
+            break
+        cams.append(cam)
+        greys.append(as_f32(cv2.resize(grey, cam.size, interpolation=cv2.INTER_AREA)))
+    return ViewPyramid(camera_id=camera_id, cameras=tuple(cams), greys=tuple(greys))
+
+
+@dataclass(frozen=True)
+class Roi:
+    """Half-open pixel box ``[x0, x1) x [y0, y1)`` at the working resolution."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+    @property
+    def width(self) -> int:
+        return self.x1 - self.x0
+
+    @property
+    def height(self) -> int:
+        return self.y1 - self.y0
+
+    @property
+    def area(self) -> int:
+        return max(self.width, 0) * max(self.height, 0)
+
+
+@dataclass(frozen=True, eq=False)
+class DepthEstimate:
+    """Depths of one ROI of one reference view, at the working resolution."""
+
+    roi: Roi
+    depth: F32
+    """(h, w) depth along the optical axis; 0 = none."""
+    score: F32
+    """(h, w) aggregated NCC of the depth (-1 where none)."""
+    texture: F32
+    """(h, w) grey standard deviation of each reference window."""
+    work: int
+    """Pixel x source NCC evaluations performed (proportional to the compute spent)."""
+    num_planes: int
+    """Sweep planes tested (all families)."""
+
+
+def crop_camera(camera: Camera, x0: int, y0: int, width: int, height: int) -> Camera:
+    """The pinhole camera of the sub-image ``[x0, x0 + width) x [y0, y0 + height)``."""
+    K = camera.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return Camera(
+        name=camera.name, width=width, height=height, K=K, R=camera.R, t=camera.t, dist=camera.dist
+    )
+
+
+def roi_at_level(roi: Roi, cam0: Camera, cam: Camera) -> Roi:
+    """The box of ``cam``'s image (a resized ``cam0``) that covers ``roi`` of ``cam0``."""
+    sx, sy = cam.width / cam0.width, cam.height / cam0.height
+    x0 = int(np.floor((roi.x0 + 0.5) * sx - 0.5))
+    y0 = int(np.floor((roi.y0 + 0.5) * sy - 0.5))
+    x1 = int(np.ceil((roi.x1 - 0.5) * sx - 0.5)) + 1
+    y1 = int(np.ceil((roi.y1 - 0.5) * sy - 0.5)) + 1
+    return Roi(max(x0, 0), max(y0, 0), min(x1, cam.width), min(y1, cam.height))
+
+
+def _pixel_grid(width: int, height: int) -> tuple[F32, F32]:
+    u = np.arange(width, dtype=np.float32)[None, :].repeat(height, axis=0)
+    v = np.arange(height, dtype=np.float32)[:, None].repeat(width, axis=1)
+    return u, v
+
+
+def _rays(camera: Camera) -> NDArray[np.float32]:
+    """(h, w, 3) camera-frame rays with z = 1 of every pixel."""
+    u, v = _pixel_grid(camera.width, camera.height)
+    Kinv = np.linalg.inv(camera.K)
+    x = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
+    y = Kinv[1, 1] * v + Kinv[1, 2]
+    return np.stack([x, y, np.ones_like(x)], axis=-1).astype(np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class _Pair:
+    """Relative geometry of the reference crop and one source at one level."""
+
+    R: NDArray[np.float64]
+    """Rotation source_from_ref."""
+    t: NDArray[np.float64]
+    """Translation source_from_ref."""
+    K: NDArray[np.float64]
+    """Source intrinsics."""
+    grey: F32
+    size: tuple[int, int]
+
+
+def _pair(ref: Camera, src: Camera, grey: F32) -> _Pair:
+    R = src.R @ ref.R.T
+    t = src.t - R @ ref.t
+    return _Pair(R=R, t=t, K=src.K, grey=grey, size=src.size)
+
+
+# ================================================================================== sweep
+@dataclass(frozen=True, eq=False)
+class _Family:
+    name: str
+    normal: NDArray[np.float64]
+    """Plane normal n in the reference camera frame; planes are n . X = 1 / lambda."""
+    nray: F32
+    """(h, w) n . ray of every pixel."""
+    usable: NDArray[np.bool_]
+    """(h, w) pixels this family may explain."""
+
+
+def _families(
+    cam: Camera, rays: NDArray[np.float32], up: NDArray[np.float64] | None, config: DenseConfig
+) -> list[_Family]:
+    out = []
+    h, w = rays.shape[:2]
+    for name in config.sweep_families:
+        if name == "fronto":
+            n = np.array([0.0, 0.0, 1.0])
+            out.append(_Family(name, n, np.ones((h, w), np.float32), np.ones((h, w), dtype=bool)))
+        elif name == "ground" and up is not None:
+            n = cam.R @ up
+            nray = (rays @ n.astype(np.float32)).astype(np.float32)
+            norm = np.linalg.norm(rays, axis=2)
+            # Below-camera horizontal planes only (floors, tables): n . X < 0 there.
+            usable = nray < -_MIN_GRAZING_SIN * norm
+            if usable.mean() > 0.02:
+                out.append(_Family(name, n, nray, usable))
+    return out
+
+
+def _plane_parameters(
+    family: _Family,
+    rays: NDArray[np.float32],
+    near: F32,
+    far: F32,
+    pairs: Sequence[_Pair],
+    step_px: float,
+    max_planes: int,
+) -> NDArray[np.float64]:
+    """Inverse plane offsets lambda = 1 / d spaced by at most ``step_px`` of image motion."""
+    h, w = rays.shape[:2]
+    gy, gx = np.meshgrid(
+        np.linspace(0, h - 1, 6).round().astype(int),
+        np.linspace(0, w - 1, 8).round().astype(int),
+        indexing="ij",
+    )
+    gy, gx = gy.ravel(), gx.ravel()
+    ok = family.usable[gy, gx] & (near[gy, gx] > 0) & (far[gy, gx] > near[gy, gx])
+    if not ok.any():
+        # Fall back to every usable pixel (small or odd-shaped ROIs).
+        gy, gx = np.nonzero(family.usable & (near > 0) & (far > near))
+        if len(gy) == 0:
+            return np.zeros(0)
+        pick = np.linspace(0, len(gy) - 1, min(len(gy), 108)).round().astype(int)
+        gy, gx = gy[pick], gx[pick]
+        ok = np.ones(len(gy), dtype=bool)
+    gy, gx = gy[ok], gx[ok]
+    r = rays[gy, gx].astype(np.float64)  # (S, 3)
+    nr = family.nray[gy, gx].astype(np.float64)
+    # lambda = 1 / (z * n.ray) over z in [near, far]
+    lam_a = 1.0 / (near[gy, gx] * nr)
+    lam_b = 1.0 / (far[gy, gx] * nr)
+    lam_lo = np.minimum(lam_a, lam_b)
+    lam_hi = np.maximum(lam_a, lam_b)
+    grid = np.linspace(lam_lo.min(), lam_hi.max(), _FINE_SAMPLES)
+    motion = np.zeros(_FINE_SAMPLES - 1)
+    inside_pix = (grid[:, None] >= lam_lo[None]) & (grid[:, None] <= lam_hi[None])  # (G, S)
+    for p in pairs:
+        a = (p.K @ p.R @ r.T).T  # (S, 3)
+        b = np.outer(nr, p.K @ p.t)  # (S, 3)
+        hom = a[None] + grid[:, None, None] * b[None]  # (G, S, 3)
+        zs = hom[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = hom[..., :2] / zs[..., None]
+        W, H = p.size
+        vis = (
+            inside_pix
+            & (zs > 0)
+            & (xy[..., 0] > -W)
+            & (xy[..., 0] < 2 * W)
+            & (xy[..., 1] > -H)
+            & (xy[..., 1] < 2 * H)
+        )
+        d = np.linalg.norm(np.diff(xy, axis=0), axis=2)  # (G-1, S)
+        both = vis[1:] & vis[:-1]
+        d = np.where(both, d, 0.0)
+        motion = np.maximum(motion, d.max(axis=1))
+    cum = np.concatenate([[0.0], np.cumsum(motion)])
+    total = cum[-1]
+    if total <= 0:
+        return np.zeros(0)
+    step = max(step_px, total / (max_planes - 1))
+    n = int(np.floor(total / step)) + 1
+    targets = np.arange(n) * step
+    # cum is non-decreasing; interpolate on its strictly increasing part.
+    keep = np.concatenate([[True], np.diff(cum) > 0])
+    lam = np.interp(targets, cum[keep], grid[keep])
+    return np.unique(lam)
+
+
+def _homography(
+    pair: _Pair, K_ref_inv: NDArray[np.floating[Any]], n: NDArray[np.floating[Any]], lam: float
+) -> NDArray[np.float64]:
+    return pair.K @ (pair.R + lam * np.outer(pair.t, n)) @ K_ref_inv
+
+
+#: Pixels per batch of stacked sweep planes (bounds the temporary memory, amortises calls).
+_BATCH_PIXELS = 250_000
+
+
+def _sweep(
+    cam: Camera,
+    stats: WindowStats,
+    pairs: Sequence[_Pair],
+    near: F32,
+    far: F32,
+    up: NDArray[np.float64] | None,
+    config: DenseConfig,
+) -> tuple[F32, F32, int, int]:
+    """Plane sweep over all families: (inverse depth, score, work, number of planes).
+
+    Planes are processed in batches: the warped sources of B planes are stacked into one tall
+    image (slices separated by NaN rows, so that no window mixes two planes) and scored with
+    one pass of box filters, which amortises the per-call overhead on small coarse images.
+    Pixels within ``radius`` of the crop's top and bottom therefore see NaN rows and get no
+    score at this level; the finer levels fill them in."""
+    h, w = cam.height, cam.width
+    r = stats.radius
+    rays = _rays(cam)
+    Kinv = np.linalg.inv(cam.K)
+    best_w = np.zeros((h, w), np.float32)
+    best_s = np.full((h, w), -1.0, np.float32)
+    work = 0
+    planes_total = 0
+    w_near = np.where(near > 0, 1.0 / np.maximum(near, 1e-30), 0.0).astype(np.float32)
+    w_far = np.where(far > 0, 1.0 / np.maximum(far, 1e-30), np.inf).astype(np.float32)
+    pitch = h + r  # rows per stacked plane: the slice and a gap of r NaN rows
+    batch = max(1, min(config.max_planes, _BATCH_PIXELS // (pitch * w)))
+
+    def tile(a: F32, fill: float, n: int) -> F32:
+        t = np.full((n, pitch, w), fill, np.float32)
+        t[:, :h] = a
+        return t.reshape(n * pitch, w)
+
+    for fam in _families(cam, rays, up, config):
+        lams = _plane_parameters(
+            fam, rays, near, far, pairs, config.plane_step_px, config.max_planes
+        )
+        if len(lams) < 3:
+            continue
+        planes_total += len(lams)
+        volume = np.empty((len(lams), h, w), np.float32)
+        tiled: dict[int, tuple[WindowStats, F32, F32, F32, NDArray[np.bool_]]] = {}
+        for b0 in range(0, len(lams), batch):
+            chunk = lams[b0 : b0 + batch]
+            n = len(chunk)
+            if n not in tiled:
+                tiled[n] = (
+                    WindowStats(
+                        image=tile(stats.image, 0.0, n),
+                        mean=tile(stats.mean, 0.0, n),
+                        std=tile(stats.std, 0.0, n),
+                        radius=r,
+                    ),
+                    tile(fam.nray, 0.0, n),
+                    tile(w_near, 0.0, n),
+                    tile(w_far, np.inf, n),
+                    tile(fam.usable.astype(np.float32), 0.0, n) > 0.5,
+                )
+            t_stats, t_nray, t_wnear, t_wfar, t_usable = tiled[n]
+            nccs = []
+            for p in pairs:
+                stack = np.full((n * pitch, w), np.nan, np.float32)
+                for k, lam in enumerate(chunk):
+                    H = _homography(p, Kinv, fam.normal, float(lam))
+                    sl = stack[k * pitch : k * pitch + h]
+                    cv2.warpPerspective(
+                        p.grey,
+                        H,
+                        (w, h),
+                        dst=sl,
+                        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                        borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=float("nan"),
+                    )
+                    _mask_behind_source(sl, p, rays, fam, float(lam))
+                nccs.append(ncc(t_stats, stack))
+            work += n * h * w * len(pairs)
+            score = aggregate(nccs, config.ncc_top_k)
+            lam_rows = np.repeat(chunk.astype(np.float32), pitch)[:, None]
+            inv_depth = t_nray * lam_rows
+            score[~t_usable | (inv_depth > t_wnear) | (inv_depth < t_wfar)] = -1.0
+            volume[b0 : b0 + n] = score.reshape(n, pitch, w)[:, :h]
+        idx = np.argmax(volume, axis=0)
+        s0 = np.take_along_axis(volume, idx[None], axis=0)[0]
+        lam_best = _subplane(volume, idx, s0, lams)
+        inv = (fam.nray * lam_best).astype(np.float32)
+        better = s0 > best_s
+        best_s = np.where(better, s0, best_s)
+        best_w = np.where(better, inv, best_w)
+    return best_w, best_s, work, planes_total
+
+
+def _subplane(
+    volume: F32, idx: NDArray[np.intp], s0: F32, lams: NDArray[np.float64]
+) -> NDArray[np.float32]:
+    """Parabola through the best plane and its neighbours -> interpolated lambda."""
+    n = volume.shape[0]
+    im = np.clip(idx - 1, 0, n - 1)
+    ip = np.clip(idx + 1, 0, n - 1)
+    sm = np.take_along_axis(volume, im[None], axis=0)[0]
+    sp = np.take_along_axis(volume, ip[None], axis=0)[0]
+    denom = sm - 2.0 * s0 + sp
+    interior = (idx > 0) & (idx < n - 1) & (denom < -1e-6) & (sm > -1) & (sp > -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = np.where(interior, 0.5 * (sm - sp) / denom, 0.0)
+    off = np.clip(off, -0.5, 0.5)
+    lam = lams.astype(np.float32)
+    l0 = lam[idx]
+    lnext = np.where(off > 0, lam[ip], lam[im])
+    return (l0 + np.abs(off) * (lnext - l0)).astype(np.float32)
+
+
+def _mask_behind_source(
+    warped: F32, pair: _Pair, rays: NDArray[np.float32], fam: _Family, lam: float
+) -> None:
+    """NaN where the plane point lies behind the source camera (the homography is then
+    meaningless). The source depth is affine in the pixel for fronto planes, so checking the
+    corners settles most planes without a per-pixel pass."""
+    h, w = warped.shape
+    r3 = pair.R[2]
+    t3 = pair.t[2]
+    corners = rays[[0, 0, h - 1, h - 1], [0, w - 1, 0, w - 1]].astype(np.float64)
+    cn = fam.nray[[0, 0, h - 1, h - 1], [0, w - 1, 0, w - 1]].astype(np.float64)
+    zc = corners @ r3 + lam * cn * t3
+    if fam.name == "fronto" and np.all(zc > 0):
+        return
+    zs = rays @ r3.astype(np.float32) + np.float32(lam * t3) * fam.nray
+    warped[zs <= 0] = np.nan
+
+
+# ============================================================================= refinement
+@dataclass(frozen=True, eq=False)
+class _RayPair:
+    """Per-pixel projection terms of one source: ``x_s ~ a + w b`` for inverse depth w."""
+
+    a: NDArray[np.float32]
+    """(3, h, w) K_s R ray."""
+    b: NDArray[np.float32]
+    """(3,) K_s t."""
+    grey: F32
+
+
+def _ray_pairs(rays: NDArray[np.float32], pairs: Sequence[_Pair]) -> list[_RayPair]:
+    out = []
+    for p in pairs:
+        M = (p.K @ p.R).astype(np.float32)
+        a = np.moveaxis(rays @ M.T, -1, 0).copy()
+        out.append(_RayPair(a=a, b=(p.K @ p.t).astype(np.float32), grey=p.grey))
+    return out
+
+
+def _source_coords(rp: _RayPair, inv: F32) -> tuple[F32, F32, F32]:
+    den = rp.a[2] + inv * rp.b[2]
+    ok = den > 1e-12
+    den_safe = np.where(ok, den, 1.0)
+    mx = (rp.a[0] + inv * rp.b[0]) / den_safe
+    my = (rp.a[1] + inv * rp.b[1]) / den_safe
+    mx[~ok] = -1e6
+    return mx.astype(np.float32), my.astype(np.float32), den_safe
+
+
+def _evaluate(
+    inv: F32,
+    rps: Sequence[_RayPair],
+    stats: WindowStats,
+    top_k: int,
+    w_lo: F32,
+    w_hi: F32,
+) -> F32:
+    nccs = []
+    for rp in rps:
+        mx, my, _ = _source_coords(rp, inv)
+        warped = cv2.remap(
+            rp.grey,
+            mx,
+            my,
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float("nan"),
+        )
+        nccs.append(ncc(stats, as_f32(warped)))
+    score = aggregate(nccs, top_k)
+    score[(inv <= w_lo) | (inv >= w_hi)] = -1.0
+    return score
+
+
+def _step_map(inv: F32, rps: Sequence[_RayPair], step_px: float) -> F32:
+    """Inverse-depth step that moves the image in the most sensitive source by step_px."""
+    sens = np.zeros_like(inv)
+    for rp in rps:
+        mx, my, den = _source_coords(rp, inv)
+        dx = (rp.b[0] - mx * rp.b[2]) / den
+        dy = (rp.b[1] - my * rp.b[2]) / den
+        sens = np.maximum(sens, np.sqrt(dx * dx + dy * dy))
+    return (step_px / np.maximum(sens, 1e-12)).astype(np.float32)
+
+
+def _shift(a: F32, dx: int, dy: int) -> F32:
+    """``out[y, x] = a[y - dy, x - dx]`` with edge replication."""
+    h, w = a.shape
+    pad = max(abs(dx), abs(dy))
+    p = cv2.copyMakeBorder(a, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    return as_f32(p[pad - dy : pad - dy + h, pad - dx : pad - dx + w])
+
+
+def _refine(
+    inv: F32,
+    score: F32 | None,
+    rps: Sequence[_RayPair],
+    stats: WindowStats,
+    w_lo: F32,
+    w_hi: F32,
+    config: DenseConfig,
+) -> tuple[F32, F32, int]:
+    work = 0
+    n_src = len(rps)
+    npix = inv.size
+    score = _evaluate(inv, rps, stats, config.ncc_top_k, w_lo, w_hi) if score is None else score
+    for _ in range(config.propagation_iterations):
+        for dx, dy in ((-2, 0), (2, 0), (0, -2), (0, 2), (-6, 0), (6, 0), (0, -6), (0, 6)):
+            cand = _shift(inv, dx, dy)
+            s = _evaluate(cand, rps, stats, config.ncc_top_k, w_lo, w_hi)
+            work += npix * n_src
+            better = s > score
+            inv = np.where(better, cand, inv)
+            score = np.where(better, s, score)
+    K = config.refine_radius
+    if K > 0:
+        step = _step_map(inv, rps, config.refine_step_px)
+        scores = np.empty((2 * K + 1, *inv.shape), np.float32)
+        for i, k in enumerate(range(-K, K + 1)):
+            if k == 0:
+                scores[i] = score
+                continue
+            scores[i] = _evaluate(inv + k * step, rps, stats, config.ncc_top_k, w_lo, w_hi)
+            work += npix * n_src
+        idx = np.argmax(scores, axis=0)
+        s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
+        offsets = _subplane(scores, idx, s0, np.arange(-K, K + 1, dtype=np.float64))
+        cand = (inv + offsets * step).astype(np.float32)
+        # The sub-step position is a prediction: keep it only where it scores as well.
+        s_sub = _evaluate(cand, rps, stats, config.ncc_top_k, w_lo, w_hi)
+        work += npix * n_src
+        use_sub = s_sub >= s0 - 1e-3
+        inv = np.where(use_sub, cand, inv + (idx - K).astype(np.float32) * step)
+        score = np.where(use_sub, s_sub, s0)
+    return inv.astype(np.float32), score.astype(np.float32), work
+
+
+def _upsample(inv: F32, roi_c: Roi, cam_c: Camera, roi_f: Roi, cam_f: Camera) -> F32:
+    """Resample a coarse crop's inverse depth onto a finer crop (same view)."""
+    sx, sy = cam_c.width / cam_f.width, cam_c.height / cam_f.height
+    u, v = _pixel_grid(roi_f.width, roi_f.height)
+    mx = (u + roi_f.x0 + 0.5) * sx - 0.5 - roi_c.x0
+    my = (v + roi_f.y0 + 0.5) * sy - 0.5 - roi_c.y0
+    return as_f32(
+        cv2.remap(
+            inv,
+            mx.astype(np.float32),
+            my.astype(np.float32),
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_REPLICATE,
+        )
+    )
+
+
+def _bounds_at(near: F32, far: F32, roi: Roi, cam0: Camera, cam: Camera) -> tuple[F32, F32]:
+    """Per-pixel near/far of the crop ``roi`` of level camera ``cam`` (0 = none)."""
+    if cam.size != cam0.size:
+        # Conservative resampling: nearest-neighbour of min(near) / max(far) over 2x2 blocks.
+        k = max(1, round(cam0.width / cam.width))
+        ker = np.ones((k, k), np.uint8)
+        nz = np.where(near > 0, near, np.inf).astype(np.float32)
+        near = as_f32(cv2.erode(nz, ker))
+        near = np.where(np.isfinite(near), near, 0).astype(np.float32)
+        far = as_f32(cv2.dilate(far, ker))
+        near = as_f32(cv2.resize(near, cam.size, interpolation=cv2.INTER_NEAREST))
+        far = as_f32(cv2.resize(far, cam.size, interpolation=cv2.INTER_NEAREST))
+    return (
+        near[roi.y0 : roi.y1, roi.x0 : roi.x1],
+        far[roi.y0 : roi.y1, roi.x0 : roi.x1],
+    )
+
+
+def estimate_depth(
+    ref: ViewPyramid,
+    sources: Sequence[ViewPyramid],
+    roi: Roi,
+    near: F32,
+    far: F32,
+    up: NDArray[np.float64] | None,
+    config: DenseConfig,
+) -> DepthEstimate:
+    """Depth of the pixels of ``roi`` (working resolution) of ``ref``.
+
+    ``near``/``far`` are (H, W) per-pixel depth bounds of the whole working image (0 = pixel
+    excluded). ``up`` is the scene's up direction (world frame) for the "ground" family.
+    """
+    cam0 = ref.cameras[0]
+    empty = DepthEstimate(
+        roi=roi,
+        depth=np.zeros((roi.height, roi.width), np.float32),
+        score=np.full((roi.height, roi.width), -1.0, np.float32),
+        texture=np.zeros((roi.height, roi.width), np.float32),
+        work=0,
+        num_planes=0,
+    )
+    if not sources or roi.area == 0:
+        return empty
+    top = min(config.coarse_levels, ref.num_levels - 1, *(s.num_levels - 1 for s in sources))
+    while top > 0:
+        r = roi_at_level(roi, cam0, ref.cameras[top])
+        if min(r.width, r.height) >= _MIN_LEVEL_SIDE:
+            break
+        top -= 1
+    work = 0
+    planes = 0
+    inv: F32 | None = None
+    score: F32 | None = None
+    prev: tuple[Roi, Camera] | None = None
+    stats: WindowStats | None = None
+    for level in range(top, -1, -1):
+        cam_l = ref.cameras[level]
+        r = roi_at_level(roi, cam0, cam_l) if level else roi
+        crop = crop_camera(cam_l, r.x0, r.y0, r.width, r.height)
+        grey = np.ascontiguousarray(ref.greys[level][r.y0 : r.y1, r.x0 : r.x1])
+        stats = window_stats(grey, config.window_radius)
+        pairs = [_pair(crop, s.cameras[level], s.greys[level]) for s in sources]
+        near_l, far_l = _bounds_at(near, far, r, cam0, cam_l)
+        w_lo = np.where(far_l > 0, 1.0 / np.maximum(far_l, 1e-30), np.inf).astype(np.float32)
+        w_hi = np.where(near_l > 0, 1.0 / np.maximum(near_l, 1e-30), 0.0).astype(np.float32)
+        if inv is None:
+            inv, score, wk, planes = _sweep(crop, stats, pairs, near_l, far_l, up, config)
+            work += wk
+            rps = _ray_pairs(_rays(crop), pairs)
+            # Propagation at the coarsest level cleans the winner-take-all noise.
+            inv, score, wk = _refine(
+                inv,
+                score,
+                rps,
+                stats,
+                w_lo * 0.999,
+                w_hi * 1.001,
+                _no_local(config) if level > 0 else config,
+            )
+            work += wk
+        else:
+            assert prev is not None
+            inv = _upsample(inv, prev[0], prev[1], r, cam_l)
+            rps = _ray_pairs(_rays(crop), pairs)
+            inv, score, wk = _refine(inv, None, rps, stats, w_lo * 0.999, w_hi * 1.001, config)
+            work += wk
+        prev = (r, cam_l)
+    assert inv is not None and score is not None and stats is not None
+    with np.errstate(divide="ignore"):
+        depth = np.where(inv > 0, 1.0 / inv, 0.0).astype(np.float32)
+    ok = (score >= config.min_ncc) & (stats.std >= config.min_texture) & (depth > 0)
+    ok &= near[roi.y0 : roi.y1, roi.x0 : roi.x1] > 0
+    depth[~ok] = 0.0
+    return DepthEstimate(
+        roi=roi, depth=depth, score=score, texture=stats.std, work=work, num_planes=planes
+    )
+
+
+def _no_local(config: DenseConfig) -> DenseConfig:
+    import dataclasses
+
+    return dataclasses.replace(config, refine_radius=0)

@@ -1,0 +1,458 @@
+"""The dense stage: per-view depth maps -> cross-view consistency -> fused cloud."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.dense.config import DenseConfig
+from edgerecon.dense.consistency import support_counts
+from edgerecon.dense.cost import as_f32, to_grey
+from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid, estimate_depth
+from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
+from edgerecon.dense.neighbors import score_sources, select_sources
+from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
+from edgerecon.geometry.camera import Camera
+from edgerecon.progress import track
+from edgerecon.types import DataError, DepthMap, Image, Mask, PointCloud, StageTimings
+from edgerecon.views import View, resize_mask
+
+logger = logging.getLogger(__name__)
+
+#: A view's depth bounds: one (near, far) pair, or (H, W) near/far maps at the view's
+#: resolution (0 = no surface at that pixel), e.g. from a visual hull.
+DepthBounds = tuple[float, float] | tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]]]
+
+
+class SparseLike(Protocol):
+    """What the dense stage reads from ``edgerecon.sparse.SparseReconstruction``."""
+
+    @property
+    def cloud(self) -> PointCloud: ...
+
+    @property
+    def camera_ids(self) -> tuple[int, ...]: ...
+
+    @property
+    def visibility(self) -> NDArray[np.bool_]: ...
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class DenseReconstruction:
+    """Result of :func:`reconstruct_dense`."""
+
+    cloud: PointCloud
+    """Fused points (rig units) with RGB colours, unit normals facing the cameras,
+    ``confidence`` (mean aggregated NCC in [-1, 1]) and ``attributes["num_views"]`` (int32:
+    views that support the point, including the one it came from)."""
+    depth_maps: dict[int, DepthMap] = field(default_factory=dict)
+    """Camera id -> (h, w) float32 depth after the consistency filter (0 = unknown), at the
+    working resolution of ``depth_cameras``."""
+    depth_cameras: dict[int, Camera] = field(default_factory=dict)
+    """Camera id -> the pinhole camera of its depth map (the view's camera, rescaled)."""
+    timings: StageTimings = field(default_factory=StageTimings)
+    """Seconds of ``prepare`` (pyramids, ranges, sources), ``depth`` (plane sweep and
+    refinement), ``consistency`` and ``fusion``."""
+    stats: dict[str, Any] = field(default_factory=dict)
+    """Counts: per-view sources, depth ranges, planes, ``work`` (pixel x source NCC
+    evaluations), raw and consistent depths; ``voxel_size``; ``num_points``."""
+
+    def __len__(self) -> int:
+        return len(self.cloud)
+
+    @property
+    def num_points(self) -> int:
+        return len(self.cloud)
+
+
+def estimate_up(
+    cameras: Sequence[Camera], max_spread_deg: float = 30.0
+) -> NDArray[np.float64] | None:
+    """The world's up direction as the mean image-up axis (-y) of the cameras, or None when
+    the cameras disagree by more than ``max_spread_deg`` (rolled or upside-down cameras)."""
+    ups = np.array([-cam.R[1] for cam in cameras])
+    mean = ups.sum(axis=0)
+    norm = np.linalg.norm(mean)
+    if norm < 1e-9:
+        return None
+    mean /= norm
+    if np.degrees(np.arccos(np.clip(ups @ mean, -1, 1))).max() > max_spread_deg:
+        return None
+    return mean
+
+
+def _check_views(views: Sequence[View]) -> None:
+    ids = [v.camera_id for v in views]
+    dup = {i for i in ids if ids.count(i) > 1}
+    if dup:
+        raise DataError(f"dense: camera ids {sorted(dup)} appear more than once in the views")
+    for v in views:
+        if v.image.ndim != 3 or v.image.shape[2] != 3 or v.image.dtype != np.uint8:
+            raise DataError(
+                f"dense: view {v.name!r} (camera {v.camera_id}) must be a BGR uint8 image, got "
+                f"{v.image.dtype} of shape {v.image.shape}"
+            )
+
+
+def _bounds_maps(
+    view: View, cam: Camera, bounds: DepthBounds | None
+) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
+    """Per-pixel near/far at the working resolution from user-given bounds (None if none)."""
+    if bounds is None:
+        return None
+    try:
+        near, far = bounds
+    except (TypeError, ValueError):
+        raise DataError(
+            f"dense: depth range of camera {view.camera_id} must be (near, far), got {bounds!r}"
+        ) from None
+    if np.ndim(near) == 0 and np.ndim(far) == 0:
+        n, f = float(near), float(far)
+        if not (np.isfinite(n) and np.isfinite(f) and 0 < n < f):
+            raise DataError(
+                f"dense: depth range of camera {view.camera_id} must satisfy 0 < near < far, "
+                f"got ({n}, {f})"
+            )
+        return (
+            np.full((cam.height, cam.width), n, np.float32),
+            np.full((cam.height, cam.width), f, np.float32),
+        )
+    near_a = np.asarray(near, dtype=np.float32)
+    far_a = np.asarray(far, dtype=np.float32)
+    shape = view.image.shape[:2]
+    if near_a.shape != shape or far_a.shape != shape:
+        raise DataError(
+            f"dense: depth bound maps of camera {view.camera_id} must be {shape[1]}x{shape[0]} "
+            f"(the view's size), got {near_a.shape[::-1]} and {far_a.shape[::-1]}"
+        )
+    near_a = np.nan_to_num(near_a, nan=0.0, posinf=0.0, neginf=0.0)
+    far_a = np.nan_to_num(far_a, nan=0.0, posinf=0.0, neginf=0.0)
+    ok = (near_a > 0) & (far_a > near_a)
+    near_a = np.where(ok, near_a, 0.0).astype(np.float32)
+    far_a = np.where(ok, far_a, 0.0).astype(np.float32)
+    if cam.size != (shape[1], shape[0]):
+        # Conservative: the nearest near and the farthest far over each working pixel.
+        k = max(1, round(shape[1] / cam.width))
+        ker = np.ones((k, k), np.uint8)
+        nz = cv2.erode(np.where(near_a > 0, near_a, np.inf).astype(np.float32), ker)
+        near_a = as_f32(
+            cv2.resize(np.where(np.isfinite(nz), nz, 0), cam.size, interpolation=cv2.INTER_NEAREST)
+        )
+        far_a = as_f32(
+            cv2.resize(cv2.dilate(far_a, ker), cam.size, interpolation=cv2.INTER_NEAREST)
+        )
+        ok = (near_a > 0) & (far_a > near_a)
+        near_a = np.where(ok, near_a, 0.0).astype(np.float32)
+        far_a = np.where(ok, far_a, 0.0).astype(np.float32)
+    return near_a, far_a
+
+
+def mask_rois(mask: NDArray[np.bool_], margin: int, min_area: int) -> list[Roi]:
+    """Boxes around the connected parts of ``mask`` grown by ``margin`` pixels; parts smaller
+    than ``min_area`` pixels are dropped; boxes are merged while that saves area."""
+    h, w = mask.shape
+    m = mask.astype(np.uint8)
+    n, _, st, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    boxes = []
+    for k in range(1, n):
+        x, y, bw, bh, area = st[k]
+        if area < min_area:
+            continue
+        boxes.append(
+            [
+                max(x - margin, 0),
+                max(y - margin, 0),
+                min(x + bw + margin, w),
+                min(y + bh + margin, h),
+            ]
+        )
+    merged = True
+    while merged and len(boxes) > 1:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                u = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                area = lambda r: (r[2] - r[0]) * (r[3] - r[1])  # noqa: E731
+                if area(u) <= 1.2 * (area(a) + area(b)):
+                    boxes[i] = u
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return [Roi(*b) for b in boxes]
+
+
+def reconstruct_dense(
+    views: Sequence[View],
+    config: DenseConfig = DenseConfig(),  # noqa: B008 (frozen, immutable)
+    sparse: SparseLike | None = None,
+    *,
+    depth_ranges: Mapping[int, DepthBounds] | None = None,
+    up: Sequence[float] | None = None,
+) -> DenseReconstruction:
+    """Dense coloured point cloud of the scene seen by ``views``.
+
+    ``views`` are undistorted pinhole views (``edgerecon.views.prepare_views``); a view's
+    ``mask`` restricts the output (and the work, roughly in proportion) to its region.
+    ``sparse`` (optional) gives per-view depth ranges and source selection; ``depth_ranges``
+    (camera id -> (near, far) or per-pixel near/far maps at the view's size, 0 = excluded)
+    overrides them, e.g. from a visual hull. ``up`` is the world's up direction (the rig's
+    ``up``) for ground-plane hypotheses; default: estimated from the cameras.
+
+    Fewer than two views, empty masks or nothing consistent give an empty cloud (not an error).
+    """
+    _check_views(views)
+    timings = StageTimings()
+    stats: dict[str, Any] = {"views": {}}
+    ranges = dict(depth_ranges or {})
+    unknown = set(ranges) - {v.camera_id for v in views}
+    if unknown:
+        raise DataError(f"dense: depth ranges given for cameras {sorted(unknown)} not in the views")
+
+    with timings.stage("prepare"):
+        scale = config.working_scale
+        cams = [v.camera.scaled(scale) for v in views]
+        colors: list[Image] = [
+            v.image
+            if c.size == v.camera.size
+            else np.asarray(cv2.resize(v.image, c.size, interpolation=cv2.INTER_AREA), np.uint8)
+            for v, c in zip(views, cams, strict=True)
+        ]
+        masks: list[Mask | None] = [
+            None if v.mask is None else resize_mask(v.mask, c.size)
+            for v, c in zip(views, cams, strict=True)
+        ]
+        up_vec = np.asarray(up, np.float64) if up is not None else estimate_up(cams)
+        if up_vec is not None:
+            up_vec = up_vec / np.linalg.norm(up_vec)
+        scale_len = scene_scale(cams)
+        sparse_pts, sparse_vis = _sparse_points(sparse, views)
+        plans = []
+        for i, (v, cam) in enumerate(zip(views, cams, strict=True)):
+            plans.append(
+                _plan_view(
+                    i,
+                    v,
+                    cam,
+                    cams,
+                    masks[i],
+                    ranges.get(v.camera_id),
+                    sparse_pts,
+                    sparse_vis,
+                    scale_len,
+                    config,
+                )
+            )
+        needed = {i for p in plans if p["rois"] for i in [p["index"], *p["sources"]]}
+        pyramids: dict[int, ViewPyramid] = {
+            i: build_pyramid(views[i].camera_id, cams[i], to_grey(colors[i]), config.coarse_levels)
+            for i in sorted(needed)
+        }
+
+    with timings.stage("depth"):
+        jobs = [(p, roi) for p in plans for roi in p["rois"]]
+
+        def run(job: tuple[dict[str, Any], Roi]) -> DepthEstimate:
+            p, roi = job
+            return estimate_depth(
+                pyramids[p["index"]],
+                [pyramids[j] for j in p["sources"]],
+                roi,
+                p["near"],
+                p["far"],
+                up_vec,
+                config,
+            )
+
+        if config.num_threads > 1 and len(jobs) > 1:
+            with ThreadPoolExecutor(config.num_threads) as pool:
+                results = list(track(pool.map(run, jobs), "dense depth maps", total=len(jobs)))
+        else:
+            results = list(track(map(run, jobs), "dense depth maps", total=len(jobs)))
+        depths: dict[int, DepthMap] = {}
+        scores: dict[int, NDArray[np.float32]] = {}
+        work = 0
+        for (p, _), est in zip(jobs, results, strict=True):
+            i = p["index"]
+            cam = cams[i]
+            if i not in depths:
+                depths[i] = np.zeros((cam.height, cam.width), np.float32)
+                scores[i] = np.full((cam.height, cam.width), -1.0, np.float32)
+            r = est.roi
+            sub = depths[i][r.y0 : r.y1, r.x0 : r.x1]
+            take = est.depth > 0
+            sub[take] = est.depth[take]
+            scores[i][r.y0 : r.y1, r.x0 : r.x1][take] = est.score[take]
+            work += est.work
+            p["work"] += est.work
+            p["planes"] = max(p["planes"], est.num_planes)
+        for i, m in enumerate(masks):
+            if i in depths and m is not None:
+                depths[i][~m] = 0.0
+
+    with timings.stage("consistency"):
+        id_cams = {i: cams[i] for i in depths}
+        support = support_counts(depths, id_cams, config.consistency_rel_depth)
+        kept: dict[int, DepthMap] = {}
+        keep_masks: dict[int, NDArray[np.bool_]] = {}
+        for i, d in depths.items():
+            keep = (d > 0) & (support[i] >= config.min_consistent_views)
+            keep_masks[i] = keep
+            kept[i] = np.where(keep, d, 0.0).astype(np.float32)
+
+    with timings.stage("fusion"):
+        parts: list[ViewPoints] = [
+            view_points(
+                views[i].camera_id,
+                cams[i],
+                kept[i],
+                colors[i],
+                keep_masks[i],
+                support[i],
+                scores[i],
+            )
+            for i in kept
+        ]
+        voxel = config.voxel_size
+        if voxel is None:
+            voxel = _auto_voxel(kept, cams)
+        cloud = voxel_merge(parts, voxel) if voxel else voxel_merge([], 1.0)
+
+    for p in plans:
+        i = p["index"]
+        stats["views"][views[i].camera_id] = {
+            "sources": [views[j].camera_id for j in p["sources"]],
+            "depth_range": p["range"],
+            "range_from": p["range_from"],
+            "rois": len(p["rois"]),
+            "roi_pixels": int(sum(r.area for r in p["rois"])),
+            "planes": p["planes"],
+            "work": p["work"],
+            "raw_depths": int((depths[i] > 0).sum()) if i in depths else 0,
+            "consistent_depths": int(keep_masks[i].sum()) if i in keep_masks else 0,
+        }
+    stats.update(
+        work=int(work),
+        working_scale=scale,
+        voxel_size=float(voxel) if voxel else None,
+        num_points=len(cloud),
+        up=None if up_vec is None else [float(x) for x in up_vec],
+    )
+    logger.info(
+        "dense: %d points from %d views in %.2f s (%s)",
+        len(cloud),
+        len(views),
+        timings.total,
+        timings.to_dict(),
+    )
+    return DenseReconstruction(
+        cloud=cloud,
+        depth_maps={views[i].camera_id: kept[i] for i in kept},
+        depth_cameras={views[i].camera_id: cams[i] for i in kept},
+        timings=timings,
+        stats=stats,
+    )
+
+
+def _sparse_points(
+    sparse: SparseLike | None, views: Sequence[View]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_] | None]:
+    """Sparse points and, when it matches, their visibility in the given views' order."""
+    if sparse is None or len(sparse.cloud) == 0:
+        return np.zeros((0, 3)), None
+    pts = sparse.cloud.points3D
+    vis = np.asarray(sparse.visibility, dtype=bool)
+    ids = list(sparse.camera_ids)
+    if vis.shape != (len(pts), len(ids)):
+        return pts, None
+    cols = []
+    for v in views:
+        cols.append(
+            vis[:, ids.index(v.camera_id)] if v.camera_id in ids else np.zeros(len(pts), bool)
+        )
+    return pts, np.stack(cols, axis=1)
+
+
+def _plan_view(
+    index: int,
+    view: View,
+    cam: Camera,
+    cams: Sequence[Camera],
+    mask: Mask | None,
+    given: DepthBounds | None,
+    sparse_pts: NDArray[np.float64],
+    sparse_vis: NDArray[np.bool_] | None,
+    scale_len: float,
+    config: DenseConfig,
+) -> dict[str, Any]:
+    """Depth range, per-pixel bounds, ROIs and source views of one reference view."""
+    others = [c for j, c in enumerate(cams) if j != index]
+    plan: dict[str, Any] = {"index": index, "sources": [], "rois": [], "work": 0, "planes": 0}
+    bounds = _bounds_maps(view, cam, given)
+    rng = None
+    if bounds is not None:
+        ok = bounds[0] > 0
+        rng = (float(bounds[0][ok].min()), float(bounds[1][ok].max())) if ok.any() else None
+        plan["range_from"] = "given"
+    else:
+        pts = sparse_pts
+        if sparse_vis is not None:
+            pts = sparse_pts[sparse_vis[:, index]]
+        rng = range_from_points(cam, pts, config.range_margin_rel, config.min_sparse_points)
+        plan["range_from"] = "sparse"
+        if rng is None:
+            rng = frustum_range(cam, others, config.max_depth_rel_scene * scale_len)
+            plan["range_from"] = "frustum"
+    plan["range"] = rng
+    if rng is None:
+        return plan
+    near, far = rng
+    if bounds is None:
+        bounds = (
+            np.full((cam.height, cam.width), near, np.float32),
+            np.full((cam.height, cam.width), far, np.float32),
+        )
+    plan["near"], plan["far"] = bounds
+    # Sources, judged on the reference's sparse points or on rays through its depth range.
+    samples = np.zeros((0, 3))
+    if sparse_vis is not None:
+        samples = sparse_pts[sparse_vis[:, index]]
+    if len(samples) < config.min_sparse_points:
+        pix = sample_pixels(cam)
+        depths = np.geomspace(near, far, 5)
+        samples = np.concatenate([cam.backproject(pix, np.full(len(pix), d)) for d in depths])
+    scores = score_sources(cam, cams, index, samples)
+    plan["sources"] = select_sources(
+        scores, config.max_source_views, config.min_source_angle_deg, config.max_source_angle_deg
+    )
+    plan["source_scores"] = scores
+    if not plan["sources"]:
+        return plan
+    region = bounds[0] > 0
+    if mask is not None:
+        region &= mask
+    if region.all():
+        plan["rois"] = [Roi(0, 0, cam.width, cam.height)]
+    elif region.any():
+        min_area = (2 * config.window_radius + 1) ** 2 // 4
+        plan["rois"] = mask_rois(region, config.roi_margin_px, min_area)
+    return plan
+
+
+def _auto_voxel(depths: Mapping[int, DepthMap], cams: Sequence[Camera]) -> float | None:
+    """Median pixel footprint (depth / focal) over all kept depths."""
+    foot = []
+    for i, d in depths.items():
+        z = d[d > 0]
+        if len(z):
+            foot.append(float(np.median(z)) / cams[i].focal_px)
+    return float(np.median(foot)) if foot else None
