@@ -167,3 +167,22 @@ def test_render_rejects_out_of_range_frames(small_renderer):
         small_renderer.render(4)
     with pytest.raises(ValueError, match="out of range"):
         small_renderer.render(-3)
+
+
+def test_frame_equals_blurred_composite_with_gains():
+    """The cached-background fast path gives the same frame as blurring the whole composite."""
+    cfg = preset_config("demo", num_frames=3, width=200, height=150, noise_sigma=0.0)
+    scene = build_scene(cfg)
+    frame = Renderer(scene).render(1, clean=True)
+    sigma = cfg.realism.blur_sigma_px
+    assert sigma > 0
+    for k, (image, clean) in enumerate(zip(frame.images, frame.clean, strict=True)):
+        gain = scene.camera_gains[k] * scene.illumination(1)
+        ref = cv2.GaussianBlur(clean.astype(np.float32) * gain, (0, 0), sigma)
+        diff = np.abs(image.astype(np.float32) - np.clip(ref, 0, 255)).max(axis=2)
+        # Saturated clean pixels lost their true value: leave out their neighbourhoods.
+        saturated = cv2.dilate((clean.max(axis=2) == 255).astype(np.uint8), np.ones((5, 5)))
+        assert saturated.mean() < 0.01
+        # The clean image is rounded to 8 bits before blurring here: allow ~1 grey level.
+        assert diff[saturated == 0].max() <= 1.6, (k, diff.max())
+        assert frame.masks[k].any()

@@ -331,13 +331,18 @@ def make_rig(spec: RigSpec, seed: int = 0) -> Rig:
 class Lighting:
     """View-independent (Lambertian) lighting: ambient + a directional key + a ceiling lamp."""
 
-    ambient: float = 0.42
+    ambient: float = 0.4
+    """Irradiance reaching every surface whatever its orientation."""
     key_direction: tuple[float, float, float] = (0.35, -0.25, 0.9)
     """Direction towards the key light (normalised on use)."""
-    key: float = 0.4
-    lamp_position: tuple[float, float, float] = (0.3, 0.2, 2.8)
-    lamp: float = 2.2
-    """Lamp intensity: irradiance lamp * cos / distance^2."""
+    key: float = 0.38
+    """Irradiance of the key light on a surface facing it."""
+    lamp_position: tuple[float, float, float] = (0.3, 0.2, 2.9)
+    """Position of the ceiling lamp, metres."""
+    lamp: float = 0.9
+    """Lamp intensity: irradiance ``lamp * cos / (distance^2 + lamp_softness_m^2)``."""
+    lamp_softness_m: float = 1.0
+    """Softens the lamp's fall-off near it (an extended light, no hot spot on heads)."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)

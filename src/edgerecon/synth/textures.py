@@ -88,11 +88,20 @@ def _remap_points(
     n = s.size
     rows = max(1, math.ceil(n / _REMAP_ROW))
     width = min(n, _REMAP_ROW)
-    pad = rows * width - n
     scale = np.float32(1.0 / (1 << level))
-    mx = np.pad(s * scale - np.float32(0.5), (0, pad)).reshape(rows, width)
-    my = np.pad(t * scale - np.float32(0.5), (0, pad)).reshape(rows, width)
-    res = cv2.remap(image, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    np.multiply(s, scale, out=mx[:n])
+    np.multiply(t, scale, out=my[:n])
+    mx[:n] -= np.float32(0.5)
+    my[:n] -= np.float32(0.5)
+    res = cv2.remap(
+        image,
+        mx.reshape(rows, width),
+        my.reshape(rows, width),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_WRAP,
+    )
     return res.reshape(-1, 3)[:n].astype(np.float32)
 
 
