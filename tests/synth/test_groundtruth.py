@@ -136,3 +136,18 @@ def test_reader_errors_are_clean(small_dataset, tmp_path):
         GroundTruth.open(tmp_path / "nothing")
     with pytest.raises(DataError, match="no scene.json"):
         GroundTruth.open(tmp_path)
+
+
+def test_mask_scores_against_ground_truth_masks(small_dataset):
+    import cv2
+
+    from edgerecon.quality.masks import score_mask_set, score_masks
+
+    gt = GroundTruth.open(small_dataset.path)
+    masks = [gt.object_mask(c, 2) for c in range(len(gt.rig))]
+    perfect = score_mask_set([m.astype(np.int32) * 5 for m in masks], masks)
+    assert perfect.foreground_iou == 1.0 and perfect.mean_object_iou == 1.0
+    grown = cv2.dilate(masks[0], np.ones((7, 7), np.uint8))
+    s = score_masks(grown, masks[0])
+    assert s.recall == 1.0 and 0.3 < s.foreground_iou < 0.95
+    assert set(s.object_iou) == set(np.unique(masks[0])) - {0}
