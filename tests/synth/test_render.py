@@ -186,3 +186,25 @@ def test_frame_equals_blurred_composite_with_gains():
         # The clean image is rounded to 8 bits before blurring here: allow ~1 grey level.
         assert diff[saturated == 0].max() <= 1.6, (k, diff.max())
         assert frame.masks[k].any()
+
+
+def test_contact_shadows_darken_only_the_floor_near_actors(
+    small_renderer, small_scene, small_frame
+):
+    sigma = small_scene.config.realism.contact_shadow_radius_m
+    feet = [a.position(2.0) for a in small_scene.actors_at(2)]
+    darker_total = 0
+    for k, cam in enumerate(small_scene.rig):
+        empty = small_renderer.background_clean(k).astype(int)
+        now = small_frame.clean[k].astype(int)
+        changed = (np.abs(now - empty).max(axis=2) > 1) & (small_frame.masks[k] == 0)
+        if not changed.any():
+            continue
+        assert np.all(now[changed].sum(axis=1) < empty[changed].sum(axis=1))  # darker
+        vv, uu = np.nonzero(changed)
+        X = cam.backproject(np.stack([uu, vv], axis=1), small_frame.depths[k][vv, uu])
+        assert np.abs(X[:, 2]).max() < 1e-3  # on the floor
+        near = np.min([np.hypot(X[:, 0] - p[0], X[:, 1] - p[1]) for p in feet], axis=0)
+        assert near.max() < 3.2 * sigma  # close to an actor
+        darker_total += int(changed.sum())
+    assert darker_total > 100

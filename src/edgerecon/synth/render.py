@@ -310,10 +310,12 @@ class Renderer:
             raise ValueError(f"frame {t} out of range {-c.background_frames}..{c.num_frames - 1}")
         ids = list(range(len(self.scene.rig))) if cameras is None else list(cameras)
         parts: list[tuple[int, Ellipsoid]] = []
+        feet: list[F64] = []
         if t >= 0:
             for actor in self.scene.actors_at(t):
                 parts += [(actor.actor_id, p) for p in actor.parts(float(t))]
-        results = self._map(lambda i: self._render_camera(i, t, parts, clean), ids)
+                feet.append(actor.position(float(t)))
+        results = self._map(lambda i: self._render_camera(i, t, parts, feet, clean), ids)
         timings = StageTimings()
         for r in results:
             timings.merge(r[4])
@@ -327,7 +329,12 @@ class Renderer:
         )
 
     def _render_camera(
-        self, index: int, t: int, parts: list[tuple[int, Ellipsoid]], want_clean: bool
+        self,
+        index: int,
+        t: int,
+        parts: list[tuple[int, Ellipsoid]],
+        feet: list[F64],
+        want_clean: bool,
     ) -> tuple[Image, DepthMap, NDArray[np.uint8], Image | None, StageTimings]:
         timings = StageTimings()
         with timings.stage("background"):
@@ -342,6 +349,16 @@ class Renderer:
             clean = st.bg_radiance.copy() if want_clean else None
         with timings.stage("actors"):
             hit = self._cast_actors(st, parts, depth, mask)
+            shadow = self._floor_shadows(st, feet, mask)
+            if shadow is not None:
+                hit = (
+                    shadow
+                    if hit is None
+                    else (
+                        np.concatenate([hit[0], shadow[0]]),
+                        np.concatenate([hit[1], shadow[1]]),
+                    )
+                )
         with timings.stage("imaging"):
             if hit is not None:
                 self._composite(st, hit, image, clean, gain)
@@ -354,6 +371,68 @@ class Renderer:
             if clean is not None:
                 clean_u8 = _to_u8(clean, 255.0)
         return frame, depth, mask, clean_u8, timings
+
+    def _floor_shadows(
+        self, st: _CameraState, feet: list[F64], mask: NDArray[np.uint8]
+    ) -> tuple[NDArray[np.intp], F32] | None:
+        """Soft contact shadows: floor pixels near the actors' feet, darkened (radiance of the
+        unoccluded background times the shadow factor). None when there is nothing to do."""
+        real = self.scene.config.realism
+        if real.contact_shadow <= 0 or not feet:
+            return None
+        cam = st.camera
+        sigma = real.contact_shadow_radius_m
+        reach = 3.0 * sigma
+        boxes = []
+        for p in feet:
+            corners = np.array(
+                [
+                    [p[0] + dx, p[1] + dy, z]
+                    for dx in (-reach, reach)
+                    for dy in (-reach, reach)
+                    for z in (0.0, 0.01)
+                ]
+            )
+            bb = _pixel_bbox(cam, corners, st.norm_bounds)
+            if bb is not None:
+                boxes.append(bb)
+        if not boxes:
+            return None
+        x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+        x1, y1 = max(b[2] for b in boxes), max(b[3] for b in boxes)
+        lab = st.bg_label[y0:y1, x0:x1]
+        free = (lab == 0) & (mask[y0:y1, x0:x1] == 0)
+        rows, cols = np.nonzero(free)
+        if rows.size == 0:
+            return None
+        rows += y0
+        cols += x0
+        s = st.bg_depth[rows, cols]
+        xn, yn = st.xn[rows, cols], st.yn[rows, cols]
+        Rwc = cam.R.T.astype(np.float32)
+        c = cam.center.astype(np.float32)
+        z = c[2] + s * (Rwc[2, 0] * xn + Rwc[2, 1] * yn + Rwc[2, 2])
+        on_floor = np.abs(z) < 1e-3
+        rows, cols, s, xn, yn = (
+            rows[on_floor],
+            cols[on_floor],
+            s[on_floor],
+            xn[on_floor],
+            yn[on_floor],
+        )
+        x = c[0] + s * (Rwc[0, 0] * xn + Rwc[0, 1] * yn + Rwc[0, 2])
+        y = c[1] + s * (Rwc[1, 0] * xn + Rwc[1, 1] * yn + Rwc[1, 2])
+        factor = np.ones(len(x), np.float32)
+        inv = np.float32(-0.5 / sigma**2)
+        for p in feet:
+            d2 = (x - np.float32(p[0])) ** 2 + (y - np.float32(p[1])) ** 2
+            factor *= 1 - np.float32(real.contact_shadow) * np.exp(d2 * inv)
+        keep = factor < 0.998
+        if not keep.any():
+            return None
+        rows, cols = rows[keep], cols[keep]
+        idx = rows.astype(np.intp) * cam.width + cols
+        return idx, st.bg_radiance[rows, cols] * factor[keep, None]
 
     def _composite(
         self,

@@ -107,6 +107,11 @@ class RealismConfig:
     """Optical blur (Gaussian sigma, pixels) applied to every frame; 0 = none."""
     brightness: float = 1.0
     """Overall exposure scale."""
+    contact_shadow: float = 0.4
+    """Darkening of the floor under each actor (soft blob, view-independent, part of the
+    background in the masks: as real shadows, it moves with the actor); 0 = none."""
+    contact_shadow_radius_m: float = 0.3
+    """Gaussian sigma of the contact shadow on the floor, metres."""
 
     def __post_init__(self) -> None:
         _check(self.noise_sigma >= 0, "noise_sigma", self.noise_sigma, "must be >= 0")
@@ -125,6 +130,13 @@ class RealismConfig:
         )
         _check(0 <= self.blur_sigma_px <= 5, "blur_sigma_px", self.blur_sigma_px, "[0, 5] px")
         _check(0 < self.brightness <= 4, "brightness", self.brightness, "(0, 4]")
+        _check(0 <= self.contact_shadow < 1, "contact_shadow", self.contact_shadow, "[0, 1)")
+        _check(
+            self.contact_shadow_radius_m > 0,
+            "contact_shadow_radius_m",
+            self.contact_shadow_radius_m,
+            "must be > 0",
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
