@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from edgerecon.geometry import fundamental_matrix
+from edgerecon.geometry import Camera, fundamental_matrix, look_at
 from edgerecon.sparse import SparseConfig
 from edgerecon.sparse.features import Features
 from edgerecon.sparse.matching import epipolar_candidates, match_pair, two_view_depths
@@ -36,17 +36,39 @@ def line_distance(F, a, b):
     return np.maximum(da, db)
 
 
-def test_epipolar_candidates_equal_brute_force():
+def camera_pair(kind):
+    """Two cameras whose epipoles are outside the images, inside them, or at infinity."""
     rig = ring_rig(3)
+    if kind == "ring":
+        return rig[0], rig[1]
+    K = rig[0].K
+    if kind == "facing":  # b looks at a from across the room: epipoles inside both images
+        Ra, ta = look_at((0, 0, 1.5), (4, 0.5, 1.4))
+        Rb, tb = look_at((4, 0.5, 1.4), (0, 0, 1.5))
+    elif kind == "parallel":  # rectified stereo: epipoles at infinity
+        Ra, ta = look_at((0, 0, 1.5), (0, 4, 1.5))
+        Rb, tb = look_at((0.5, 0, 1.5), (0.5, 4, 1.5))
+    else:  # forward motion: epipoles at the image centres
+        Ra, ta = look_at((0, 0, 1.5), (0, 4, 1.5))
+        Rb, tb = look_at((0, 1, 1.5), (0, 5, 1.5))
+    mk = lambda n, R, t: Camera(name=n, width=640, height=480, K=K, R=R, t=t)  # noqa: E731
+    return mk("a", Ra, ta), mk("b", Rb, tb)
+
+
+@pytest.mark.parametrize("kind", ["ring", "facing", "parallel", "forward"])
+@pytest.mark.parametrize("threshold", [0.7, 2.5])
+def test_epipolar_candidates_equal_brute_force(kind, threshold):
+    cam_a, cam_b = camera_pair(kind)
     rng = np.random.default_rng(0)
     a = rng.uniform([0, 0], [640, 480], (700, 2))
     b = rng.uniform([0, 0], [640, 480], (900, 2))
-    F = fundamental_matrix(rig[0], rig[1])
-    ia, ib = epipolar_candidates(a, b, F, 2.5)
-    got = set(zip(ia.tolist(), ib.tolist(), strict=True))
-    want = set(zip(*np.nonzero(line_distance(F, a, b) <= 2.5), strict=True))
-    assert got == {(int(i), int(j)) for i, j in want}
-    assert len(got) > 100
+    F = fundamental_matrix(cam_a, cam_b)
+    ia, ib = epipolar_candidates(a, b, F, threshold)
+    got = list(zip(ia.tolist(), ib.tolist(), strict=True))
+    assert len(got) == len(set(got))  # no duplicates
+    want = set(zip(*np.nonzero(line_distance(F, a, b) <= threshold), strict=True))
+    assert set(got) == {(int(i), int(j)) for i, j in want}
+    assert len(got) > 30
 
 
 def test_two_view_depths_exact_and_negative_behind():

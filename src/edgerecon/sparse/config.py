@@ -42,6 +42,11 @@ class SparseConfig:
     track; tracks confirmed by three or more views need no stricter test."""
     two_view_ratio: float = 0.75
     """Stricter ratio for points observed by only two views (nothing else confirms them)."""
+    confirm_angle_deg: float = 40.0
+    """Reject a two-view point when a third view sees it from between the two (its ray closer
+    in angle to both than they are to each other, and within this angle of both) and did not
+    match it: with a viewpoint that similar to both, a wrong match is likelier than an
+    occlusion. 0 disables the test."""
     max_descriptor_distance: float = 0.75
     """Largest (Root)SIFT descriptor distance of a match (unit-norm descriptors: 0..sqrt 2)."""
     mutual: bool = True
@@ -100,6 +105,7 @@ class SparseConfig:
             0 <= self.min_triangulation_angle_deg < 180,
             "must be in [0, 180)",
         )
+        check("confirm_angle_deg", 0 <= self.confirm_angle_deg <= 180, "must be in [0, 180]")
         check("refine_iterations", self.refine_iterations >= 0, "must be >= 0")
         check("guided_radius_px", self.guided_radius_px > 0, "must be > 0")
         check(
