@@ -53,8 +53,10 @@ class DenseConfig:
     min_consistent_views: int = 1
     """A depth is kept only if at least this many other views agree (1 -> seen by >= 2 views)."""
     voxel_size: float | None = None
-    """Fusion merges points within one voxel of this edge (rig units); None = the median pixel
-    footprint of the depth maps."""
+    """Fusion merges points within one voxel of this edge (rig units); None = ``voxel_rel``
+    times the median pixel footprint (depth / focal) of the depth maps."""
+    voxel_rel: float = 1.5
+    """Voxel edge in median pixel footprints when ``voxel_size`` is None."""
     max_depth_rel_scene: float = 6.0
     """Without sparse points or given ranges, depths run up to this multiple of the rig's
     median camera distance."""
@@ -104,6 +106,7 @@ class DenseConfig:
             "voxel_size",
             "None or a positive length",
         )
+        need(0.1 <= self.voxel_rel <= 20.0, "voxel_rel", "in [0.1, 20]")
         need(self.max_depth_rel_scene > 0, "max_depth_rel_scene", "> 0")
         need(0.0 <= self.range_margin_rel < 1.0, "range_margin_rel", "in [0, 1)")
         need(self.min_sparse_points >= 1, "min_sparse_points", ">= 1")

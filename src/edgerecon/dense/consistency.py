@@ -8,8 +8,9 @@ outliers (mismatches, occlusion artefacts) and are dropped before fusion.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,25 +31,55 @@ def backproject_depth(
 
 
 def support_counts(
-    depths: Mapping[int, DepthMap], cameras: Mapping[int, Camera], rel_tol: float
+    depths: Mapping[int, DepthMap],
+    cameras: Mapping[int, Camera],
+    rel_tol: float,
+    partners: Mapping[int, Sequence[int]] | None = None,
 ) -> dict[int, NDArray[np.int16]]:
     """Per view, an (H, W) map of how many *other* views support each depth (0 where the
-    view has no depth)."""
+    view has no depth). ``partners[i]`` limits the views checked for view i (default: all).
+
+    Whole-image arithmetic: for views i and j, pixel (u, v) of depth z in i lands in j at
+    ``z M [u, v, 1] + c`` with ``M = K_j R_ji K_i^-1`` and ``c = K_j t_ji``; j's depth there
+    is read with a nearest-neighbour ``cv2.remap``."""
     out: dict[int, NDArray[np.int16]] = {}
+    grids: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
     for i, depth_i in depths.items():
-        count = np.zeros(depth_i.shape, np.int16)
-        rows, cols = np.nonzero(depth_i > 0)
-        if len(rows) == 0:
-            out[i] = count
-            continue
-        X = backproject_depth(cameras[i], depth_i, rows, cols)
-        support = np.zeros(len(rows), np.int16)
-        for j, depth_j in depths.items():
-            if j == i:
-                continue
-            support += agrees(X, cameras[j], depth_j, rel_tol)
-        count[rows, cols] = support
+        h, w = depth_i.shape
+        count = np.zeros((h, w), np.int16)
         out[i] = count
+        valid = depth_i > 0
+        if not valid.any():
+            continue
+        if (h, w) not in grids:
+            grids[(h, w)] = (
+                np.arange(w, dtype=np.float32)[None, :].repeat(h, axis=0),
+                np.arange(h, dtype=np.float32)[:, None].repeat(w, axis=1),
+            )
+        u, v = grids[(h, w)]
+        cam_i = cameras[i]
+        Kinv = np.linalg.inv(cam_i.K)
+        others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
+        for j in others:
+            if j not in depths:
+                continue
+            cam_j = cameras[j]
+            R = cam_j.R @ cam_i.R.T
+            t = cam_j.t - R @ cam_i.t
+            M = (cam_j.K @ R @ Kinv).astype(np.float32)
+            c = (cam_j.K @ t).astype(np.float32)
+            z = depth_i
+            X = z * (M[0, 0] * u + M[0, 1] * v + M[0, 2]) + c[0]
+            Y = z * (M[1, 0] * u + M[1, 1] * v + M[1, 2]) + c[1]
+            Z = z * (M[2, 0] * u + M[2, 1] * v + M[2, 2]) + c[2]
+            ok = valid & (Z > 0)
+            Zs = np.where(ok, Z, 1.0)
+            mx = np.where(ok, X / Zs, -1e6).astype(np.float32)
+            my = np.where(ok, Y / Zs, -1e6).astype(np.float32)
+            dj = cv2.remap(
+                depths[j], mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
+            count += ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
     return out
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -103,20 +104,25 @@ def view_points(
     score: NDArray[np.float32],
 ) -> ViewPoints:
     """Points, colours, world normals of the pixels ``keep`` of a depth map."""
-    rows, cols = np.nonzero(keep)
-    Xc = camera_points(camera, depth)
-    nc = depth_normals(camera, depth)
-    Xc_k = Xc[rows, cols].astype(np.float64)
-    X = (Xc_k - camera.t) @ camera.R
-    n = (nc[rows, cols].astype(np.float64) @ camera.R).astype(np.float32)
-    bgr = image[rows, cols]
+    idx = np.flatnonzero(keep)
+    rows, cols = np.divmod(idx, depth.shape[1])
+    z = depth.ravel()[idx].astype(np.float64)
+    Kinv = np.linalg.inv(camera.K)
+    Xc = np.empty((len(idx), 3))
+    Xc[:, 0] = (Kinv[0, 0] * cols + Kinv[0, 1] * rows + Kinv[0, 2]) * z
+    Xc[:, 1] = (Kinv[1, 1] * rows + Kinv[1, 2]) * z
+    Xc[:, 2] = z
+    X = (Xc - camera.t) @ camera.R
+    nc = depth_normals(camera, depth).reshape(-1, 3)[idx]
+    n = (nc @ camera.R.astype(np.float32)).astype(np.float32)
+    bgr = image.reshape(-1, 3)[idx]
     return ViewPoints(
         camera_id=camera_id,
         points3D=X,
         colors=np.ascontiguousarray(bgr[:, ::-1]),
         normals=n,
-        num_views=(support[rows, cols] + 1).astype(np.int16),
-        score=score[rows, cols].astype(np.float32),
+        num_views=(support.ravel()[idx] + 1).astype(np.int16),
+        score=score.ravel()[idx].astype(np.float32),
     )
 
 
@@ -133,22 +139,21 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
             attributes={"num_views": np.zeros(0, np.int32)},
         )
     X = np.concatenate([p.points3D for p in parts])
-    C = np.concatenate([p.colors for p in parts]).astype(np.float64)
-    N = np.concatenate([p.normals for p in parts]).astype(np.float64)
+    C = np.concatenate([p.colors for p in parts]).astype(np.float32)
+    N = np.concatenate([p.normals for p in parts])
     V = np.concatenate([p.num_views for p in parts]).astype(np.int32)
-    S = np.concatenate([p.score for p in parts]).astype(np.float64)
-    keys = np.floor(X / voxel).astype(np.int64)
-    keys -= keys.min(axis=0)
+    S = np.concatenate([p.score for p in parts])
+    keys = np.floor((X - X.min(axis=0)) * (1.0 / voxel)).astype(np.int64)
     span = keys.max(axis=0) + 1
     flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    m = len(counts)
+    # Sort once; every per-voxel reduction is then a reduceat over contiguous runs.
+    order = np.argsort(flat, kind="stable")
+    fs = flat[order]
+    starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1])
+    counts = np.diff(np.concatenate([starts, [len(fs)]]))
 
-    def mean(a: NDArray[np.float64]) -> NDArray[np.float64]:
-        out = np.empty((m, a.shape[1]))
-        for k in range(a.shape[1]):
-            out[:, k] = np.bincount(inverse, weights=a[:, k], minlength=m)
-        return out / counts[:, None]
+    def mean(a: NDArray[Any]) -> NDArray[np.float64]:
+        return np.add.reduceat(a[order], starts, axis=0, dtype=np.float64) / counts[:, None]
 
     pts = mean(X)
     cols = mean(C)
@@ -157,18 +162,15 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
     # Opposite normals can cancel (thin structures seen from both sides): keep one member's.
     weak = norm[:, 0] < 1e-3
     if weak.any():
-        first = np.full(m, -1, np.int64)
-        first[inverse[::-1]] = np.arange(len(inverse))[::-1]
-        nrm[weak] = N[first[weak]]
+        nrm[weak] = N[order[starts[weak]]]
         norm = np.linalg.norm(nrm, axis=1, keepdims=True)
     nrm = nrm / np.maximum(norm, 1e-30)
-    views = np.zeros(m, np.int32)
-    np.maximum.at(views, inverse, V)
-    conf = np.bincount(inverse, weights=S, minlength=m) / counts
+    views = np.maximum.reduceat(V[order], starts)
+    conf = np.add.reduceat(S[order], starts, dtype=np.float64) / counts
     return PointCloud(
         points3D=pts,
         colors=np.clip(np.rint(cols), 0, 255).astype(np.uint8),
         normals=nrm.astype(np.float32),
         confidence=conf.astype(np.float32),
-        attributes={"num_views": views},
+        attributes={"num_views": views.astype(np.int32)},
     )

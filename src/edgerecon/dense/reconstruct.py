@@ -324,7 +324,8 @@ def reconstruct_dense(
         ]
         voxel = config.voxel_size
         if voxel is None:
-            voxel = _auto_voxel(kept, cams)
+            foot = _auto_voxel(kept, cams)
+            voxel = None if foot is None else foot * config.voxel_rel
         cloud = voxel_merge(parts, voxel) if voxel else voxel_merge([], 1.0)
 
     for p in plans:
