@@ -151,6 +151,7 @@ class _CameraState:
     """``bg_radiance`` after the optical blur (the same array when there is none)."""
     bg_label: NDArray[np.int16]
     noise: F32 | None = None
+    floor_xy: tuple[F32, F32] | None = None
 
 
 class Renderer:
@@ -376,22 +377,17 @@ class Renderer:
         self, st: _CameraState, feet: list[F64], mask: NDArray[np.uint8]
     ) -> tuple[NDArray[np.intp], F32] | None:
         """Soft contact shadows: floor pixels near the actors' feet, darkened (radiance of the
-        unoccluded background times the shadow factor). None when there is nothing to do."""
+        unoccluded background times ``1 - strength (1 - d^2 / R^2)^2`` within R of each
+        actor). None when there is nothing to do."""
         real = self.scene.config.realism
         if real.contact_shadow <= 0 or not feet:
             return None
         cam = st.camera
-        sigma = real.contact_shadow_radius_m
-        reach = 3.0 * sigma
+        reach = real.contact_shadow_radius_m
         boxes = []
         for p in feet:
             corners = np.array(
-                [
-                    [p[0] + dx, p[1] + dy, z]
-                    for dx in (-reach, reach)
-                    for dy in (-reach, reach)
-                    for z in (0.0, 0.01)
-                ]
+                [[p[0] + dx, p[1] + dy, 0.0] for dx in (-reach, reach) for dy in (-reach, reach)]
             )
             bb = _pixel_bbox(cam, corners, st.norm_bounds)
             if bb is not None:
@@ -400,39 +396,37 @@ class Renderer:
             return None
         x0, y0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
         x1, y1 = max(b[2] for b in boxes), max(b[3] for b in boxes)
-        lab = st.bg_label[y0:y1, x0:x1]
-        free = (lab == 0) & (mask[y0:y1, x0:x1] == 0)
-        rows, cols = np.nonzero(free)
-        if rows.size == 0:
+        fx, fy = self._floor_xy(st)
+        fx, fy = fx[y0:y1, x0:x1], fy[y0:y1, x0:x1]
+        factor = np.ones(fx.shape, np.float32)
+        inv = np.float32(1.0 / reach**2)
+        strength = np.float32(real.contact_shadow)
+        with np.errstate(invalid="ignore"):
+            for p in feet:
+                q = 1 - ((fx - np.float32(p[0])) ** 2 + (fy - np.float32(p[1])) ** 2) * inv
+                factor *= 1 - strength * np.square(np.maximum(q, 0))
+        keep = (factor < 0.999) & (mask[y0:y1, x0:x1] == 0)  # NaN (not floor) is never < 0.999
+        local = np.flatnonzero(keep)
+        if local.size == 0:
             return None
-        rows += y0
-        cols += x0
-        s = st.bg_depth[rows, cols]
-        xn, yn = st.xn[rows, cols], st.yn[rows, cols]
-        Rwc = cam.R.T.astype(np.float32)
-        c = cam.center.astype(np.float32)
-        z = c[2] + s * (Rwc[2, 0] * xn + Rwc[2, 1] * yn + Rwc[2, 2])
-        on_floor = np.abs(z) < 1e-3
-        rows, cols, s, xn, yn = (
-            rows[on_floor],
-            cols[on_floor],
-            s[on_floor],
-            xn[on_floor],
-            yn[on_floor],
-        )
-        x = c[0] + s * (Rwc[0, 0] * xn + Rwc[0, 1] * yn + Rwc[0, 2])
-        y = c[1] + s * (Rwc[1, 0] * xn + Rwc[1, 1] * yn + Rwc[1, 2])
-        factor = np.ones(len(x), np.float32)
-        inv = np.float32(-0.5 / sigma**2)
-        for p in feet:
-            d2 = (x - np.float32(p[0])) ** 2 + (y - np.float32(p[1])) ** 2
-            factor *= 1 - np.float32(real.contact_shadow) * np.exp(d2 * inv)
-        keep = factor < 0.998
-        if not keep.any():
-            return None
-        rows, cols = rows[keep], cols[keep]
-        idx = rows.astype(np.intp) * cam.width + cols
-        return idx, st.bg_radiance[rows, cols] * factor[keep, None]
+        r, c = np.divmod(local, x1 - x0)
+        idx = (r + y0) * cam.width + (c + x0)
+        return idx, st.bg_radiance.reshape(-1, 3)[idx] * factor.ravel()[local, None]
+
+    def _floor_xy(self, st: _CameraState) -> tuple[F32, F32]:
+        """(H, W) world x and y of the floor seen by each pixel (NaN where it is not floor)."""
+        if st.floor_xy is None:
+            cam = st.camera
+            Rwc = cam.R.T.astype(np.float32)
+            c = cam.center.astype(np.float32)
+            s, xn, yn = st.bg_depth, st.xn, st.yn
+            z = c[2] + s * (Rwc[2, 0] * xn + Rwc[2, 1] * yn + Rwc[2, 2])
+            floor = (np.abs(z) < 1e-3) & (st.bg_label == 0)
+            x = c[0] + s * (Rwc[0, 0] * xn + Rwc[0, 1] * yn + Rwc[0, 2])
+            y = c[1] + s * (Rwc[1, 0] * xn + Rwc[1, 1] * yn + Rwc[1, 2])
+            nan = np.float32(np.nan)
+            st.floor_xy = (np.where(floor, x, nan), np.where(floor, y, nan))
+        return st.floor_xy
 
     def _composite(
         self,
@@ -455,18 +449,29 @@ class Renderer:
             image.reshape(-1, 3)[idx] = rad * gain
             return
         m = int(np.ceil(4 * sigma)) + 1
-        y0, y1 = max(0, int(rows.min()) - 2 * m), min(h, int(rows.max()) + 1 + 2 * m)
-        x0, x1 = max(0, int(cols.min()) - 2 * m), min(w, int(cols.max()) + 1 + 2 * m)
-        region = st.bg_radiance[y0:y1, x0:x1] * gain
-        region[rows - y0, cols - x0] = rad * gain
-        region = np.asarray(cv2.GaussianBlur(region, (0, 0), sigma), np.float32)
-        # Inner part only: near the region's cut edges the blur lacks context (image borders
-        # are fine: the cached background was blurred with the same border rule).
-        iy0 = 0 if y0 == 0 else m
-        ix0 = 0 if x0 == 0 else m
-        iy1 = (y1 - y0) if y1 == h else (y1 - y0 - m)
-        ix1 = (x1 - x0) if x1 == w else (x1 - x0 - m)
-        image[y0 + iy0 : y0 + iy1, x0 + ix0 : x0 + ix1] = region[iy0:iy1, ix0:ix1]
+        # Actors apart in the image get their own regions (columns with a gap between them).
+        used = np.unique(cols)
+        cuts = np.flatnonzero(np.diff(used) > 4 * m) + 1
+        for span in np.split(used, cuts):
+            lo, hi = int(span[0]), int(span[-1])
+            inside = (cols >= lo) & (cols <= hi)
+            # Hits of other spans that fall into this region's margin are composed too.
+            x0, x1 = max(0, lo - 2 * m), min(w, hi + 1 + 2 * m)
+            near = (cols >= x0) & (cols < x1)
+            r_in = rows[inside]
+            y0, y1 = max(0, int(r_in.min()) - 2 * m), min(h, int(r_in.max()) + 1 + 2 * m)
+            near &= (rows >= y0) & (rows < y1)
+            region = st.bg_radiance[y0:y1, x0:x1] * gain
+            flat = (rows[near] - y0) * (x1 - x0) + (cols[near] - x0)
+            region.reshape(-1, 3)[flat] = rad[near] * gain
+            region = np.asarray(cv2.GaussianBlur(region, (0, 0), sigma), np.float32)
+            # Inner part only: near the region's cut edges the blur lacks context (image
+            # borders are fine: the cached background was blurred with the same rule).
+            iy0 = 0 if y0 == 0 else m
+            ix0 = 0 if x0 == 0 else m
+            iy1 = (y1 - y0) if y1 == h else (y1 - y0 - m)
+            ix1 = (x1 - x0) if x1 == w else (x1 - x0 - m)
+            image[y0 + iy0 : y0 + iy1, x0 + ix0 : x0 + ix1] = region[iy0:iy1, ix0:ix1]
 
     def _noise_window(self, st: _CameraState, index: int, t: int) -> F32:
         seed = self.scene.config.seed

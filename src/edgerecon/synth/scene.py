@@ -110,8 +110,8 @@ class RealismConfig:
     contact_shadow: float = 0.4
     """Darkening of the floor under each actor (soft blob, view-independent, part of the
     background in the masks: as real shadows, it moves with the actor); 0 = none."""
-    contact_shadow_radius_m: float = 0.3
-    """Gaussian sigma of the contact shadow on the floor, metres."""
+    contact_shadow_radius_m: float = 0.8
+    """Radius of the contact shadow on the floor (smooth fall-off to 0 there), metres."""
 
     def __post_init__(self) -> None:
         _check(self.noise_sigma >= 0, "noise_sigma", self.noise_sigma, "must be >= 0")
