@@ -1,0 +1,686 @@
+"""The online configuration controller: the paper's Algorithm 1 (bisection over the image scale
+r for each camera-subset size N', stepping N' down), its three early-exit rules, the final
+argmax over the stored solutions, the minor-adjustment procedure, and re-entering the search
+when conditions change for good.
+
+It is a pure state machine driven by observations — no clock, no I/O, no randomness::
+
+    ctrl = BisectionController(ControllerConfig(deadline_s=5.0), camera_mapping, num_cameras=7)
+    for task in tasks:
+        cfg = ctrl.next_config()          # TaskConfig(scale, camera_ids, num_cameras, phase)
+        time_s, quality = run(task, cfg)  # reconstruct + online quality estimate
+        ctrl.observe(time_s, quality)
+
+Phases: ``golden`` (r = 1 with every available camera; its result is the reference of the
+online quality estimate and its sparse cloud gives the visibility for camera selection),
+``search`` (Algorithm 1) and ``adjust`` (minor adjustment of r at the chosen N'). The state
+machine, the rules and the re-search triggers are described in ``docs/OPTIMIZER.md``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from edgerecon.optimize.selection import CameraMapping, CameraSelector
+
+logger = logging.getLogger(__name__)
+
+Phase = Literal["golden", "search", "adjust"]
+CameraMappingLike = (
+    CameraMapping | CameraSelector | Mapping[int, Sequence[int]] | Callable[[int], Sequence[int]]
+)
+
+_EPS = 1e-9
+_R_HISTORY = 500  # adjusted r values kept for the drift trigger
+
+
+@dataclass(frozen=True, kw_only=True)
+class ControllerConfig:
+    """Parameters of Algorithm 1, the minor adjustment and the re-search triggers."""
+
+    deadline_s: float
+    """The user's deadline Δt per task, seconds."""
+    r_min: float = 0.3
+    """Smallest image scale (paper: 0.3)."""
+    r_max: float = 1.0
+    """Largest image scale (paper: 1.0)."""
+    tau: float = 0.01
+    """Bisection resolution: a level's search ends when r_hi - r_lo <= tau (paper: 0.01)."""
+    min_cameras: int = 3
+    """Smallest camera subset N' (the pipeline needs 3)."""
+    margin_s: float = 0.0
+    """Absolute acceptance margin, seconds: during the search a task counts as meeting the
+    deadline when T <= Δt + margin_s + margin_rel * Δt (the paper accepted 1 s)."""
+    margin_rel: float = 0.0
+    """Relative acceptance margin (share of Δt), added to ``margin_s``."""
+    golden_first: bool = True
+    """Run the golden configuration (r_max, all cameras) as the first task, as the paper does;
+    when it meets the deadline the search ends after one step."""
+    prune_fewer_cameras: bool = True
+    """Rule 2: on entering a smaller N' (once a feasible solution exists) measure Q at r_max
+    first and stop the whole search when even that does not beat the best solution."""
+    prune_bisection: bool = True
+    """Rule 3: abandon an N' when a too-slow r already has quality <= the best solution."""
+    adjust_step: float = 0.02
+    """Minor-adjustment step of r after the search (paper: 0.02)."""
+    adjust_window: int = 5
+    """Tasks in the running average of the minor adjustment (0 = every task since the
+    adjustment began, as in the paper; a short window oscillates less, see OPTIMIZER.md)."""
+    adjust_target: float = 1.0
+    """The adjustment steers the running average to adjust_target * Δt (1.0 = the paper;
+    e.g. 0.9 trades some quality for fewer deadline misses under noisy timings)."""
+    research_window: int = 5
+    """Tasks in the median the jump trigger looks at, and the count the saturation trigger
+    needs (see ``docs/OPTIMIZER.md``)."""
+    research_jump: float = 0.5
+    """Re-search when the median of the last ``research_window`` times is above
+    (1 + research_jump) Δt or below (1 - research_jump) Δt (0 disables)."""
+    research_drift: float = 0.1
+    """Re-search when the mean r of the last 2 x ``research_window`` adjusted tasks has moved
+    this far from its settled value (the mean r of the earlier adjusted tasks, leaving out the
+    first ``research_window`` that catch up with the searched r*): the time per task changed
+    for good (0 disables)."""
+    research_saturation: bool = True
+    """Re-search when the adjustment wants to leave [r_min, r_max] for ``research_window``
+    tasks in a row and a different N' could help."""
+
+    def __post_init__(self) -> None:
+        def positive(name: str) -> None:
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+
+        def non_negative(name: str) -> None:
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a non-negative number, got {v!r}")
+
+        for name in ("deadline_s", "r_min", "r_max", "tau", "adjust_step"):
+            positive(name)
+        for name in ("margin_s", "margin_rel", "research_jump", "research_drift"):
+            non_negative(name)
+        if self.r_min >= self.r_max:
+            raise ValueError(f"r_min ({self.r_min}) must be < r_max ({self.r_max})")
+        if self.r_max > 1.0:
+            raise ValueError(f"r_max must be <= 1 (full resolution), got {self.r_max}")
+        if self.tau >= self.r_max - self.r_min:
+            raise ValueError(
+                f"tau ({self.tau}) must be smaller than r_max - r_min ({self.r_max - self.r_min})"
+            )
+        if self.min_cameras < 2:
+            raise ValueError(f"min_cameras must be >= 2, got {self.min_cameras}")
+        if self.adjust_window < 0:
+            raise ValueError(f"adjust_window must be >= 0, got {self.adjust_window}")
+        if self.research_window < 1:
+            raise ValueError(f"research_window must be >= 1, got {self.research_window}")
+        if not 0 < self.adjust_target <= 1.5:
+            raise ValueError(f"adjust_target must be in (0, 1.5], got {self.adjust_target}")
+        if self.research_jump >= 1.0:
+            raise ValueError(f"research_jump must be < 1, got {self.research_jump}")
+
+    @property
+    def accept_limit_s(self) -> float:
+        """Largest time accepted as meeting the deadline during the search."""
+        return self.deadline_s * (1.0 + self.margin_rel) + self.margin_s
+
+
+@dataclass(frozen=True, kw_only=True)
+class TaskConfig:
+    """What the next task runs with."""
+
+    scale: float
+    """Image scale r in [r_min, r_max]."""
+    camera_ids: tuple[int, ...]
+    """Rig camera ids pi(N'), ascending."""
+    num_cameras: int
+    """N' = len(camera_ids)."""
+    phase: Phase
+    """``golden``, ``search`` or ``adjust``."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scale": self.scale,
+            "camera_ids": list(self.camera_ids),
+            "num_cameras": self.num_cameras,
+            "phase": self.phase,
+        }
+
+
+@dataclass(frozen=True, kw_only=True)
+class Solution:
+    """A configuration observed to meet the deadline during the search."""
+
+    scale: float
+    num_cameras: int
+    quality: float
+    """Observed online quality (NaN when unknown)."""
+    time_s: float
+
+    def rank(self) -> tuple[float, int, float]:
+        q = self.quality if math.isfinite(self.quality) else -math.inf
+        return (q, self.num_cameras, self.scale)
+
+
+@dataclass
+class _State:
+    phase: Phase = "golden"
+    level: int = 0
+    probe: Literal["golden", "baseline", "top", "bisect"] = "golden"
+    r: float = 1.0
+    lo: float = 0.0
+    hi: float = 1.0
+    solutions: list[Solution] = field(default_factory=list)
+    chosen: Solution | None = None
+    feasible: bool = True
+    r_star: float = 1.0
+    n_star: int = 0
+    r_searched: float = 1.0
+    r_history: list[float] = field(default_factory=list)
+    adjust_times: list[float] = field(default_factory=list)
+    adjust_sum: float = 0.0
+    adjust_count: int = 0
+    recent: list[float] = field(default_factory=list)
+    saturation_low: int = 0
+    saturation_high: int = 0
+    suppress_faster: bool = False
+    last_trigger: str | None = None
+    search_steps: int = 0
+    total_search_steps: int = 0
+    num_searches: int = 1
+    tasks: int = 0
+    pending: bool = False
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+
+class BisectionController:
+    """Algorithm 1 with pruning rules, minor adjustment and re-search triggers (see module
+    docstring). Configurations it returns always satisfy r in [r_min, r_max] and
+    min_cameras <= N' <= number of available cameras."""
+
+    def __init__(
+        self,
+        config: ControllerConfig,
+        camera_mapping: CameraMappingLike | None,
+        num_cameras: int,
+        *,
+        available: Sequence[int] | None = None,
+    ) -> None:
+        if num_cameras < config.min_cameras:
+            raise ValueError(
+                f"num_cameras ({num_cameras}) must be >= min_cameras ({config.min_cameras})"
+            )
+        self.config = config
+        self.num_cameras = int(num_cameras)
+        self.available: tuple[int, ...] = self._check_available(available)
+        self._mapping: CameraMappingLike | None = camera_mapping
+        self._pi_cache: dict[int, tuple[int, ...]] = {}
+        self.s = _State()
+        self._begin_search(golden=config.golden_first, reason="start")
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def phase(self) -> Phase:
+        return self.s.phase
+
+    @property
+    def search_steps(self) -> int:
+        """Tasks spent in the golden and search phases of the current (or last) search."""
+        return self.s.search_steps
+
+    @property
+    def total_search_steps(self) -> int:
+        """Tasks spent searching since the controller started (all searches)."""
+        return self.s.total_search_steps
+
+    @property
+    def num_searches(self) -> int:
+        """Searches started (1 + re-searches)."""
+        return self.s.num_searches
+
+    @property
+    def solutions(self) -> list[Solution]:
+        """Feasible configurations observed in the current search."""
+        return list(self.s.solutions)
+
+    @property
+    def chosen(self) -> Solution | None:
+        """The search's argmax (None while searching, or when nothing met the deadline)."""
+        return self.s.chosen
+
+    @property
+    def feasible(self) -> bool:
+        """False when the last search found no configuration meeting the deadline (the
+        controller then runs the fastest one: r_min with min_cameras)."""
+        return self.s.feasible
+
+    @property
+    def events(self) -> list[dict[str, Any]]:
+        """Re-searches so far: ``{"task": index, "reason": ...}``."""
+        return list(self.s.events)
+
+    @property
+    def num_available(self) -> int:
+        return len(self.available)
+
+    def next_config(self) -> TaskConfig:
+        """The configuration of the next task (the same one until :meth:`observe` is called)."""
+        s = self.s
+        s.pending = True
+        if s.phase == "golden":
+            return TaskConfig(
+                scale=self.config.r_max,
+                camera_ids=self.available,
+                num_cameras=self.num_available,
+                phase="golden",
+            )
+        if s.phase == "search":
+            return self._task(s.r, s.level, "search")
+        return self._task(s.r_star, s.n_star, "adjust")
+
+    def observe(self, time_s: float, quality: float | None = None) -> None:
+        """Report the processing time (seconds) and online quality of the task run with the
+        last :meth:`next_config` (``quality`` None or NaN = unknown: the time still counts, the
+        quality rules do not fire)."""
+        if not self.s.pending:
+            raise RuntimeError("observe() called without a preceding next_config()")
+        t = float(time_s)
+        if not (math.isfinite(t) and t >= 0):
+            raise ValueError(f"time_s must be a finite number >= 0, got {time_s!r}")
+        q = math.nan if quality is None else float(quality)
+        if math.isinf(q):
+            raise ValueError(f"quality must be finite or None, got {quality!r}")
+        s = self.s
+        s.pending = False
+        s.tasks += 1
+        if s.phase == "golden":
+            self._observe_golden(t, 1.0 if math.isnan(q) else q)
+        elif s.phase == "search":
+            self._observe_search(t, q)
+        else:
+            self._observe_adjust(t)
+
+    def set_deadline(self, deadline_s: float) -> None:
+        """Change Δt; re-enters the search (the camera mapping is kept)."""
+        if deadline_s == self.config.deadline_s:
+            return
+        self.config = dataclasses.replace(self.config, deadline_s=float(deadline_s))
+        self.restart("deadline", golden=False)
+
+    def set_cameras(
+        self, available: Sequence[int], camera_mapping: CameraMappingLike | None = None
+    ) -> None:
+        """The set of usable cameras changed (a node was lost or came back): re-search over
+        ``available`` with the new mapping (which must choose among ``available``)."""
+        new = self._check_available(available)
+        if camera_mapping is not None:
+            self._mapping = camera_mapping
+            self._pi_cache.clear()
+        if new == self.available and camera_mapping is None:
+            return
+        self.available = new
+        self._pi_cache.clear()
+        self.restart("cameras", golden=False)
+
+    def set_camera_mapping(self, camera_mapping: CameraMappingLike, restart: bool = False) -> None:
+        """Replace pi (e.g. once the golden task's sparse cloud is available); the current
+        search continues unless ``restart``."""
+        self._mapping = camera_mapping
+        self._pi_cache.clear()
+        if restart:
+            self.restart("mapping", golden=False)
+
+    def restart(self, reason: str = "manual", golden: bool = False) -> None:
+        """Re-enter the search now (``golden``: start with a golden task)."""
+        self._begin_search(golden=golden, reason=reason)
+
+    def camera_ids(self, num_cameras: int) -> tuple[int, ...]:
+        """pi(N') as the controller uses it (validated, cached)."""
+        n = int(num_cameras)
+        if n == self.num_available:
+            return self.available
+        if n in self._pi_cache:
+            return self._pi_cache[n]
+        m = self._mapping
+        if m is None:
+            raise RuntimeError(
+                f"the controller needs pi({n}) but has no camera mapping: pass one to "
+                "BisectionController(...) or set_camera_mapping() after the golden task"
+            )
+        if isinstance(m, Mapping):
+            if n not in m:
+                raise RuntimeError(f"the camera mapping has no subset of size {n}")
+            ids_raw: Sequence[int] = m[n]
+        else:
+            ids_raw = m(n)
+        ids = tuple(sorted(int(i) for i in ids_raw))
+        if len(ids) != n or len(set(ids)) != n or not set(ids) <= set(self.available):
+            raise RuntimeError(
+                f"camera mapping returned {list(ids_raw)} for N' = {n}: expected {n} distinct "
+                f"ids among the available cameras {list(self.available)}"
+            )
+        self._pi_cache[n] = ids
+        return ids
+
+    # ------------------------------------------------------------------ search
+
+    def _check_available(self, available: Sequence[int] | None) -> tuple[int, ...]:
+        if available is None:
+            return tuple(range(self.num_cameras))
+        ids = tuple(sorted({int(i) for i in available}))
+        bad = [i for i in ids if not 0 <= i < self.num_cameras]
+        if bad:
+            raise ValueError(f"camera ids {bad} out of range 0..{self.num_cameras - 1}")
+        if len(ids) < self.config.min_cameras:
+            raise ValueError(
+                f"{len(ids)} available cameras {list(ids)}: the controller needs at least "
+                f"{self.config.min_cameras}"
+            )
+        return ids
+
+    def _task(self, r: float, n: int, phase: Phase) -> TaskConfig:
+        c = self.config
+        r = min(max(r, c.r_min), c.r_max)
+        n = min(max(n, c.min_cameras), self.num_available)
+        ids = self.camera_ids(n)
+        return TaskConfig(scale=round(r, 6), camera_ids=ids, num_cameras=n, phase=phase)
+
+    def _begin_search(self, golden: bool, reason: str) -> None:
+        s = self.s
+        if reason != "start":
+            s.events.append({"task": s.tasks, "reason": reason})
+            s.num_searches += 1
+            logger.info("re-entering the search after %d tasks: %s", s.tasks, reason)
+        if reason not in ("faster", "saturation_high"):
+            s.suppress_faster = False  # something else changed: spare time is worth a look again
+        s.solutions = []
+        s.chosen = None
+        s.feasible = True
+        s.search_steps = 0
+        s.last_trigger = reason
+        s.recent = []
+        s.saturation_low = s.saturation_high = 0
+        if golden:
+            s.phase = "golden"
+            s.probe = "golden"
+            s.r = self.config.r_max
+            s.level = self.num_available
+        else:
+            s.phase = "search"
+            self._start_level(self.num_available, top_known_infeasible=False)
+
+    def _observe_golden(self, t: float, q: float) -> None:
+        s = self.s
+        c = self.config
+        s.search_steps += 1
+        s.total_search_steps += 1
+        n = self.num_available
+        if t <= c.accept_limit_s:
+            s.solutions.append(Solution(scale=c.r_max, num_cameras=n, quality=q, time_s=t))
+            self._finish_search("golden configuration meets the deadline")
+            return
+        s.phase = "search"
+        self._start_level(n, top_known_infeasible=True)
+
+    def _implied_feasible(self, level: int) -> float | None:
+        """Largest r observed feasible with at least ``level`` cameras (feasible at ``level``
+        too, since T grows with N')."""
+        rs = [x.scale for x in self.s.solutions if x.num_cameras >= level]
+        return max(rs) if rs else None
+
+    def _best(self) -> Solution | None:
+        if not self.s.solutions:
+            return None
+        return max(self.s.solutions, key=Solution.rank)
+
+    def _start_level(self, level: int, top_known_infeasible: bool = False) -> None:
+        s = self.s
+        c = self.config
+        if level < c.min_cameras:
+            self._finish_search("all camera counts searched")
+            return
+        s.level = level
+        s.hi = c.r_max
+        lo = self._implied_feasible(level)
+        if lo is None:
+            # Nothing known feasible: start at r_min (paper, line 3); the baseline check skips
+            # the level when even r_min is too slow.
+            s.lo = c.r_min
+            s.probe = "baseline"
+            s.r = c.r_min
+            return
+        s.lo = lo
+        if s.hi - s.lo <= c.tau + _EPS:
+            # a larger N' already meets the deadline within tau of r_max: fewer cameras at
+            # r <= r_max cannot be better
+            self._finish_search("a larger N' is feasible at r_max")
+            return
+        if c.prune_fewer_cameras and not top_known_infeasible:
+            s.probe = "top"
+            s.r = c.r_max
+            return
+        s.probe = "bisect"
+        s.r = 0.5 * (s.lo + s.hi)
+
+    def _observe_search(self, t: float, q: float) -> None:
+        s = self.s
+        c = self.config
+        s.search_steps += 1
+        s.total_search_steps += 1
+        r = s.r
+        ok = t <= c.accept_limit_s
+        best = self._best()
+        if ok:
+            s.solutions.append(Solution(scale=r, num_cameras=s.level, quality=q, time_s=t))
+        probe = s.probe
+        if probe == "baseline":
+            if not ok:  # rule 1: r_min is too slow for this N'
+                logger.debug("N'=%d: baseline r=%.3f too slow (%.3fs)", s.level, r, t)
+                self._start_level(s.level - 1)
+                return
+            s.lo = r
+        elif probe == "top":
+            if best is not None and q <= best.quality:
+                # rule 2: even r_max with this N' is no better: fewer cameras cannot be either
+                self._finish_search(f"rule 2 at N'={s.level}")
+                return
+            if ok:
+                self._finish_search(f"N'={s.level} meets the deadline at r_max")
+                return
+            s.hi = r
+        else:
+            if ok:
+                s.lo = r
+            else:
+                s.hi = r
+                if c.prune_bisection and best is not None and q <= best.quality:
+                    # rule 3: every feasible r for this N' is below r, so no better
+                    logger.debug("N'=%d abandoned at r=%.3f (rule 3)", s.level, r)
+                    self._start_level(s.level - 1)
+                    return
+        if s.hi - s.lo <= c.tau + _EPS:
+            self._start_level(s.level - 1)
+        else:
+            s.probe = "bisect"
+            s.r = 0.5 * (s.lo + s.hi)
+
+    def _finish_search(self, why: str) -> None:
+        s = self.s
+        c = self.config
+        best = self._best()
+        if best is None:
+            s.feasible = False
+            s.chosen = None
+            s.r_star, s.n_star = c.r_min, c.min_cameras
+            logger.warning(
+                "no configuration met the deadline of %.3fs: running the fastest one "
+                "(r=%.2f, N'=%d)",
+                c.deadline_s,
+                s.r_star,
+                s.n_star,
+            )
+        else:
+            s.feasible = True
+            s.chosen = best
+            s.r_star, s.n_star = best.scale, best.num_cameras
+        logger.info(
+            "search done after %d steps (%s): r*=%.3f N'=%d",
+            s.search_steps,
+            why,
+            s.r_star,
+            s.n_star,
+        )
+        if s.last_trigger in ("faster", "saturation_high"):
+            # a re-search looking for spare time found nothing better: do not ask again until
+            # something else changes
+            s.suppress_faster = True
+        s.phase = "adjust"
+        s.r_searched = s.r_star
+        s.r_history = []
+        s.adjust_times = []
+        s.adjust_sum = 0.0
+        s.adjust_count = 0
+        s.recent = []
+        s.saturation_low = s.saturation_high = 0
+
+    # ------------------------------------------------------------------ adjustment
+
+    def _observe_adjust(self, t: float) -> None:
+        s = self.s
+        c = self.config
+        dl = c.deadline_s * c.adjust_target
+        s.adjust_count += 1
+        s.adjust_sum += t
+        if c.adjust_window:
+            s.adjust_times.append(t)
+            del s.adjust_times[: -c.adjust_window]
+            avg = float(np.mean(s.adjust_times))
+        else:
+            avg = s.adjust_sum / s.adjust_count
+        s.recent.append(t)
+        del s.recent[: -c.research_window]
+        want = 0
+        if avg < dl and t < dl:
+            want = 1
+        elif avg > dl and t > dl:
+            want = -1
+        r_old = s.r_star
+        s.r_star = min(max(r_old + want * c.adjust_step, c.r_min), c.r_max)
+        s.r_star = round(s.r_star, 6)
+        at_min = r_old <= c.r_min + _EPS
+        at_max = r_old >= c.r_max - _EPS
+        s.saturation_low = s.saturation_low + 1 if (want < 0 and at_min) else 0
+        s.saturation_high = s.saturation_high + 1 if (want > 0 and at_max) else 0
+        s.r_history.append(s.r_star)
+        del s.r_history[:-_R_HISTORY]
+        reason = self._research_reason()
+        if reason is not None:
+            self._begin_search(golden=False, reason=reason)
+
+    def _research_reason(self) -> str | None:
+        s = self.s
+        c = self.config
+        dl = c.deadline_s
+        can_fewer = s.n_star > c.min_cameras or s.r_star > c.r_min + _EPS
+        can_more = s.n_star < self.num_available or s.r_star < c.r_max - _EPS
+        if c.research_jump > 0 and len(s.recent) >= c.research_window:
+            med = float(np.median(s.recent))
+            if med > dl * (1 + c.research_jump) and can_fewer and s.feasible:
+                return "slower"
+            if med < dl * (1 - c.research_jump) and can_more and not s.suppress_faster:
+                return "faster"
+        w = c.research_window
+        hist = s.r_history
+        if c.research_drift > 0 and len(hist) >= 4 * w:
+            # settled r: every adjusted task after the first w (catching up with r*) and
+            # before the recent 2w; a sustained change moves the recent mean away from it
+            reference = float(np.mean(hist[w : -2 * w]))
+            recent = float(np.mean(hist[-2 * w :]))
+            if abs(recent - reference) >= c.research_drift - _EPS:
+                return "drift"
+        if c.research_saturation:
+            if s.saturation_low >= c.research_window and s.n_star > c.min_cameras and s.feasible:
+                return "saturation_low"
+            if (
+                s.saturation_high >= c.research_window
+                and s.n_star < self.num_available
+                and not s.suppress_faster
+            ):
+                return "saturation_high"
+        return None
+
+    # ------------------------------------------------------------------ persistence
+
+    def to_dict(self) -> dict[str, Any]:
+        """The controller's full state as JSON-able data (see :meth:`from_dict`)."""
+        s = self.s
+        state = dataclasses.asdict(s)
+        state["solutions"] = [dataclasses.asdict(x) for x in s.solutions]
+        state["chosen"] = None if s.chosen is None else dataclasses.asdict(s.chosen)
+        for x in state["solutions"] + ([state["chosen"]] if state["chosen"] else []):
+            if not math.isfinite(x["quality"]):
+                x["quality"] = None
+        mapping: Any = None
+        if isinstance(self._mapping, CameraMapping):
+            mapping = {"kind": "camera_mapping", "data": self._mapping.to_dict()}
+        elif isinstance(self._mapping, Mapping):
+            mapping = {
+                "kind": "dict",
+                "data": {str(k): [int(i) for i in v] for k, v in self._mapping.items()},
+            }
+        return {
+            "format": "edgerecon-controller",
+            "version": 1,
+            "config": dataclasses.asdict(self.config),
+            "num_cameras": self.num_cameras,
+            "available": list(self.available),
+            "pi": {str(k): list(v) for k, v in sorted(self._pi_cache.items())},
+            "mapping": mapping,
+            "state": state,
+        }
+
+    @classmethod
+    def from_dict(
+        cls, d: Mapping[str, Any], camera_mapping: CameraMappingLike | None = None
+    ) -> BisectionController:
+        """Restore a controller saved with :meth:`to_dict`. Without ``camera_mapping`` the
+        saved pi serves: complete when it was a :class:`CameraMapping` or a dict, else only
+        the subsets used so far (pass the callable or selector again to go on)."""
+        if d.get("format") != "edgerecon-controller":
+            raise ValueError("not a saved edgerecon controller state")
+        config = ControllerConfig(**d["config"])
+        mapping: CameraMappingLike | None = camera_mapping
+        saved_pi = {int(k): tuple(int(i) for i in v) for k, v in d.get("pi", {}).items()}
+        if mapping is None:
+            m = d.get("mapping")
+            if m and m.get("kind") == "camera_mapping":
+                mapping = CameraMapping.from_dict(m["data"])
+            elif m and m.get("kind") == "dict":
+                mapping = {int(k): tuple(int(i) for i in v) for k, v in m["data"].items()}
+            elif saved_pi:
+                mapping = dict(saved_pi)
+        ctrl = cls(config, mapping, int(d["num_cameras"]), available=d["available"])
+        ctrl._pi_cache = {} if camera_mapping is not None else dict(saved_pi)
+        st = copy.deepcopy(dict(d["state"]))  # never share lists with the caller's dict
+
+        def sol(x: Mapping[str, Any]) -> Solution:
+            q = x.get("quality")
+            return Solution(
+                scale=float(x["scale"]),
+                num_cameras=int(x["num_cameras"]),
+                quality=math.nan if q is None else float(q),
+                time_s=float(x["time_s"]),
+            )
+
+        st["solutions"] = [sol(x) for x in st["solutions"]]
+        st["chosen"] = None if st["chosen"] is None else sol(st["chosen"])
+        ctrl.s = _State(**st)
+        return ctrl

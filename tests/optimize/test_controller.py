@@ -1,0 +1,355 @@
+"""The bisection controller (Algorithm 1): optimum found on noise-free models, constraints
+never left, the three pruning rules, minor adjustment under noise, re-search triggers and
+persistence."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from edgerecon.optimize import (
+    BisectionController,
+    ControllerConfig,
+    PipelineModel,
+    SimulatorConfig,
+    run_simulation,
+    simulate,
+    true_optimum,
+)
+
+LOWEST = {n: tuple(range(n)) for n in range(1, 12)}
+
+
+def run_search(ctrl: BisectionController, model: PipelineModel, rng, max_tasks: int = 300):
+    for i in range(max_tasks):
+        cfg = ctrl.next_config()
+        t, q = model.sample(cfg.scale, cfg.num_cameras, i, rng)
+        ctrl.observe(t, 1.0 if cfg.phase == "golden" else q)
+        if ctrl.phase == "adjust":
+            return i + 1
+    raise AssertionError("search did not finish")
+
+
+def test_finds_the_noise_free_optimum_within_tau_on_random_models():
+    rng = np.random.default_rng(0)
+    infeasible = 0
+    for trial in range(200):
+        n = int(rng.integers(3, 11))
+        sim = SimulatorConfig(
+            num_cameras=n,
+            base_s=float(rng.uniform(0, 3)),
+            per_camera_s=float(rng.uniform(0.2, 2)),
+            camera_exponent=float(rng.uniform(0.5, 1.8)),
+            quality_scale_exponent=float(rng.uniform(0.2, 1.5)),
+            quality_camera_exponent=float(rng.uniform(0, 1.5)),
+            time_noise=0,
+            quality_noise=0,
+        )
+        model = PipelineModel(sim)
+        deadline = float(rng.uniform(model.time_s(0.3, 3) * 0.9, model.time_s(1.0, n) * 1.2))
+        cfg = ControllerConfig(
+            deadline_s=deadline,
+            margin_rel=float(rng.choice([0.0, 0.05])),
+            golden_first=bool(trial % 2),
+            prune_fewer_cameras=bool(trial % 3),
+            prune_bisection=bool(trial % 5),
+        )
+        ctrl = BisectionController(cfg, LOWEST, n)
+        run_search(ctrl, model, rng)
+        opt = true_optimum(model, cfg.accept_limit_s, num_cameras=n)
+        got = ctrl.chosen
+        if not opt.feasible:
+            infeasible += 1
+            assert got is None and not ctrl.feasible
+            assert ctrl.next_config().scale == 0.3 and ctrl.next_config().num_cameras == 3
+            continue
+        assert got is not None, (trial, opt)
+        assert model.time_s(got.scale, got.num_cameras) <= cfg.accept_limit_s + 1e-9
+        # within tau: at least as good as the optimal N' at r_opt - tau
+        floor = model.quality(max(cfg.r_min, opt.scale - cfg.tau), opt.num_cameras)
+        assert model.quality(got.scale, got.num_cameras) >= floor - 1e-12, (trial, opt, got)
+    assert 0 < infeasible < 60  # both cases were exercised
+
+
+def test_never_leaves_the_constraints_under_noise_and_events():
+    sim = SimulatorConfig(
+        num_cameras=8, time_noise=0.3, quality_noise=0.1, load_steps=((60, 1.8), (120, 0.5))
+    )
+    model = PipelineModel(sim)
+    cfg = ControllerConfig(deadline_s=6.0, r_min=0.35, r_max=0.95, min_cameras=4)
+    ctrl = BisectionController(cfg, LOWEST, 8)
+    seen = []
+    res = simulate(
+        ctrl,
+        model,
+        250,
+        seed=3,
+        deadline_schedule={150: 4.0, 200: 20.0},
+        camera_schedule={180: ([0, 1, 2, 4, 5, 7], LOWEST_AVAILABLE)},
+        on_task=seen.append,
+    )
+    for row in res.rows:
+        assert 0.35 <= row.scale <= 0.95
+        assert 4 <= row.num_cameras <= 8
+        assert len(row.camera_ids) == row.num_cameras == len(set(row.camera_ids))
+        if row.task >= 180:
+            assert set(row.camera_ids) <= {0, 1, 2, 4, 5, 7}
+    assert len(seen) == 250
+    reasons = [e["reason"] for e in res.events]
+    assert "deadline" in reasons and "cameras" in reasons
+
+
+def _lowest_available(n: int) -> tuple[int, ...]:
+    return tuple([0, 1, 2, 4, 5, 7][:n])
+
+
+LOWEST_AVAILABLE = _lowest_available
+
+
+def test_golden_feasible_ends_after_one_step():
+    ctrl = BisectionController(ControllerConfig(deadline_s=10), LOWEST, 7)
+    cfg = ctrl.next_config()
+    assert (cfg.phase, cfg.scale, cfg.camera_ids) == ("golden", 1.0, tuple(range(7)))
+    ctrl.observe(9.0, None)
+    assert ctrl.phase == "adjust" and ctrl.search_steps == 1
+    assert ctrl.chosen is not None and ctrl.chosen.quality == 1.0
+    nxt = ctrl.next_config()
+    assert (nxt.phase, nxt.scale, nxt.num_cameras) == ("adjust", 1.0, 7)
+
+
+def test_rule1_baseline_check_skips_a_camera_count():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 6)
+    ctrl.next_config()
+    ctrl.observe(20.0, 1.0)  # golden too slow
+    cfg = ctrl.next_config()
+    assert (cfg.phase, cfg.scale, cfg.num_cameras) == ("search", 0.3, 6)
+    ctrl.observe(6.0, 0.4)  # even r_min too slow with 6 cameras
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (0.3, 5)
+    ctrl.observe(4.0, 0.4)  # feasible: bisection between r_min and r_max
+    cfg = ctrl.next_config()
+    assert cfg.num_cameras == 5 and cfg.scale == pytest.approx(0.65)
+
+
+def test_rule2_stops_when_fewer_cameras_cannot_win():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2), LOWEST, 6)
+    ctrl.next_config()
+    ctrl.observe(20.0, 1.0)
+    # bisection at N' = 6: r = 0.3 ok, 0.65 ok, 0.825 too slow -> range 0.175 <= tau
+    for t, q in ((3.0, 0.5), (4.5, 0.8), (6.0, 0.9)):
+        ctrl.next_config()
+        ctrl.observe(t, q)
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (1.0, 5)  # rule 2 probe: Q at r_max with N' = 5
+    ctrl.observe(7.0, 0.75)  # not better than the best (0.8): stop the whole search
+    assert ctrl.phase == "adjust"
+    assert ctrl.chosen is not None
+    assert (ctrl.chosen.scale, ctrl.chosen.num_cameras) == (0.65, 6)
+    assert ctrl.search_steps == 5
+
+
+def test_rule2_probe_feasible_at_r_max_ends_the_search_there():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2), LOWEST, 6)
+    ctrl.next_config()
+    ctrl.observe(20.0, 1.0)
+    for t, q in ((3.0, 0.5), (4.5, 0.8), (6.0, 0.9)):
+        ctrl.next_config()
+        ctrl.observe(t, q)
+    ctrl.next_config()
+    ctrl.observe(4.9, 0.85)  # (r_max, 5) meets the deadline with a better quality
+    assert ctrl.phase == "adjust"
+    assert (ctrl.chosen.scale, ctrl.chosen.num_cameras) == (1.0, 5)
+
+
+def test_rule3_abandons_a_camera_count_when_quality_is_already_beaten():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.05), LOWEST, 6)
+    ctrl.next_config()
+    ctrl.observe(20.0, 1.0)
+    for t, q in ((3.0, 0.5), (4.5, 0.8), (6.0, 0.9), (5.5, 0.85), (5.2, 0.83)):
+        ctrl.next_config()
+        ctrl.observe(t, q)
+    # N' = 6 done (best r = 0.65, Q 0.8); N' = 5: probe r_max (Q 0.95 > 0.8), go on
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (1.0, 5)
+    ctrl.observe(9.0, 0.95)
+    cfg = ctrl.next_config()
+    assert cfg.num_cameras == 5 and cfg.scale == pytest.approx((0.65 + 1.0) / 2)
+    ctrl.observe(6.0, 0.79)  # too slow and no better than 0.8: abandon N' = 5
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (1.0, 4)
+
+
+def test_pruning_rules_save_steps_without_losing_quality():
+    with_rules, without = [], []
+    for seed in range(8):
+        for prune in (True, False):
+            cfg = ControllerConfig(deadline_s=5.0, prune_fewer_cameras=prune, prune_bisection=prune)
+            res = run_simulation(
+                5.0,
+                80,
+                seed=seed,
+                simulator=SimulatorConfig(time_noise=0, quality_noise=0),
+                controller=cfg,
+            )
+            (with_rules if prune else without).append(res.summary.search_steps)
+    assert np.mean(with_rules) < np.mean(without)
+
+
+def test_tighter_deadlines_take_more_search_steps_like_table_iii():
+    steps = {}
+    for deadline in (5.0, 7.5, 10.0):
+        runs = [
+            run_simulation(
+                deadline, 60, seed=s, controller=ControllerConfig(deadline_s=deadline, margin_s=1.0)
+            )
+            for s in range(10)
+        ]
+        steps[deadline] = np.mean([r.summary.search_steps for r in runs])
+    assert steps[5.0] > steps[7.5] > steps[10.0]
+    noise_free = {
+        d: run_simulation(
+            d,
+            40,
+            simulator=SimulatorConfig(time_noise=0, quality_noise=0),
+            controller=ControllerConfig(deadline_s=d, margin_s=1.0),
+        ).summary.search_steps
+        for d in (5.0, 7.5, 10.0)
+    }
+    assert noise_free[10.0] == 1  # the golden configuration is accepted (paper: 1 step)
+    assert noise_free[5.0] > noise_free[7.5] > noise_free[10.0]
+
+
+def test_minor_adjustment_settles_within_five_percent_under_noise():
+    for deadline in (5.0, 7.5, 10.0):
+        for seed in range(5):
+            res = run_simulation(
+                deadline, 200, seed=seed, simulator=SimulatorConfig(time_noise=0.15)
+            )
+            s = res.summary
+            assert s.tasks_converged >= 100
+            assert abs(s.time_error) < 0.05, (deadline, seed, s.time_error)
+            assert 0 < s.misses_converged < s.tasks_converged
+
+
+def test_adjust_target_below_one_reduces_misses():
+    miss = {}
+    for target in (1.0, 0.9):
+        cfg = ControllerConfig(deadline_s=7.5, adjust_target=target)
+        runs = [run_simulation(7.5, 200, seed=s, controller=cfg) for s in range(5)]
+        miss[target] = sum(r.summary.misses_converged for r in runs) / sum(
+            r.summary.tasks_converged for r in runs
+        )
+    assert miss[0.9] < 0.5 * miss[1.0]
+
+
+def test_sustained_load_change_triggers_a_research_but_noise_alone_rarely_does():
+    grown = run_simulation(7.5, 200, seed=1, simulator=SimulatorConfig(load_steps=((80, 1.6),)))
+    late = [e for e in grown.events if e["task"] >= 80]
+    assert late and late[0]["task"] <= 80 + 15
+    assert late[0]["reason"] in ("slower", "drift", "saturation_low")
+    assert abs(grown.summary.time_error) < 0.05  # and it settles again
+    quiet = [run_simulation(7.5, 200, seed=s).summary.num_searches for s in range(6)]
+    assert sum(n - 1 for n in quiet) <= 1
+
+
+def test_infeasible_deadline_runs_the_fastest_configuration_without_looping():
+    ctrl = BisectionController(ControllerConfig(deadline_s=1.0), LOWEST, 5)
+    for _ in range(80):
+        ctrl.next_config()
+        ctrl.observe(3.0, 0.5)
+    cfg = ctrl.next_config()
+    assert not ctrl.feasible
+    assert (cfg.scale, cfg.num_cameras, cfg.phase) == (0.3, 3, "adjust")
+    assert ctrl.num_searches == 1
+
+
+def test_set_deadline_and_cameras_restart_the_search():
+    ctrl = BisectionController(ControllerConfig(deadline_s=10), LOWEST, 7)
+    ctrl.next_config()
+    ctrl.observe(9.0, 1.0)
+    assert ctrl.phase == "adjust"
+    ctrl.set_deadline(10)  # unchanged: nothing happens
+    assert ctrl.phase == "adjust"
+    ctrl.set_deadline(4.0)
+    cfg = ctrl.next_config()
+    assert (cfg.phase, cfg.scale, cfg.num_cameras) == ("search", 0.3, 7)
+    ctrl.observe(2.0, 0.5)
+    ctrl.set_cameras([0, 2, 3, 5, 6], {3: (0, 2, 3), 4: (0, 2, 3, 5)})
+    cfg = ctrl.next_config()
+    assert cfg.camera_ids == (0, 2, 3, 5, 6) and cfg.scale == 0.3
+    assert [e["reason"] for e in ctrl.events] == ["deadline", "cameras"]
+    assert ctrl.num_searches == 3
+
+
+def test_quality_unknown_still_progresses():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 5)
+    model = PipelineModel(SimulatorConfig(num_cameras=5, time_noise=0))
+    for _i in range(60):
+        cfg = ctrl.next_config()
+        ctrl.observe(model.time_s(cfg.scale, cfg.num_cameras), None)
+        if ctrl.phase == "adjust":
+            break
+    assert ctrl.phase == "adjust"
+    assert ctrl.chosen is not None and math.isnan(ctrl.chosen.quality)
+    # without qualities the most cameras win, then the largest feasible r
+    assert ctrl.chosen.num_cameras == 5
+    assert model.time_s(ctrl.chosen.scale, 5) <= 5.0
+    assert model.time_s(ctrl.chosen.scale + 0.02, 5) > 5.0
+
+
+def test_state_roundtrip_continues_identically():
+    model = PipelineModel(SimulatorConfig())
+    a = BisectionController(ControllerConfig(deadline_s=5.0), LOWEST, 7)
+    rng = np.random.default_rng(0)
+    for i in range(12):  # mid-search
+        cfg = a.next_config()
+        a.observe(*model.sample(cfg.scale, cfg.num_cameras, i, rng))
+    assert a.phase == "search"
+    saved = json.loads(json.dumps(a.to_dict()))
+    b = BisectionController.from_dict(saved)
+    c = BisectionController.from_dict(saved, camera_mapping=LOWEST)
+    for i in range(12, 120):
+        ca, cb, cc = a.next_config(), b.next_config(), c.next_config()
+        assert ca == cb == cc
+        obs = model.sample(ca.scale, ca.num_cameras, i, rng)
+        for ctrl in (a, b, c):
+            ctrl.observe(*obs)
+    assert a.phase == "adjust"
+    assert a.to_dict()["state"] == b.to_dict()["state"] == c.to_dict()["state"]
+    assert a.search_steps == b.search_steps
+
+
+def test_protocol_and_validation_errors():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 5)
+    with pytest.raises(RuntimeError, match="without a preceding next_config"):
+        ctrl.observe(1.0, 0.5)
+    ctrl.next_config()
+    with pytest.raises(ValueError, match="time_s"):
+        ctrl.observe(float("nan"), 0.5)
+    with pytest.raises(ValueError, match="deadline_s"):
+        ControllerConfig(deadline_s=0)
+    with pytest.raises(ValueError, match="r_min"):
+        ControllerConfig(deadline_s=1, r_min=0.9, r_max=0.8)
+    with pytest.raises(ValueError, match="tau"):
+        ControllerConfig(deadline_s=1, tau=0.9)
+    with pytest.raises(ValueError, match="min_cameras"):
+        BisectionController(ControllerConfig(deadline_s=1), LOWEST, 2)
+    with pytest.raises(ValueError, match="at least 3"):
+        BisectionController(ControllerConfig(deadline_s=1), LOWEST, 5, available=[0, 1])
+    bad = BisectionController(ControllerConfig(deadline_s=1), lambda n: (0, 0, 1), 5)
+    bad.next_config()
+    bad.observe(10.0, 1.0)  # golden too slow; the search needs pi(5) = all: fine
+    bad.next_config()
+    bad.observe(10.0, 0.5)  # r_min too slow with 5: needs pi(4) from the mapping
+    with pytest.raises(RuntimeError, match="camera mapping returned"):
+        bad.next_config()
+    none = BisectionController(ControllerConfig(deadline_s=1), None, 5)
+    none.next_config()
+    none.observe(10.0, 1.0)
+    none.next_config()
+    none.observe(10.0, 0.5)
+    with pytest.raises(RuntimeError, match="no camera mapping"):
+        none.next_config()
