@@ -1,0 +1,207 @@
+"""The online quality estimate Q(r, pi(N')) the controller feeds on (paper, Section V-B).
+
+During the run there is no ground truth, and the dense cloud comes too late to steer the next
+task. The paper therefore scores the *foreground sparse cloud* of the chosen configuration
+against the foreground sparse cloud of the *golden* configuration (r = 1, all cameras) of the
+same task, which the back-end computes in parallel: F-score at a threshold d.
+
+Defined behaviour at the edges (the controller takes ``OnlineQuality.value``):
+
+* golden foreground empty or with fewer than ``min_reference_points`` points: the estimate is
+  *uninformative* (``value`` None — e.g. nobody in the scene, or the golden SfM failed); the
+  controller then uses the task's time only;
+* candidate foreground empty while the golden one is not: F = 0 (the configuration lost the
+  whole foreground the golden one reconstructed);
+* both non-empty: F-score at d, with ``d`` absolute (rig units) or relative to the diagonal of
+  the golden foreground's bounding box.
+
+:func:`online_offline_correlation` checks that the online estimate moves with an offline score
+(dense foreground against the golden dense foreground, or against ground truth on synthetic
+scenes) across image scales, as the paper's Table IV does.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.quality.metrics import evaluate_clouds
+from edgerecon.types import PointCloud, Points3D
+
+logger = logging.getLogger(__name__)
+
+OnlineStatus = Literal["ok", "empty_candidate", "empty_reference", "few_reference_points"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class OnlineQualityConfig:
+    """How the online quality estimate is computed."""
+
+    threshold: float | None = None
+    """Distance threshold d in rig units; None = ``threshold_rel`` x the golden foreground's
+    bounding-box diagonal."""
+    threshold_rel: float = 0.01
+    """Relative threshold (share of the golden foreground's bounding-box diagonal), used when
+    ``threshold`` is None."""
+    min_reference_points: int = 10
+    """Golden foregrounds with fewer points give an uninformative estimate (value None)."""
+    foreground_only: bool = True
+    """When a cloud has labels, score only its foreground points (label >= 1); clouds without
+    labels are taken as foreground already."""
+
+    def __post_init__(self) -> None:
+        if self.threshold is not None and not (
+            math.isfinite(self.threshold) and self.threshold > 0
+        ):
+            raise ValueError(f"threshold must be a positive number or None, got {self.threshold}")
+        if not (math.isfinite(self.threshold_rel) and self.threshold_rel > 0):
+            raise ValueError(f"threshold_rel must be a positive number, got {self.threshold_rel}")
+        if self.min_reference_points < 1:
+            raise ValueError(f"min_reference_points must be >= 1, got {self.min_reference_points}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class OnlineQuality:
+    """The online estimate of one task."""
+
+    fscore: float | None
+    """F-score at ``threshold`` (None when uninformative)."""
+    precision: float | None
+    recall: float | None
+    threshold: float | None
+    """d used, rig units (None when there was no reference to size it)."""
+    num_candidate: int
+    num_reference: int
+    status: OnlineStatus
+
+    @property
+    def informative(self) -> bool:
+        return self.fscore is not None
+
+    @property
+    def value(self) -> float | None:
+        """What to pass to ``BisectionController.observe`` as the quality."""
+        return self.fscore
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _points(cloud: PointCloud | Points3D, foreground_only: bool) -> NDArray[np.float64]:
+    if isinstance(cloud, PointCloud):
+        if foreground_only and cloud.labels is not None:
+            return cloud.points3D[cloud.labels >= 1]
+        return cloud.points3D
+    return np.asarray(cloud, np.float64).reshape(-1, 3)
+
+
+def online_quality(
+    candidate: PointCloud | Points3D,
+    golden: PointCloud | Points3D,
+    config: OnlineQualityConfig | None = None,
+) -> OnlineQuality:
+    """F-score of the candidate configuration's foreground sparse cloud against the golden
+    configuration's foreground sparse cloud of the same task (see module docstring)."""
+    cfg = config or OnlineQualityConfig()
+    cand = _points(candidate, cfg.foreground_only)
+    ref = _points(golden, cfg.foreground_only)
+    nc, nr = len(cand), len(ref)
+    if nr == 0 or nr < cfg.min_reference_points:
+        status: OnlineStatus = "empty_reference" if nr == 0 else "few_reference_points"
+        logger.debug("online quality uninformative: golden foreground has %d points", nr)
+        return OnlineQuality(
+            fscore=None,
+            precision=None,
+            recall=None,
+            threshold=cfg.threshold,
+            num_candidate=nc,
+            num_reference=nr,
+            status=status,
+        )
+    if cfg.threshold is not None:
+        d = cfg.threshold
+    else:
+        diag = float(np.linalg.norm(ref.max(axis=0) - ref.min(axis=0)))
+        d = cfg.threshold_rel * diag if diag > 0 else cfg.threshold_rel
+    if nc == 0:
+        return OnlineQuality(
+            fscore=0.0,
+            precision=1.0,
+            recall=0.0,
+            threshold=d,
+            num_candidate=0,
+            num_reference=nr,
+            status="empty_candidate",
+        )
+    score = evaluate_clouds(cand, ref, d)[0]
+    return OnlineQuality(
+        fscore=score.fscore,
+        precision=score.precision,
+        recall=score.recall,
+        threshold=d,
+        num_candidate=nc,
+        num_reference=nr,
+        status="ok",
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class CorrelationReport:
+    """How an online score tracks an offline score across configurations (e.g. scales)."""
+
+    num_samples: int
+    pearson: float
+    """Pearson correlation (NaN with < 3 samples or a constant series)."""
+    spearman: float
+    """Spearman rank correlation (NaN likewise)."""
+    trend_agreement: float
+    """Share of consecutive pairs (in the given order, e.g. by scale) where both scores move
+    in the same direction (NaN with < 2 pairs that move)."""
+
+    def to_dict(self) -> dict[str, float | int | None]:
+        return {
+            k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in self.__dict__.items()
+        }
+
+
+def _pearson(x: NDArray[np.float64], y: NDArray[np.float64]) -> float:
+    if len(x) < 3 or np.ptp(x) == 0 or np.ptp(y) == 0:
+        return math.nan
+    xc, yc = x - x.mean(), y - y.mean()
+    return float((xc @ yc) / math.sqrt(float(xc @ xc) * float(yc @ yc)))
+
+
+def _ranks(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    from scipy.stats import rankdata
+
+    return np.asarray(rankdata(x), np.float64)
+
+
+def online_offline_correlation(
+    online: Sequence[float | None], offline: Sequence[float | None]
+) -> CorrelationReport:
+    """Correlation between online and offline scores of the same configurations (pairs with
+    a missing value on either side are left out)."""
+    if len(online) != len(offline):
+        raise ValueError(f"online has {len(online)} scores, offline {len(offline)}")
+    pairs = [
+        (float(a), float(b))
+        for a, b in zip(online, offline, strict=True)
+        if a is not None and b is not None and math.isfinite(a) and math.isfinite(b)
+    ]
+    x = np.array([p[0] for p in pairs], np.float64)
+    y = np.array([p[1] for p in pairs], np.float64)
+    dx, dy = np.sign(np.diff(x)), np.sign(np.diff(y))
+    moving = (dx != 0) | (dy != 0)
+    trend = float(np.mean(dx[moving] == dy[moving])) if moving.sum() >= 2 else math.nan
+    spearman = _pearson(_ranks(x), _ranks(y)) if len(x) >= 3 else math.nan
+    return CorrelationReport(
+        num_samples=len(x), pearson=_pearson(x, y), spearman=spearman, trend_agreement=trend
+    )
