@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.camera import Camera, Rig, _distort
 from edgerecon.io.ply import read_ply
 from edgerecon.types import DataError, DepthMap, PointCloud
 
@@ -48,22 +48,37 @@ def rays_to_points(
     camera: Camera, xn: NDArray[np.float32], yn: NDArray[np.float32], depth: NDArray[np.float32]
 ) -> NDArray[np.float64]:
     """World points of rays with normalised coordinates (xn, yn) at ``depth`` (flat arrays)."""
-    d = np.stack([np.asarray(xn, np.float64), np.asarray(yn, np.float64), np.ones(len(xn))], axis=1)
-    return camera.center + (d * np.asarray(depth, np.float64)[:, None]) @ camera.R
+    x = np.asarray(xn, np.float64)
+    y = np.asarray(yn, np.float64)
+    s = np.asarray(depth, np.float64)
+    R, c = camera.R, camera.center
+    out = np.empty((len(s), 3))
+    for k in range(3):  # X = C + s R^T (x, y, 1), one coordinate at a time (fast, exact)
+        out[:, k] = c[k] + s * (R[0, k] * x + R[1, k] * y + R[2, k])
+    return out
+
+
+_KEY_BITS = 21
+_KEY_BIAS = 1 << (_KEY_BITS - 1)
+
+
+def _voxel_keys(points: NDArray[np.float64], voxel_m: float) -> NDArray[np.int64] | None:
+    """One int64 per point naming its voxel (None if the extent needs more than 21 bits)."""
+    k = np.floor(points / voxel_m).astype(np.int64) + _KEY_BIAS
+    if len(k) and (k.min() < 0 or k.max() >= (1 << _KEY_BITS)):
+        return None
+    return (k[:, 0] << (2 * _KEY_BITS)) | (k[:, 1] << _KEY_BITS) | k[:, 2]
 
 
 def voxel_first(points: NDArray[np.float64], voxel_m: float) -> NDArray[np.intp]:
     """Indices of the first point in each occupied voxel of size ``voxel_m`` (sorted)."""
     if len(points) == 0:
         return np.zeros(0, np.intp)
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    if float(span[0]) * float(span[1]) * float(span[2]) < 2**62:
-        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-        _, first = np.unique(flat, return_index=True)
-    else:  # pragma: no cover - astronomically large extents
-        _, first = np.unique(keys, axis=0, return_index=True)
+    keys = _voxel_keys(points, voxel_m)
+    if keys is not None:
+        _, first = np.unique(keys, return_index=True)
+    else:  # pragma: no cover - extents of thousands of kilometres
+        _, first = np.unique(np.floor(points / voxel_m), axis=0, return_index=True)
     return np.sort(first)
 
 
@@ -80,9 +95,29 @@ def count_views(
     the points' timestamp; a point with label k counts only where the mask says k.
     """
     counts = np.zeros(len(points), np.uint8)
+    cols = np.ascontiguousarray(np.asarray(points, np.float64).T)
     for cam, depth, mask in zip(rig, depths, masks, strict=True):
-        counts += visible_in(cam, points, labels, depth, mask)
+        counts += _visible_columns(cam, cols, labels, depth, mask)
     return counts
+
+
+def _project_columns(
+    cam: Camera, cols: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """``Camera.project`` on (3, N) world coordinates, one coordinate at a time."""
+    R, t, K = cam.R, cam.t, cam.K
+    X, Y, Z = cols
+    xc = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]
+    yc = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + t[1]
+    z = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = xc / z
+        yn = yc / z
+    if cam.has_distortion:
+        xn, yn = _distort(xn, yn, cam.dist)
+    u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
+    v = K[1, 1] * yn + K[1, 2]
+    return u, v, z
 
 
 def visible_in(
@@ -92,41 +127,55 @@ def visible_in(
     depth: DepthMap,
     mask: NDArray[np.uint8],
 ) -> NDArray[np.bool_]:
-    """(N,) True where camera ``cam`` sees the point (depth and object id agree)."""
-    out = np.zeros(len(points), bool)
-    if len(points) == 0:
+    """(N,) True where camera ``cam`` sees the (N, 3) points (depth and object id agree)."""
+    cols = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 3).T)
+    return _visible_columns(cam, cols, labels, depth, mask)
+
+
+def _visible_columns(
+    cam: Camera,
+    cols: NDArray[np.float64],
+    labels: NDArray[np.int32],
+    depth: DepthMap,
+    mask: NDArray[np.uint8],
+) -> NDArray[np.bool_]:
+    n = cols.shape[1]
+    out = np.zeros(n, bool)
+    if n == 0:
         return out
-    uv, z = cam.project(points)
+    u, v, z = _project_columns(cam, cols)
     h, w = depth.shape
     with np.errstate(invalid="ignore"):
-        ok = (
-            (z > 0)
-            & (uv[:, 0] >= -0.5)
-            & (uv[:, 0] <= w - 0.5)
-            & (uv[:, 1] >= -0.5)
-            & (uv[:, 1] <= h - 0.5)
-        )
+        ok = (z > 0) & (u >= -0.5) & (u <= w - 0.5) & (v >= -0.5) & (v <= h - 0.5)
     idx = np.flatnonzero(ok)
     if idx.size == 0:
         return out
     # The 2x2 neighbourhood around the projection (clamped so that border pixels have one).
-    u0 = np.clip(np.floor(uv[idx, 0]).astype(np.intp), 0, max(w - 2, 0))
-    v0 = np.clip(np.floor(uv[idx, 1]).astype(np.intp), 0, max(h - 2, 0))
+    u0 = np.clip(np.floor(u[idx]).astype(np.intp), 0, max(w - 2, 0))
+    v0 = np.clip(np.floor(v[idx]).astype(np.intp), 0, max(h - 2, 0))
+    base = v0 * w + u0
     zi = z[idx]
     tol = VISIBILITY_TOL_ABS_M + VISIBILITY_TOL_REL * zi
+    flat_depth = depth.ravel()
+    offsets = (0, 1 if w > 1 else 0, w if h > 1 else 0, (w if h > 1 else 0) + (1 if w > 1 else 0))
     lab = labels[idx]
+    if not lab.any() and not mask.any():
+        # Everything is background: no object-id test (the common, large case).
+        d4 = [flat_depth[base + o] for o in offsets]
+        dmin = np.minimum(np.minimum(d4[0], d4[1]), np.minimum(d4[2], d4[3]))
+        dmax = np.maximum(np.maximum(d4[0], d4[1]), np.maximum(d4[2], d4[3]))
+        out[idx] = (zi >= dmin - tol) & (zi <= dmax + tol)
+        return out
+    flat_mask = mask.ravel()
     seen = np.zeros(idx.size, bool)
     dmin = np.full(idx.size, np.inf)
     dmax = np.full(idx.size, -np.inf)
-    for du in (0, 1):
-        for dv in (0, 1):
-            uu = np.minimum(u0 + du, w - 1)
-            vv = np.minimum(v0 + dv, h - 1)
-            same = mask[vv, uu] == lab
-            d = depth[vv, uu].astype(np.float64)
-            dmin = np.where(same, np.minimum(dmin, d), dmin)
-            dmax = np.where(same, np.maximum(dmax, d), dmax)
-            seen |= same
+    for o in offsets:
+        same = flat_mask[base + o] == lab
+        d = flat_depth[base + o].astype(np.float64)
+        dmin = np.where(same, np.minimum(dmin, d), dmin)
+        dmax = np.where(same, np.maximum(dmax, d), dmax)
+        seen |= same
     seen &= (zi >= dmin - tol) & (zi <= dmax + tol)
     out[idx] = seen
     return out
@@ -156,7 +205,11 @@ def sample_visible_cloud(
             continue
         xn, yn = rays[i]
         d = depths[i].ravel()[idx]
-        pts_list.append(rays_to_points(cam, xn.ravel()[idx], yn.ravel()[idx], d))
+        pts = rays_to_points(cam, xn.ravel()[idx], yn.ravel()[idx], d)
+        # Thin each camera on its own first (cheap), then the union.
+        first = voxel_first(pts, voxel_m)
+        idx, pts = idx[first], pts[first]
+        pts_list.append(pts)
         lab_list.append(m[idx].astype(np.int32))
         if colors is not None:
             col_list.append(colors[i].reshape(-1, 3)[idx][:, ::-1])
