@@ -86,8 +86,8 @@ class ControllerConfig:
     research_drift: float = 0.1
     """Re-search when the mean r of the last 2 x ``research_window`` adjusted tasks has moved
     this far from its settled value (the mean r of the earlier adjusted tasks, leaving out the
-    first ``research_window`` that catch up with the searched r*): the time per task changed
-    for good (0 disables)."""
+    first 2 x ``research_window`` that catch up with the searched r*): the time per task
+    changed for good (0 disables)."""
     research_saturation: bool = True
     """Re-search when the adjustment wants to leave [r_min, r_max] for ``research_window``
     tasks in a row and a different N' could help."""
@@ -599,10 +599,10 @@ class BisectionController:
                 return "faster"
         w = c.research_window
         hist = s.r_history
-        if c.research_drift > 0 and len(hist) >= 4 * w:
-            # settled r: every adjusted task after the first w (catching up with r*) and
-            # before the recent 2w; a sustained change moves the recent mean away from it
-            reference = float(np.mean(hist[w : -2 * w]))
+        if c.research_drift > 0 and len(hist) >= 6 * w:
+            # settled r: every adjusted task after the first 2w (catching up with a noisy r*)
+            # and before the recent 2w; a sustained change moves the recent mean away from it
+            reference = float(np.mean(hist[2 * w : -2 * w]))
             recent = float(np.mean(hist[-2 * w :]))
             if abs(recent - reference) >= c.research_drift - _EPS:
                 return "drift"
