@@ -1,0 +1,437 @@
+"""Per-camera background model: robust per-pixel Gaussian with shadow and gain handling.
+
+Why not OpenCV's MOG2/KNN: their update cannot be switched off per pixel, so an actor who
+stands still is absorbed into the background after ``history`` frames, and their state is not
+serialisable. This model (in the spirit of Horprasert et al.'s brightness/chromaticity
+distortion model) keeps, per pixel of a working-resolution image:
+
+* a background colour ``mean`` and a noise variance per channel, learned robustly (median and
+  MAD) from a background-only clip or from the first frames of the stream;
+* a per-frame global gain per channel (robust median ratio over background pixels), so that a
+  global illumination change or an exposure drift is not flagged;
+* a shadow test: a pixel darker than the background by a bounded factor with the same
+  chromaticity is a shadow, not foreground;
+* a selective update: only pixels classified as background (away from the foreground by a
+  guard band) learn; a pixel that stays foreground for ``absorb_after_frames`` frames is
+  absorbed slowly (a moved piece of furniture), long after an actor standing still for a few
+  seconds would have been.
+
+The state is a few NumPy arrays (``BackgroundState``): it pickles and travels between nodes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.scene.masks import MaskConfig, clean_mask, disk, resize_mask_smooth
+from edgerecon.types import DataError, Image, Mask
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class BackgroundConfig:
+    """Parameters of the per-camera background model."""
+
+    max_working_width: int = 960
+    """Frames wider than this are downscaled to this width for modelling (pixels); the mask is
+    upsampled back to the frame size."""
+    threshold_sigma: float = 4.0
+    """A pixel is foreground when its colour differs from the gain-compensated background by
+    more than this many noise standard deviations (Mahalanobis norm over the 3 channels)."""
+    min_noise_std: float = 3.0
+    """Floor of the per-channel noise standard deviation (grey levels): covers compression
+    noise that a short learning clip underestimates."""
+    jitter_px: float = 1.0
+    """Expected misregistration between the model and a frame (pixels at the working
+    resolution: camera vibration, video compression): the noise of pixels on strong image
+    edges is raised by ``jitter_px`` times the local gradient so that edges are not flagged."""
+    min_abs_diff: float = 12.0
+    """A pixel is only foreground when its colour also differs by at least this much (grey
+    levels, Euclidean over BGR) from the compensated background."""
+    shadow_min_brightness: float = 0.45
+    """Shadows darken the background by at most this factor (brightness ratio >= it)."""
+    shadow_max_brightness: float = 1.0
+    """Brightness ratios up to this are tested for shadows/highlights (1 = shadows only)."""
+    shadow_max_chroma: float = 0.1
+    """Largest chromaticity distortion of a shadow, relative to its brightness."""
+    learning_rate: float = 0.02
+    """Per-frame rate at which background pixels learn the current frame (0 = frozen model)."""
+    update_guard_px: int = 4
+    """Foreground is dilated by this many working pixels before the selective update, so that
+    blurred silhouette edges are not learned into the background."""
+    absorb_after_frames: int = 1500
+    """A pixel that is foreground in this many consecutive frames starts to be learned
+    (a static change of the scene); 0 = never absorb. 1500 frames = 60 s at 25 fps."""
+    max_learning_frames: int = 60
+    """At most this many frames (evenly spaced) of a learning clip enter the median."""
+    min_gain: float = 0.4
+    """Smallest per-channel global gain accepted (an estimate below it is clamped)."""
+    max_gain: float = 2.5
+    """Largest per-channel global gain accepted."""
+    mask: MaskConfig = field(default_factory=MaskConfig)
+    """Cleaning of the raw detections, in working-resolution pixels."""
+
+    def __post_init__(self) -> None:
+        if self.max_working_width < 16:
+            raise ValueError(
+                f"BackgroundConfig.max_working_width must be >= 16, got {self.max_working_width}"
+            )
+        for name in ("threshold_sigma", "min_noise_std", "shadow_max_chroma", "max_gain"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"BackgroundConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.jitter_px < 0:
+            raise ValueError(f"BackgroundConfig.jitter_px must be >= 0, got {self.jitter_px}")
+        if self.min_abs_diff < 0:
+            raise ValueError(f"BackgroundConfig.min_abs_diff must be >= 0, got {self.min_abs_diff}")
+        if not 0.0 < self.shadow_min_brightness <= 1.0:
+            raise ValueError(
+                "BackgroundConfig.shadow_min_brightness must be in (0, 1], got "
+                f"{self.shadow_min_brightness}"
+            )
+        if self.shadow_max_brightness < self.shadow_min_brightness:
+            raise ValueError(
+                "BackgroundConfig.shadow_max_brightness must be >= shadow_min_brightness, got "
+                f"{self.shadow_max_brightness}"
+            )
+        if not 0.0 <= self.learning_rate <= 1.0:
+            raise ValueError(
+                f"BackgroundConfig.learning_rate must be in [0, 1], got {self.learning_rate}"
+            )
+        for name in ("update_guard_px", "absorb_after_frames"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"BackgroundConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.max_learning_frames < 1:
+            raise ValueError(
+                f"BackgroundConfig.max_learning_frames must be >= 1, got {self.max_learning_frames}"
+            )
+        if not 0.0 < self.min_gain <= 1.0 <= self.max_gain:
+            raise ValueError(
+                f"BackgroundConfig gains must satisfy 0 < min_gain <= 1 <= max_gain, got "
+                f"{self.min_gain}, {self.max_gain}"
+            )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class BackgroundState:
+    """The serialisable state of one camera's background model (working resolution)."""
+
+    camera: str
+    """Camera name (for messages)."""
+    frame_size: tuple[int, int]
+    """(width, height) of the camera's frames."""
+    mean: NDArray[np.float32]
+    """(h, w, 3) background colour, BGR, at the working resolution."""
+    var: NDArray[np.float32]
+    """(h, w, 3) per-channel noise variance (grey levels squared)."""
+    fg_age: NDArray[np.uint16]
+    """(h, w) consecutive frames each pixel has been foreground."""
+    last_foreground: NDArray[np.bool_]
+    """(h, w) cleaned foreground of the last frame (excluded from the gain estimate)."""
+    num_frames: int = 0
+    """Frames segmented since the model was learned."""
+    version: int = 0
+    """Incremented each time the model is (re)learned from a clip."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Segmentation:
+    """Result of segmenting one frame."""
+
+    foreground: Mask
+    """(H, W) clean foreground mask at the frame's resolution."""
+    raw: Mask
+    """(h, w) raw detections at the working resolution (before cleaning)."""
+    shadow: Mask
+    """(h, w) pixels explained as shadows (not foreground), working resolution."""
+    gain: NDArray[np.float64]
+    """(3,) per-channel global gain of the frame relative to the model (B, G, R)."""
+
+
+def working_size(frame_size: tuple[int, int], max_width: int) -> tuple[int, int]:
+    """(width, height) at which a camera with ``frame_size`` is modelled."""
+    w, h = frame_size
+    if w <= max_width:
+        return (w, h)
+    s = max_width / w
+    return (max_width, max(1, round(h * s)))
+
+
+def _to_working(frame: Image, size: tuple[int, int]) -> NDArray[np.float32]:
+    if (frame.shape[1], frame.shape[0]) != size:
+        return np.asarray(cv2.resize(frame, size, interpolation=cv2.INTER_AREA), np.float32)
+    return frame.astype(np.float32)
+
+
+#: Frames between recomputations of the edge-jitter noise term.
+_NOISE_REFRESH = 10
+
+
+class BackgroundModel:
+    """Background model of one camera. Not thread-safe; one instance per camera."""
+
+    def __init__(self, state: BackgroundState, config: BackgroundConfig | None = None) -> None:
+        self.config = config or BackgroundConfig()
+        self._state = state
+        self._noise_cache: NDArray[np.float32] | None = None
+        self._noise_frame = 0
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def learn(
+        cls,
+        frames: Iterable[Image],
+        config: BackgroundConfig | None = None,
+        *,
+        camera: str = "",
+        version: int = 0,
+    ) -> BackgroundModel:
+        """Learn the model from frames of the empty scene (or the first frames of the stream:
+        the per-pixel median ignores actors that move through less than half of them).
+
+        Raises ``DataError`` when no frame is given or the frames differ in size.
+        """
+        config = config or BackgroundConfig()
+        frames = list(frames)
+        if not frames:
+            raise DataError(f"camera {camera!r}: no frames to learn the background from")
+        size = (frames[0].shape[1], frames[0].shape[0])
+        for f in frames:
+            if f.ndim != 3 or f.shape[2] != 3:
+                raise DataError(f"camera {camera!r}: background frames must be BGR (H, W, 3)")
+            if (f.shape[1], f.shape[0]) != size:
+                raise DataError(
+                    f"camera {camera!r}: background frames differ in size "
+                    f"({f.shape[1]}x{f.shape[0]} vs {size[0]}x{size[1]})"
+                )
+        if len(frames) > config.max_learning_frames:
+            idx = np.linspace(0, len(frames) - 1, config.max_learning_frames).round().astype(int)
+            frames = [frames[i] for i in idx]
+        wsize = working_size(size, config.max_working_width)
+        stack = np.stack(
+            [
+                cv2.resize(f, wsize, interpolation=cv2.INTER_AREA) if wsize != size else f
+                for f in frames
+            ]
+        )
+        mean = np.median(stack, axis=0).astype(np.float32)
+        if len(frames) >= 3:
+            mad = np.median(np.abs(stack.astype(np.float32) - mean), axis=0)
+            std = (1.4826 * mad).astype(np.float32)
+        else:
+            std = np.zeros_like(mean)
+        np.maximum(std, config.min_noise_std, out=std)
+        var = std * std
+        h, w = mean.shape[:2]
+        state = BackgroundState(
+            camera=camera,
+            frame_size=size,
+            mean=mean,
+            var=var,
+            fg_age=np.zeros((h, w), np.uint16),
+            last_foreground=np.zeros((h, w), bool),
+            num_frames=0,
+            version=version,
+        )
+        logger.debug(
+            "camera %s: background learned from %d frames at %s", camera, len(frames), wsize
+        )
+        return cls(state, config)
+
+    @classmethod
+    def from_state(
+        cls, state: BackgroundState, config: BackgroundConfig | None = None
+    ) -> BackgroundModel:
+        """Re-create a model from its state (e.g. after it crossed to another node)."""
+        return cls(
+            dataclasses.replace(
+                state,
+                mean=state.mean.copy(),
+                var=state.var.copy(),
+                fg_age=state.fg_age.copy(),
+                last_foreground=state.last_foreground.copy(),
+            ),
+            config,
+        )
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state(self) -> BackgroundState:
+        """A snapshot of the current state (copies: later updates do not change it)."""
+        s = self._state
+        return dataclasses.replace(
+            s,
+            mean=s.mean.copy(),
+            var=s.var.copy(),
+            fg_age=s.fg_age.copy(),
+            last_foreground=s.last_foreground.copy(),
+        )
+
+    @property
+    def camera(self) -> str:
+        return self._state.camera
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        return self._state.frame_size
+
+    @property
+    def working_size(self) -> tuple[int, int]:
+        h, w = self._state.mean.shape[:2]
+        return (w, h)
+
+    @property
+    def num_frames(self) -> int:
+        return self._state.num_frames
+
+    @property
+    def version(self) -> int:
+        return self._state.version
+
+    def background_image(self) -> Image:
+        """The background colour as a BGR image at the frame resolution."""
+        img = np.clip(np.rint(self._state.mean), 0, 255).astype(np.uint8)
+        if self.working_size != self.frame_size:
+            img = np.asarray(
+                cv2.resize(img, self.frame_size, interpolation=cv2.INTER_LINEAR), np.uint8
+            )
+        return img
+
+    # ------------------------------------------------------------------ segmentation
+    def _check_frame(self, frame: Image) -> None:
+        if frame.ndim != 3 or frame.shape[2] != 3:
+            raise DataError(f"camera {self.camera!r}: frames must be BGR (H, W, 3)")
+        if (frame.shape[1], frame.shape[0]) != self.frame_size:
+            raise DataError(
+                f"camera {self.camera!r}: frame is {frame.shape[1]}x{frame.shape[0]} but the "
+                f"background model was learned at {self.frame_size[0]}x{self.frame_size[1]}"
+            )
+
+    def estimate_gain(self, image: NDArray[np.float32]) -> NDArray[np.float64]:
+        """(3,) per-channel gain of a working-resolution image relative to the background:
+        the median ratio over well-exposed pixels that were background in the last frame."""
+        s = self._state
+        step = 4
+        img = image[::step, ::step].reshape(-1, 3)
+        mean = s.mean[::step, ::step].reshape(-1, 3)
+        ok = ~s.last_foreground[::step, ::step].reshape(-1)
+        ok &= np.all((mean > 20) & (mean < 235) & (img < 250), axis=1)
+        if np.count_nonzero(ok) < 100:
+            return np.ones(3)
+        ratio = img[ok] / mean[ok]
+        gain = np.median(ratio, axis=0).astype(np.float64)
+        return np.clip(gain, self.config.min_gain, self.config.max_gain)
+
+    def _noise_var(self) -> NDArray[np.float32]:
+        """(h, w, 3) per-channel noise variance including the edge-jitter term (the edge term
+        changes as slowly as the mean: it is refreshed every ``_NOISE_REFRESH`` frames)."""
+        s = self._state
+        if self.config.jitter_px <= 0:
+            return s.var
+        if self._noise_cache is not None and s.num_frames - self._noise_frame < _NOISE_REFRESH:
+            return self._noise_cache
+        gx = cv2.Sobel(s.mean, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(s.mean, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        j2 = np.float32(self.config.jitter_px**2)
+        noise = (s.var + j2 * (gx * gx + gy * gy)).astype(np.float32)
+        self._noise_cache = noise
+        self._noise_frame = s.num_frames
+        return noise
+
+    def classify(self, image: NDArray[np.float32]) -> tuple[Mask, Mask, NDArray[np.float64]]:
+        """Raw foreground and shadow masks of a working-resolution float32 BGR image, and the
+        frame's gain."""
+        cfg = self.config
+        s = self._state
+        gain = self.estimate_gain(image)
+        g = gain.astype(np.float32)
+        ones = np.ones((1, 3), np.float32)
+        diff = image - s.mean * g
+        d2 = diff * diff
+        abs2 = cv2.transform(d2, ones)
+        # Mahalanobis distance with the variance scaled by the gain (noise scales with it).
+        maha2 = cv2.transform(d2 / self._noise_var(), (1.0 / (g * g)).reshape(1, 3))
+        changed = (maha2 > np.float32(cfg.threshold_sigma**2)) & (
+            abs2 > np.float32(cfg.min_abs_diff**2)
+        )
+        # Brightness distortion alpha (I ~ alpha * mu, mu the compensated background) and
+        # chromaticity distortion |I - alpha mu| / (alpha |mu|): a shadow is a darker copy of
+        # the background colour. |I - alpha mu|^2 = |I|^2 - (I.mu)^2 / |mu|^2.
+        mm = cv2.transform(s.mean * s.mean, (g * g).reshape(1, 3)) + np.float32(1e-3)
+        im = cv2.transform(image * s.mean, g.reshape(1, 3))
+        ii = cv2.transform(image * image, ones)
+        alpha = im / mm
+        resid2 = np.maximum(ii - im * alpha, 0)
+        chroma2 = resid2 / (mm * np.maximum(alpha * alpha, np.float32(1e-6)))
+        shadow = (
+            changed
+            & (alpha >= np.float32(cfg.shadow_min_brightness))
+            & (alpha <= np.float32(cfg.shadow_max_brightness))
+            & (chroma2 <= np.float32(cfg.shadow_max_chroma**2))
+        )
+        return changed & ~shadow, shadow, gain
+
+    def segment(self, frame: Image, *, update: bool = True) -> Segmentation:
+        """Foreground of a full-resolution BGR frame; learns from it unless ``update=False``.
+
+        Raises ``DataError`` when the frame's size differs from the model's.
+        """
+        self._check_frame(frame)
+        image = _to_working(frame, self.working_size)
+        raw, shadow, gain = self.classify(image)
+        clean = clean_mask(raw, self.config.mask)
+        if update:
+            self._update(image, clean, gain)
+        full = resize_mask_smooth(clean, self.frame_size)
+        return Segmentation(foreground=full, raw=raw, shadow=shadow, gain=gain)
+
+    def apply(self, frame: Image, *, update: bool = True) -> Mask:
+        """The clean full-resolution foreground mask of ``frame`` (see ``segment``)."""
+        return self.segment(frame, update=update).foreground
+
+    def _update(
+        self, image: NDArray[np.float32], foreground: Mask, gain: NDArray[np.float64]
+    ) -> None:
+        cfg = self.config
+        s = self._state
+        age = s.fg_age
+        np.add(age, 1, out=age, where=foreground & (age < np.iinfo(np.uint16).max))
+        age[~foreground] = 0
+        guard = foreground
+        if cfg.update_guard_px > 0 and foreground.any():
+            guard = cv2.dilate(foreground.view(np.uint8), disk(cfg.update_guard_px)).astype(bool)
+        learn = ~guard
+        if cfg.absorb_after_frames > 0:
+            learn |= age >= cfg.absorb_after_frames
+        if cfg.learning_rate > 0 and learn.any():
+            # Learn the frame at the model's reference exposure (divide by the frame's gain).
+            target = np.asarray(image / gain.astype(np.float32), np.float32)
+            m8 = learn.view(np.uint8)
+            diff = np.asarray(target - s.mean, np.float32)
+            cv2.accumulateWeighted(diff * diff, s.var, cfg.learning_rate, mask=m8)
+            np.maximum(s.var, np.float32(cfg.min_noise_std**2), out=s.var)
+            cv2.accumulateWeighted(target, s.mean, cfg.learning_rate, mask=m8)
+        s.last_foreground[...] = foreground
+        object.__setattr__(s, "num_frames", s.num_frames + 1)
+
+
+def learn_backgrounds(
+    clips: Iterable[Iterable[Image]],
+    config: BackgroundConfig | None = None,
+    *,
+    camera_names: Iterable[str] | None = None,
+) -> list[BackgroundModel]:
+    """One background model per camera from per-camera background clips."""
+    names = list(camera_names) if camera_names is not None else None
+    models = []
+    for i, clip in enumerate(clips):
+        name = names[i] if names is not None else f"cam{i}"
+        models.append(BackgroundModel.learn(clip, config, camera=name))
+    return models

@@ -1,0 +1,183 @@
+"""Background model: known-answer tests on small synthetic image sequences."""
+
+from __future__ import annotations
+
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.scene.background import BackgroundConfig, BackgroundModel, working_size
+from edgerecon.scene.masks import mask_iou
+from edgerecon.types import DataError
+from tests.scene._scenes import noisy, paint, square_mask, textured_background
+
+H, W = 120, 160
+
+
+@pytest.fixture
+def background() -> np.ndarray:
+    return textured_background(H, W)
+
+
+def _learn(background: np.ndarray, rng: np.random.Generator, **kw: object) -> BackgroundModel:
+    clip = [noisy(background, 3.0, rng) for _ in range(20)]
+    return BackgroundModel.learn(clip, BackgroundConfig(**kw), camera="test")  # type: ignore[arg-type]
+
+
+def test_moving_square_is_segmented_with_high_iou(background: np.ndarray) -> None:
+    rng = np.random.default_rng(0)
+    model = _learn(background, rng)
+    ious = []
+    for t in range(20):
+        truth = square_mask(H, W, 10 + 5 * t, 30, 40)
+        frame = noisy(paint(background, truth, (30, 200, 60)), 3.0, rng)
+        mask = model.apply(frame)
+        ious.append(mask_iou(mask, truth))
+    assert min(ious) > 0.9, ious
+    # Pixels far from the square never light up: background noise is suppressed.
+    assert np.mean(ious) > 0.95
+
+
+def test_no_motion_gives_empty_foreground(background: np.ndarray) -> None:
+    rng = np.random.default_rng(1)
+    model = _learn(background, rng)
+    for _ in range(10):
+        mask = model.apply(noisy(background, 3.0, rng))
+    assert mask.dtype == bool and mask.shape == (H, W)
+    assert not mask.any()
+
+
+def test_global_illumination_ramp_is_not_foreground(background: np.ndarray) -> None:
+    rng = np.random.default_rng(2)
+    model = _learn(background, rng)
+    areas = []
+    for t in range(30):
+        gain = 1.0 - 0.012 * t  # 35 % darker at the end, per-channel slightly different
+        lit = np.clip(background * np.array([gain, gain * 0.98, gain * 1.01]), 0, 255)
+        seg = model.segment(noisy(lit.astype(np.uint8), 3.0, rng))
+        areas.append(seg.foreground.mean())
+    assert max(areas) < 0.002, max(areas)
+    # The model measured the gain it compensated.
+    assert abs(seg.gain[0] - (1.0 - 0.012 * 29)) < 0.03
+
+
+def test_without_gain_compensation_the_ramp_would_be_flagged(background: np.ndarray) -> None:
+    # Guards the test above: the ramp is strong enough to matter.
+    lit = np.clip(background * 0.65, 0, 255).astype(np.uint8)
+    diff = np.linalg.norm(lit.astype(float) - background, axis=2)
+    assert np.mean(diff > 12.0) > 0.5
+
+
+def test_shadow_is_not_foreground(background: np.ndarray) -> None:
+    rng = np.random.default_rng(3)
+    model = _learn(background, rng)
+    shadow = square_mask(H, W, 40, 40, 50)
+    darker = background.astype(np.float64)
+    darker[shadow] *= 0.6
+    seg = model.segment(noisy(darker.astype(np.uint8), 3.0, rng))
+    assert seg.foreground[shadow].mean() < 0.02
+    assert seg.shadow.mean() > 0.5 * shadow.mean()
+    # A dark *object* with a different colour in the same place is foreground.
+    obj = paint(background, shadow, (20, 20, 90))
+    assert model.apply(noisy(obj, 3.0, rng))[shadow].mean() > 0.95
+
+
+def test_still_actor_is_not_absorbed(background: np.ndarray) -> None:
+    rng = np.random.default_rng(4)
+    model = _learn(background, rng, learning_rate=0.05)
+    truth = square_mask(H, W, 50, 30, 40)
+    frame_with_actor = paint(background, truth, (200, 60, 60))
+    # 300 frames = 12 s at 25 fps of an actor who does not move.
+    for _ in range(300):
+        mask = model.apply(noisy(frame_with_actor, 3.0, rng))
+    assert mask_iou(mask, truth) > 0.95
+
+
+def test_mog2_absorbs_the_same_still_actor(background: np.ndarray) -> None:
+    # The reason for the selective update: OpenCV's MOG2 absorbs a still actor.
+    rng = np.random.default_rng(4)
+    mog = cv2.createBackgroundSubtractorMOG2(history=200, detectShadows=False)
+    for _ in range(20):
+        mog.apply(noisy(background, 3.0, rng))
+    truth = square_mask(H, W, 50, 30, 40)
+    frame_with_actor = paint(background, truth, (200, 60, 60))
+    for _ in range(300):
+        fg = mog.apply(noisy(frame_with_actor, 3.0, rng))
+    assert mask_iou(fg > 0, truth) < 0.5
+
+
+def test_static_change_is_absorbed_after_absorb_after_frames(background: np.ndarray) -> None:
+    rng = np.random.default_rng(5)
+    model = _learn(background, rng, learning_rate=0.2, absorb_after_frames=20)
+    change = square_mask(H, W, 50, 30, 40)
+    moved = paint(background, change, (60, 60, 200))
+    areas = [model.apply(noisy(moved, 3.0, rng))[change].mean() for _ in range(80)]
+    assert areas[10] > 0.95  # still foreground before absorb_after_frames
+    assert areas[-1] < 0.05  # learned afterwards
+
+
+def test_learning_from_stream_with_moving_actor_recovers_background(background: np.ndarray) -> None:
+    rng = np.random.default_rng(6)
+    frames = []
+    for t in range(15):
+        truth = square_mask(H, W, 10 * t, 40, 30)  # crosses the image
+        frames.append(noisy(paint(background, truth, (0, 255, 0)), 3.0, rng))
+    model = BackgroundModel.learn(frames, camera="stream")
+    err = np.abs(model.background_image().astype(int) - background.astype(int))
+    assert np.percentile(err, 99) < 12
+
+
+def test_state_round_trip_and_pickle(background: np.ndarray) -> None:
+    rng = np.random.default_rng(7)
+    model = _learn(background, rng)
+    frames = [
+        noisy(paint(background, square_mask(H, W, 20 + 6 * t, 50, 30), (250, 250, 0)), 3.0, rng)
+        for t in range(6)
+    ]
+    for f in frames[:3]:
+        model.apply(f)
+    clone = BackgroundModel.from_state(pickle.loads(pickle.dumps(model.state)), model.config)
+    assert clone.num_frames == model.num_frames == 3
+    for f in frames[3:]:
+        np.testing.assert_array_equal(model.apply(f), clone.apply(f))
+    np.testing.assert_array_equal(model.state.mean, clone.state.mean)
+
+
+def test_working_resolution_upsamples_mask() -> None:
+    bg = textured_background(240, 640)
+    rng = np.random.default_rng(8)
+    model = BackgroundModel.learn(
+        [noisy(bg, 2.0, rng) for _ in range(5)], BackgroundConfig(max_working_width=320)
+    )
+    assert model.working_size == (320, 120) == working_size((640, 240), 320)
+    truth = square_mask(240, 640, 200, 60, 100)
+    mask = model.apply(noisy(paint(bg, truth, (255, 0, 255)), 2.0, rng))
+    assert mask.shape == (240, 640)
+    assert mask_iou(mask, truth) > 0.93
+
+
+def test_bad_input_raises_data_error(background: np.ndarray) -> None:
+    with pytest.raises(DataError, match="no frames"):
+        BackgroundModel.learn([], camera="cam9")
+    with pytest.raises(DataError, match="differ in size"):
+        BackgroundModel.learn([background, background[:-1]], camera="cam9")
+    model = BackgroundModel.learn([background], camera="cam9")
+    with pytest.raises(DataError, match="cam9.*159x120"):
+        model.apply(background[:, :-1])
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("threshold_sigma", 0.0),
+        ("learning_rate", 1.5),
+        ("shadow_min_brightness", 0.0),
+        ("min_gain", 1.5),
+        ("max_working_width", 4),
+    ],
+)
+def test_config_validation_names_the_field(field: str, value: float) -> None:
+    with pytest.raises(ValueError, match=field):
+        BackgroundConfig(**{field: value})  # type: ignore[arg-type]

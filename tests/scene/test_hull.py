@@ -1,0 +1,220 @@
+"""Visual hull of known boxes seen by synthetic rigs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.geometry import Camera, Rig
+from edgerecon.scene.hull import (
+    HullConfig,
+    hull_cloud,
+    hull_consistent_masks,
+    hull_depth_range,
+    hull_silhouette,
+    rig_region,
+    visual_hull,
+)
+from edgerecon.scene.masks import mask_iou
+from tests.scene._scenes import box_silhouette, box_surface_points, ring_with_top
+
+LO = np.array([-0.3, -0.2, 0.5])
+HI = np.array([0.3, 0.2, 1.4])
+VOXEL = 0.02
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return ring_with_top(6)
+
+
+@pytest.fixture(scope="module")
+def box_hull(rig: Rig):  # type: ignore[no-untyped-def]
+    masks = [box_silhouette(c, LO, HI) for c in rig]
+    return visual_hull(rig.cameras, masks, HullConfig(voxel_size=VOXEL)), masks
+
+
+def _exact_hull_volume(rig: Rig, masks: list[np.ndarray], step: float) -> float:
+    """Volume of {X : X projects inside every silhouette}, by dense sampling."""
+    lo, hi = LO - 0.25, HI + 0.25
+    axes = [np.arange(lo[i], hi[i], step) + step / 2 for i in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.ones(len(pts), bool)
+    for cam, m in zip(rig, masks, strict=True):
+        uv, _ = cam.project(pts)
+        u = np.clip(np.rint(uv[:, 0]).astype(int), 0, cam.width - 1)
+        v = np.clip(np.rint(uv[:, 1]).astype(int), 0, cam.height - 1)
+        inside &= m[v, u]
+    return float(inside.sum() * step**3)
+
+
+def test_hull_contains_the_box(box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, _ = box_hull
+    assert hull.status == "ok"
+    assert hull.voxel_size == pytest.approx(VOXEL)
+    assert hull.contains(box_surface_points(LO, HI, 25)).all()
+    assert hull.num_objects == 1
+
+
+def test_hull_is_tight(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, masks = box_hull
+    # Every voxel centre projects within its footprint (+ tolerance) of every silhouette.
+    for cam, m in zip(rig, masks, strict=True):
+        uv, depth = cam.project(hull.centers)
+        u = np.rint(uv[:, 0]).astype(int)
+        v = np.rint(uv[:, 1]).astype(int)
+        assert cam.in_image(uv).all()
+        radius = int(np.ceil(0.87 * VOXEL * cam.focal_px * 1.1 / depth.min() + 1.0 + 0.71))
+        near = cv2.dilate(m.astype(np.uint8), np.ones((2 * radius + 1,) * 2, np.uint8)) > 0
+        assert near[v, u].all()
+    # Volume: at least the box, at most the exact visual hull plus a one-voxel shell.
+    exact = _exact_hull_volume(rig, masks, 0.015)
+    box = float(np.prod(HI - LO))
+    assert box <= exact
+    extent = HI - LO
+    shell = np.prod(extent + 2 * VOXEL) - np.prod(extent)
+    assert exact <= hull.volume <= exact + 2.5 * shell, (hull.volume, exact, shell)
+
+
+def test_surface_cloud_normals_and_colours(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, _ = box_hull
+    images = [np.full((c.height, c.width, 3), (10, 20, 200), np.uint8) for c in rig]  # BGR
+    cloud = hull_cloud(hull, rig.cameras, images)
+    assert len(cloud) == int(hull.surface.sum()) > 0
+    np.testing.assert_array_equal(cloud.labels, 1)
+    assert cloud.colors is not None and cloud.normals is not None
+    seen = cloud.attributes["num_views"] > 0
+    assert seen.mean() > 0.9
+    np.testing.assert_array_equal(cloud.colors[seen], [[200, 20, 10]] * int(seen.sum()))
+    # Normals point away from the box centre.
+    centre = (LO + HI) / 2
+    outward = np.einsum("ij,ij->i", cloud.normals, cloud.points3D - centre)
+    assert (outward > 0).mean() > 0.99
+
+
+def test_depth_range_brackets_the_box_surface(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, _ = box_hull
+    cam = rig[1].scaled(0.5)  # any camera works, e.g. a view's rescaled camera
+    dr = hull_depth_range(hull, cam)
+    pts = box_surface_points(LO, HI, 40)
+    uv, depth = cam.project(pts)
+    u = np.rint(uv[:, 0]).astype(int)
+    v = np.rint(uv[:, 1]).astype(int)
+    near, far = dr.near[v, u], dr.far[v, u]
+    assert np.isfinite(near).all()
+    assert (near <= depth + 1e-6).all() and (depth <= far + 1e-6).all()
+    # Tight: the interval is about the box's depth extent, not the whole scene.
+    assert np.nanmax(dr.far - dr.near) < 1.5 * np.linalg.norm(HI - LO)
+    ((k, (zmin, zmax)),) = dr.objects.items()
+    assert k == 1 and zmin <= depth.min() and depth.max() <= zmax
+    # Pixels that see no hull have no range.
+    assert not dr.mask[0, 0]
+
+
+def test_hull_silhouette_matches_the_masks(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, masks = box_hull
+    for cam, m in zip(rig, masks, strict=True):
+        sil = hull_silhouette(hull, cam)
+        assert (sil | ~m).all()  # covers the silhouette
+        # ... and exceeds it by at most the carving slack (voxel footprint + tolerance) plus
+        # the splat radius.
+        _, depth = cam.project(hull.centers)
+        foot = 0.87 * VOXEL * cam.focal_px / depth.min()
+        r = int(np.ceil(2 * 1.1 * foot + 1.0 + 0.71 + 1))
+        grown = cv2.dilate(
+            m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
+        )
+        assert not (sil & ~grown.astype(bool)).any()
+        assert mask_iou(sil, m) > 0.6
+
+
+def test_one_camera_false_blob_is_removed_by_consistency(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    _, masks = box_hull
+    bad = [m.copy() for m in masks]
+    bad[2][5:40, 5:40] = True  # a blob only camera 2 sees (e.g. a scene change)
+    hull = visual_hull(rig.cameras, bad, HullConfig(voxel_size=VOXEL))
+    fixed = hull_consistent_masks(hull, rig.cameras, bad)
+    assert not fixed[2][5:40, 5:40].any()
+    for m, f in zip(masks, fixed, strict=True):
+        assert mask_iou(f, m) > 0.97
+
+
+def test_missing_foreground_in_one_camera_needs_max_missing(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    _, masks = box_hull
+    bad = list(masks)
+    bad[0] = np.zeros_like(masks[0])  # camera 0 lost the object
+    strict = visual_hull(rig.cameras, bad, HullConfig(voxel_size=VOXEL))
+    assert strict.status == "empty" and strict.num_voxels == 0
+    robust = visual_hull(rig.cameras, bad, HullConfig(voxel_size=VOXEL, max_missing=1))
+    assert robust.contains(box_surface_points(LO, HI, 10)).all()
+
+
+def test_two_boxes_are_two_objects(rig: Rig) -> None:
+    lo2, hi2 = LO + np.array([1.2, 0.8, 0.0]), HI + np.array([1.2, 0.8, -0.4])
+    masks = [box_silhouette(c, LO, HI) | box_silhouette(c, lo2, hi2) for c in rig]
+    hull = visual_hull(rig.cameras, masks, HullConfig(voxel_size=0.03))
+    assert hull.num_objects == 2
+    labels = hull.label_points(np.array([(LO + HI) / 2, (lo2 + hi2) / 2, [3.0, 3.0, 3.0]]))
+    assert labels.tolist() == [1, 2, 0]  # the larger box is object 1
+    assert set(hull.object_bounds()) == {1, 2}
+
+
+def test_distorted_cameras(rig: Rig) -> None:
+    # Masks of distorted cameras are carved through Camera.project (distortion applied).
+    cams = [dataclasses.replace(c, dist=np.array([-0.2, 0.05, 0.001, -0.001, 0.0])) for c in rig]
+    masks = []
+    for c in cams:
+        pts = box_surface_points(LO, HI, 60)
+        uv, _ = c.project(pts)
+        m = np.zeros((c.height, c.width), np.uint8)
+        hull_pts = cv2.convexHull(uv.astype(np.float32))  # distortion keeps it near-convex
+        cv2.fillConvexPoly(m, np.rint(hull_pts).astype(np.int32).reshape(-1, 2), 1)
+        masks.append(m.astype(bool))
+    hull = visual_hull(cams, masks, HullConfig(voxel_size=VOXEL, tolerance_px=1.5))
+    assert hull.contains(box_surface_points(LO, HI, 15)).mean() > 0.99
+    assert hull.volume < 2.0 * np.prod(HI - LO)
+
+
+def test_empty_masks_give_empty_hull(rig: Rig) -> None:
+    masks = [np.zeros((c.height, c.width), bool) for c in rig]
+    hull = visual_hull(rig.cameras, masks)
+    assert hull.status == "empty" and hull.num_voxels == 0 and hull.num_objects == 0
+    assert hull_cloud(hull, rig.cameras, [None] * len(rig)).num_points == 0
+    assert not hull_depth_range(hull, rig[0]).mask.any()
+    assert not hull.contains(np.zeros((3, 3))).any()
+
+
+def test_cameras_without_mask_do_not_carve(rig: Rig) -> None:
+    masks: list[np.ndarray | None] = [box_silhouette(c, LO, HI) for c in rig]
+    masks[3] = None
+    hull = visual_hull(rig.cameras, masks, HullConfig(voxel_size=0.04))
+    assert hull.contains(box_surface_points(LO, HI, 10)).all()
+
+
+def test_bad_input(rig: Rig) -> None:
+    from edgerecon.types import DataError
+
+    with pytest.raises(DataError, match="cam0.*10x10"):
+        visual_hull(rig.cameras, [np.zeros((10, 10), bool)] + [None] * 5)
+    with pytest.raises(DataError, match="2 masks for 6 cameras"):
+        visual_hull(rig.cameras, [None, None])
+    with pytest.raises(ValueError, match="voxel_size"):
+        HullConfig(voxel_size=-1.0)
+
+
+def test_rig_region_contains_where_cameras_look(rig: Rig) -> None:
+    box = rig_region(rig.cameras)
+    assert (box[0] < [-4, -4, 0.6]).all() and (box[1] > [4, 4, 2.5]).all()
+    # An arc of cameras looking at a point in front of them: the point is inside.
+    from edgerecon.geometry import look_at
+
+    cams = []
+    for i, a in enumerate(np.radians([-30, -15, 0, 15, 30])):
+        R, t = look_at((4 * np.sin(a), -4 * np.cos(a), 1.5), (0.0, 0.0, 1.0))
+        K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+        cams.append(Camera(name=f"c{i}", width=320, height=240, K=K, R=R, t=t))
+    box = rig_region(cams)
+    assert (box[0] < [0, 1.5, 1.0]).all() and (box[1] > [0, 1.5, 1.0]).all()

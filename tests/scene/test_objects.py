@@ -1,0 +1,89 @@
+"""Object clustering: known answers on small masks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from edgerecon.scene.objects import ObjectConfig, find_objects, silhouette_score
+from tests.scene._scenes import square_mask
+
+
+def _person(h: int, w: int, x: int, y: int, scale: int = 1) -> np.ndarray:
+    """A crude upright silhouette: head, body, two legs (one component)."""
+    m = np.zeros((h, w), bool)
+    s = scale
+    m[y : y + 8 * s, x + 4 * s : x + 10 * s] = True  # head
+    m[y + 8 * s : y + 30 * s, x : x + 14 * s] = True  # body
+    m[y + 30 * s : y + 50 * s, x + 1 * s : x + 5 * s] = True  # legs
+    m[y + 30 * s : y + 50 * s, x + 9 * s : x + 13 * s] = True
+    return m
+
+
+def test_two_separated_blobs_give_two_objects() -> None:
+    m = _person(120, 200, 20, 30) | _person(120, 200, 140, 40)
+    seg = find_objects(m)
+    assert seg.num_objects == 2
+    assert seg.silhouette > 0.5
+    ids = {int(seg.labels[50, 25]), int(seg.labels[60, 145])}
+    assert ids == {1, 2}
+    assert seg.objects[0].area_px >= seg.objects[1].area_px
+    np.testing.assert_array_equal(seg.foreground, m)
+
+
+def test_one_silhouette_is_one_object_even_when_tall() -> None:
+    seg = find_objects(_person(200, 100, 30, 10, scale=3))
+    assert seg.num_objects == 1
+    assert np.isnan(seg.silhouette)
+
+
+def test_fragments_close_to_each_other_are_one_object() -> None:
+    m = _person(120, 200, 50, 20)
+    m[62:64, :] = False  # the mask breaks across the legs: 2 px gap
+    assert (np.diff(m[:, 52].astype(int)) != 0).sum() >= 2
+    seg = find_objects(m)
+    assert seg.num_objects == 1
+
+
+def test_no_foreground_gives_no_objects() -> None:
+    seg = find_objects(np.zeros((40, 50), bool))
+    assert seg.num_objects == 0
+    assert not seg.roi_mask().any()
+    assert seg.labels.shape == (40, 50) and not seg.labels.any()
+
+
+def test_more_regions_than_max_objects_are_grouped_by_kmeans() -> None:
+    # Two clusters of three squares each, far apart: with k_max = 2 they form 2 objects.
+    m = np.zeros((100, 300), bool)
+    for x0 in (10, 200):
+        for dx in (0, 30, 60):
+            m |= square_mask(100, 300, x0 + dx, 40, 12)
+    assert find_objects(m, ObjectConfig(max_objects=6)).num_objects == 6
+    seg = find_objects(m, ObjectConfig(max_objects=2))
+    assert seg.num_objects == 2
+    assert seg.labels[45, 15] == seg.labels[45, 75] != seg.labels[45, 205]
+
+
+def test_roi_is_bbox_plus_margin_clipped() -> None:
+    m = square_mask(100, 100, 2, 40, 20)
+    seg = find_objects(m, ObjectConfig(roi_margin_fraction=0.5, roi_margin_px=0))
+    (obj,) = seg.objects
+    assert obj.bbox == (2, 40, 20, 20)
+    assert obj.roi == (0, 30, 32, 40)  # margin 10 px, clipped at x = 0
+    assert obj.centroid == pytest.approx((11.5, 49.5))
+    assert seg.roi_mask().sum() == 32 * 40
+
+
+def test_silhouette_score_known_answer() -> None:
+    pts = np.array([[0.0, 0.0], [0.0, 1.0], [10.0, 0.0], [10.0, 1.0]])
+    # a = 1, b = mean(10, sqrt(101)) for every point
+    b = (10.0 + np.sqrt(101.0)) / 2
+    assert silhouette_score(pts, np.array([0, 0, 1, 1])) == pytest.approx((b - 1.0) / b)
+    assert np.isnan(silhouette_score(pts, np.zeros(4, int)))
+    # A bad clustering scores lower.
+    assert silhouette_score(pts, np.array([0, 1, 0, 1])) < 0
+
+
+def test_object_config_validation() -> None:
+    with pytest.raises(ValueError, match="max_objects"):
+        ObjectConfig(max_objects=0)
