@@ -355,7 +355,7 @@ class GroundTruth:
         return {int(k): (float(v[0]), float(v[1])) for k, v in row.items()}
 
 
-@lru_cache(maxsize=64)
+@lru_cache(maxsize=16)
 def _load_npy_cached(path: str, mtime: float) -> NDArray[Any]:
     arr = np.load(path, allow_pickle=False)
     arr.setflags(write=False)
