@@ -3,6 +3,7 @@ a box) rendered into a ring of pinhole cameras with ``cv2.warpPerspective``."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -101,7 +102,17 @@ def scene_distance(planes: list[Plane], points: NDArray[np.float64]) -> NDArray[
 def box_views(
     num_cameras: int = 6, seed: int = 0, **rig_kwargs: float
 ) -> tuple[Rig, list[View], list[Plane]]:
-    rig = ring_rig(num_cameras, **rig_kwargs)  # type: ignore[arg-type]
+    """A ring rig around the box scene and its rendered views (cached: rendering is the slow
+    part of the tests; the returned lists are fresh copies)."""
+    rig, views, planes = _box_views(num_cameras, seed, tuple(sorted(rig_kwargs.items())))
+    return rig, list(views), list(planes)
+
+
+@functools.lru_cache(maxsize=16)
+def _box_views(
+    num_cameras: int, seed: int, rig_kwargs: tuple[tuple[str, float], ...]
+) -> tuple[Rig, tuple[View, ...], tuple[Plane, ...]]:
+    rig = ring_rig(num_cameras, **dict(rig_kwargs))  # type: ignore[arg-type]
     planes = box_scene(seed)
-    views = [View(camera_id=i, camera=c, image=render(c, planes)) for i, c in enumerate(rig)]
-    return rig, views, planes
+    views = tuple(View(camera_id=i, camera=c, image=render(c, planes)) for i, c in enumerate(rig))
+    return rig, views, tuple(planes)

@@ -9,8 +9,10 @@ from edgerecon.sparse import (
     extract_features,
     reconstruct_sparse,
 )
+from edgerecon.sparse.features import use_affine
 from edgerecon.sparse.triangulation import project_all
 from edgerecon.views import View
+from tests.conftest import ring_rig
 from tests.sparse.scenes import box_views, scene_distance
 
 
@@ -133,3 +135,30 @@ def test_duplicate_camera_ids_are_rejected():
     dup = [views[0], View(camera_id=0, camera=views[1].camera, image=views[1].image)]
     with pytest.raises(ValueError, match="duplicate camera ids"):
         reconstruct_sparse(dup)
+
+
+def test_simulated_tilts_add_points_on_wide_baselines():
+    _, views, planes = box_views(5, seed=4)  # 72 degrees between neighbours
+    assert use_affine(views, SparseConfig())  # "auto" turns it on for this rig
+    off = reconstruct_sparse(views, SparseConfig(affine_simulation="off"))
+    on = reconstruct_sparse(views, SparseConfig(affine_simulation="on"))
+    assert on.num_points > 1.5 * off.num_points
+    d = scene_distance(planes, on.points3D)
+    assert np.mean(d <= 0.02) > 0.85
+    # no duplicated points from the simulated views (their keypoints share locations)
+    from scipy.spatial import cKDTree
+
+    assert len(cKDTree(on.points3D).query_pairs(0.002)) <= 0.01 * on.num_points
+
+
+def blank_views(num_cameras):
+    rig = ring_rig(num_cameras)
+    image = np.zeros((rig[0].height, rig[0].width, 3), np.uint8)
+    return [View(camera_id=i, camera=c, image=image) for i, c in enumerate(rig)]
+
+
+def test_auto_tilts_only_for_wide_baseline_rigs():
+    assert not use_affine(blank_views(12), SparseConfig())  # 30 degrees apart
+    assert use_affine(blank_views(12), SparseConfig(affine_simulation="on"))
+    assert use_affine(blank_views(5), SparseConfig())  # 72 degrees apart
+    assert not use_affine(blank_views(5), SparseConfig(affine_simulation="off"))

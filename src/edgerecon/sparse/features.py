@@ -19,10 +19,14 @@ import logging
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from edgerecon.sparse.config import DEFAULT_CONFIG, SparseConfig
 from edgerecon.types import Points2D
@@ -73,40 +77,84 @@ def _detector(config: SparseConfig) -> cv2.Feature2D:
     )
 
 
-def extract_features(view: View, config: SparseConfig = DEFAULT_CONFIG) -> Features:
-    """SIFT keypoints of one view, restricted to its mask when it has one."""
-    image = view.image
-    gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    h, w = gray.shape[:2]
-    mask: NDArray[np.uint8] | None = None
-    if view.mask is not None:
-        mask = (view.mask.astype(np.uint8) * 255).astype(np.uint8)
-    if mask is not None and not mask.any():
-        return Features.empty()
-    scale = 1.0
-    longest = max(w, h)
-    if config.feature_max_size_px and longest > config.feature_max_size_px:
-        scale = config.feature_max_size_px / longest
-        size = (max(1, round(w * scale)), max(1, round(h * scale)))
-        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
-        if mask is not None:
-            mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST).astype(np.uint8)
+def _sift(
+    gray: NDArray[Any], mask: NDArray[Any] | None, config: SparseConfig
+) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.float32]]:
+    """Positions (N, 2), sizes (N,) and raw descriptors (N, 128) of SIFT on one image."""
     keypoints, desc = _detector(config).detectAndCompute(gray, mask)
     if not keypoints or desc is None:
-        return Features.empty()
+        return np.zeros((0, 2)), np.zeros(0, np.float32), np.zeros((0, 128), np.float32)
     pts = np.array([k.pt for k in keypoints], dtype=np.float64)
     sizes = np.array([k.size for k in keypoints], dtype=np.float32)
-    if scale != 1.0:
-        # Pixel centres: x_full = (x_small + 0.5) * (W / w) - 0.5, per axis.
-        sx, sy = w / gray.shape[1], h / gray.shape[0]
-        pts = (pts + 0.5) * [sx, sy] - 0.5
-        sizes = sizes * np.float32(0.5 * (sx + sy))
-    desc = desc.astype(np.float32, copy=False)
+    return pts, sizes, desc.astype(np.float32, copy=False)
+
+
+def _resized(
+    gray: NDArray[Any], mask: NDArray[Any] | None, sx: float, sy: float
+) -> tuple[NDArray[Any], NDArray[Any] | None]:
+    """The image shrunk by (sx, sy) <= 1 per axis, low-passed first along shrunk axes."""
+    h, w = gray.shape[:2]
+    size = (max(1, round(w * sx)), max(1, round(h * sy)))
+    if sx < 1 and sy == 1:
+        # Anti-aliasing along x only (ASIFT's 0.8 sqrt(t^2 - 1) for a tilt t).
+        gray = cv2.GaussianBlur(gray, (0, 0), sigmaX=0.8 * np.sqrt(1 / sx**2 - 1), sigmaY=1e-6)
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_LINEAR)
+    elif sy < 1 and sx == 1:
+        gray = cv2.GaussianBlur(gray, (0, 0), sigmaX=1e-6, sigmaY=0.8 * np.sqrt(1 / sy**2 - 1))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_LINEAR)
+    else:
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    if mask is not None:
+        mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST).astype(np.uint8)
+    return gray, mask
+
+
+def extract_features(
+    view: View, config: SparseConfig = DEFAULT_CONFIG, affine: bool = False
+) -> Features:
+    """SIFT keypoints of one view, restricted to its mask when it has one.
+
+    With ``affine``, SIFT also runs on the image compressed by ``config.affine_tilt`` along x
+    and along y (the two simulated tilts of ASIFT that matter for level cameras looking at
+    walls and floors from far apart); keypoints are mapped back to the view's pixels.
+    """
+    image = view.image
+    gray: NDArray[Any] = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    h, w = gray.shape[:2]
+    mask: NDArray[Any] | None = None
+    if view.mask is not None:
+        mask = (view.mask.astype(np.uint8) * 255).astype(np.uint8)
+        if not mask.any():
+            return Features.empty()
+    base = 1.0
+    longest = max(w, h)
+    if config.feature_max_size_px and longest > config.feature_max_size_px:
+        base = config.feature_max_size_px / longest
+    simulations = [(base, base)]
+    if affine:
+        t = 1.0 / config.affine_tilt
+        simulations += [(base * t, base), (base, base * t)]
+    parts = []
+    for sx, sy in simulations:
+        g, m = (gray, mask) if sx == sy == 1.0 else _resized(gray, mask, sx, sy)
+        pts, sizes, desc = _sift(g, m, config)
+        if len(pts) == 0:
+            continue
+        # Pixel centres: x_view = (x_small + 0.5) * (W / w) - 0.5, per axis.
+        fx, fy = w / g.shape[1], h / g.shape[0]
+        if (fx, fy) != (1.0, 1.0):
+            pts = (pts + 0.5) * [fx, fy] - 0.5
+            sizes = sizes * np.float32(np.sqrt(fx * fy))
+        parts.append((pts, sizes, desc))
+    if not parts:
+        return Features.empty()
+    pts = np.concatenate([p[0] for p in parts])
+    sizes = np.concatenate([p[1] for p in parts])
+    desc = np.concatenate([p[2] for p in parts])
     if config.root_sift:
         desc = np.sqrt(desc / (desc.sum(axis=1, keepdims=True) + 1e-12))
     desc /= np.linalg.norm(desc, axis=1, keepdims=True) + 1e-12
-    unique_pts, location = np.unique(pts, axis=0, return_inverse=True)
-    location = location.reshape(-1).astype(np.int64)
+    location, unique_pts = _merge_locations(pts, config.location_merge_px if affine else 0.0)
     return Features(
         points2D=pts,
         descriptors=np.ascontiguousarray(desc, dtype=np.float32),
@@ -116,9 +164,46 @@ def extract_features(view: View, config: SparseConfig = DEFAULT_CONFIG) -> Featu
     )
 
 
+def _merge_locations(
+    pts: NDArray[np.float64], radius: float
+) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Location index of each keypoint and the locations' positions: identical positions
+    always share a location; with ``radius`` > 0, so do chains of keypoints closer than it
+    (the same corner found in several simulated views), placed at their mean."""
+    unique_pts, location = np.unique(pts, axis=0, return_inverse=True)
+    location = location.reshape(-1).astype(np.int64)
+    if radius <= 0 or len(unique_pts) < 2:
+        return location, unique_pts
+    pairs = cKDTree(unique_pts).query_pairs(radius, output_type="ndarray")
+    if len(pairs) == 0:
+        return location, unique_pts
+    n = len(unique_pts)
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, label = connected_components(graph, directed=False)
+    counts = np.bincount(label)
+    merged = np.stack([np.bincount(label, unique_pts[:, k]) / counts for k in range(2)], axis=1)
+    return label[location].astype(np.int64), merged
+
+
+def use_affine(views: Sequence[View], config: SparseConfig = DEFAULT_CONFIG) -> bool:
+    """Whether ``config.affine_simulation`` asks for simulated tilts with these views: "on",
+    "off", or "auto" = when the median angle between a camera's optical axis and its closest
+    neighbour's exceeds ``config.affine_auto_angle_deg`` (wide-baseline rigs)."""
+    mode = config.affine_simulation
+    if mode != "auto" or len(views) < 2:
+        return mode == "on"
+    axes = np.array([v.camera.R[2] for v in views])
+    cos = np.clip(axes @ axes.T, -1.0, 1.0)
+    np.fill_diagonal(cos, -1.0)
+    nearest = np.degrees(np.arccos(cos.max(axis=1)))
+    return bool(np.median(nearest) > config.affine_auto_angle_deg)
+
+
 def extract_all(views: Sequence[View], config: SparseConfig = DEFAULT_CONFIG) -> list[Features]:
-    """Features of every view, computed by ``config.num_threads`` threads."""
+    """Features of every view (simulated tilts as :func:`use_affine` decides), computed by
+    ``config.num_threads`` threads."""
+    affine = use_affine(views, config)
     if config.num_threads <= 1 or len(views) <= 1:
-        return [extract_features(v, config) for v in views]
+        return [extract_features(v, config, affine) for v in views]
     with ThreadPoolExecutor(max_workers=config.num_threads) as pool:
-        return list(pool.map(lambda v: extract_features(v, config), views))
+        return list(pool.map(lambda v: extract_features(v, config, affine), views))
