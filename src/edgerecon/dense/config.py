@@ -17,9 +17,12 @@ class DenseConfig:
     resolution_level: int = 1
     """Depth maps are computed at ``2**-resolution_level`` of the view images (openMVS also
     densifies at half resolution by default); 0 = full view resolution."""
-    coarse_levels: int = 2
-    """The plane sweep runs ``coarse_levels`` octaves below the working resolution; each finer
-    octave refines the depths by a local search (coarse-to-fine)."""
+    coarse_levels: int = 3
+    """At most this many octaves below the working resolution for the plane sweep; each finer
+    octave refines the depths by propagation and a local search (coarse-to-fine)."""
+    sweep_min_side_px: int = 120
+    """The sweep runs at the smallest octave whose longer side keeps at least this many
+    pixels (1920x1080 at level 1: 120x68; 644x486 at level 1: 161x122)."""
     max_source_views: int = 3
     """Source views matched against each reference view (the best by overlap and angle)."""
     min_source_angle_deg: float = 2.0
@@ -28,7 +31,7 @@ class DenseConfig:
     """Sources whose median triangulation angle with the reference is larger are skipped."""
     window_radius: int = 3
     """NCC window half-size in pixels (3 -> 7x7 windows), at every pyramid level."""
-    ncc_top_k: int = 2
+    ncc_top_k: int = 1
     """Matching score of a depth = mean of the best ``ncc_top_k`` source NCCs (occlusion-robust)."""
     sweep_families: tuple[str, ...] = SWEEP_FAMILIES
     """Plane orientations of the coarse sweep: "fronto" (parallel to the reference image) and
@@ -55,7 +58,7 @@ class DenseConfig:
     voxel_size: float | None = None
     """Fusion merges points within one voxel of this edge (rig units); None = ``voxel_rel``
     times the median pixel footprint (depth / focal) of the depth maps."""
-    voxel_rel: float = 1.5
+    voxel_rel: float = 1.0
     """Voxel edge in median pixel footprints when ``voxel_size`` is None."""
     max_depth_rel_scene: float = 6.0
     """Without sparse points or given ranges, depths run up to this multiple of the rig's
@@ -76,6 +79,7 @@ class DenseConfig:
 
         need(0 <= self.resolution_level <= 4, "resolution_level", "in 0..4")
         need(0 <= self.coarse_levels <= 4, "coarse_levels", "in 0..4")
+        need(self.sweep_min_side_px >= 16, "sweep_min_side_px", ">= 16")
         need(self.max_source_views >= 1, "max_source_views", ">= 1")
         need(0.0 <= self.min_source_angle_deg < 180.0, "min_source_angle_deg", "in [0, 180)")
         need(

@@ -35,19 +35,29 @@ def support_counts(
     cameras: Mapping[int, Camera],
     rel_tol: float,
     partners: Mapping[int, Sequence[int]] | None = None,
-) -> dict[int, NDArray[np.int16]]:
+) -> tuple[dict[int, NDArray[np.int16]], dict[int, DepthMap]]:
     """Per view, an (H, W) map of how many *other* views support each depth (0 where the
-    view has no depth). ``partners[i]`` limits the views checked for view i (default: all).
+    view has no depth), and the depth map averaged over the supporting views.
+    ``partners[i]`` limits the views checked for view i (default: all).
+
+    The weighted average is taken along each reference ray: view j's depth ``d_j`` at the pixel where
+    the reference point lands defines the point of the ray whose depth in j is ``d_j``
+    (``s = (d_j - c_2) / (M_2 . [u, v, 1])``); averaging these with the reference depth cuts
+    the depth noise of points seen by several views (about 1/sqrt(n)).
 
     Whole-image arithmetic: for views i and j, pixel (u, v) of depth z in i lands in j at
     ``z M [u, v, 1] + c`` with ``M = K_j R_ji K_i^-1`` and ``c = K_j t_ji``; j's depth there
     is read with a nearest-neighbour ``cv2.remap``."""
     out: dict[int, NDArray[np.int16]] = {}
+    averaged: dict[int, DepthMap] = {}
     grids: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
     for i, depth_i in depths.items():
         h, w = depth_i.shape
         count = np.zeros((h, w), np.int16)
         out[i] = count
+        total = depth_i.astype(np.float32).copy()
+        weight = np.ones((h, w), np.float32)
+        averaged[i] = total
         valid = depth_i > 0
         if not valid.any():
             continue
@@ -71,7 +81,8 @@ def support_counts(
             z = depth_i
             X = z * (M[0, 0] * u + M[0, 1] * v + M[0, 2]) + c[0]
             Y = z * (M[1, 0] * u + M[1, 1] * v + M[1, 2]) + c[1]
-            Z = z * (M[2, 0] * u + M[2, 1] * v + M[2, 2]) + c[2]
+            m2 = M[2, 0] * u + M[2, 1] * v + M[2, 2]
+            Z = z * m2 + c[2]
             ok = valid & (Z > 0)
             Zs = np.where(ok, Z, 1.0)
             mx = np.where(ok, X / Zs, -1e6).astype(np.float32)
@@ -79,8 +90,22 @@ def support_counts(
             dj = cv2.remap(
                 depths[j], mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
             )
-            count += ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
-    return out
+            agree = ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
+            count += agree
+            # s_j = (d_j - c_2) / m_2 amplifies j's depth error by Z / (m_2 z): weight by the
+            # inverse square of that factor (1 for nearby views, ~0 for grazing rays).
+            with np.errstate(divide="ignore", invalid="ignore"):
+                gain = np.where(agree, m2 * z / Zs, 0.0)
+                wj = np.clip(gain, 0.0, 1.0) ** 2
+                sj = np.where(wj > 0, (dj - c[2]) / np.where(m2 != 0, m2, 1.0), 0.0)
+            total += (wj * sj).astype(np.float32)
+            weight += wj.astype(np.float32)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            avg = np.where(valid, total / weight, 0.0)
+        # The average stays within the agreement tolerance of the view's own depth.
+        avg = np.clip(avg, depth_i * (1 - rel_tol), depth_i * (1 + rel_tol))
+        averaged[i] = avg.astype(np.float32)
+    return out, averaged
 
 
 def agrees(

@@ -558,7 +558,8 @@ def estimate_depth(
     top = min(config.coarse_levels, ref.num_levels - 1, *(s.num_levels - 1 for s in sources))
     while top > 0:
         r = roi_at_level(roi, cam0, ref.cameras[top])
-        if min(r.width, r.height) >= _MIN_LEVEL_SIDE:
+        side = max(ref.cameras[top].width, ref.cameras[top].height)
+        if min(r.width, r.height) >= _MIN_LEVEL_SIDE and side >= config.sweep_min_side_px:
             break
         top -= 1
     work = 0

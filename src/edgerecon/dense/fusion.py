@@ -13,17 +13,19 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.dense import kernels
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap, Image, PointCloud
 
 #: Neighbouring depths that differ by more than this share are a discontinuity, not a slope.
 _MAX_REL_STEP = 0.05
+#: Pixel distance of the finite differences that give point normals.
+NORMAL_STRIDE_PX = 2
 
 
 def camera_points(camera: Camera, depth: DepthMap) -> NDArray[np.float32]:
@@ -104,23 +106,21 @@ def view_points(
     score: NDArray[np.float32],
 ) -> ViewPoints:
     """Points, colours, world normals of the pixels ``keep`` of a depth map."""
-    idx = np.flatnonzero(keep)
-    rows, cols = np.divmod(idx, depth.shape[1])
-    z = depth.ravel()[idx].astype(np.float64)
-    Kinv = np.linalg.inv(camera.K)
-    Xc = np.empty((len(idx), 3))
-    Xc[:, 0] = (Kinv[0, 0] * cols + Kinv[0, 1] * rows + Kinv[0, 2]) * z
-    Xc[:, 1] = (Kinv[1, 1] * rows + Kinv[1, 2]) * z
-    Xc[:, 2] = z
-    X = (Xc - camera.t) @ camera.R
-    nc = depth_normals(camera, depth).reshape(-1, 3)[idx]
-    n = (nc @ camera.R.astype(np.float32)).astype(np.float32)
+    pts, normals, idx = kernels.view_points(
+        np.ascontiguousarray(depth, dtype=np.float32),
+        np.ascontiguousarray(keep),
+        np.linalg.inv(camera.K).astype(np.float64),
+        camera.R,
+        camera.t,
+        NORMAL_STRIDE_PX,
+        _MAX_REL_STEP,
+    )
     bgr = image.reshape(-1, 3)[idx]
     return ViewPoints(
         camera_id=camera_id,
-        points3D=X,
+        points3D=pts,
         colors=np.ascontiguousarray(bgr[:, ::-1]),
-        normals=n,
+        normals=normals,
         num_views=(support.ravel()[idx] + 1).astype(np.int16),
         score=score.ravel()[idx].astype(np.float32),
     )
@@ -139,38 +139,19 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
             attributes={"num_views": np.zeros(0, np.int32)},
         )
     X = np.concatenate([p.points3D for p in parts])
-    C = np.concatenate([p.colors for p in parts]).astype(np.float32)
+    C = np.concatenate([p.colors for p in parts])
     N = np.concatenate([p.normals for p in parts])
     V = np.concatenate([p.num_views for p in parts]).astype(np.int32)
-    S = np.concatenate([p.score for p in parts])
-    keys = np.floor((X - X.min(axis=0)) * (1.0 / voxel)).astype(np.int64)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
-    # Sort once; every per-voxel reduction is then a reduceat over contiguous runs.
-    order = np.argsort(flat, kind="stable")
+    S = np.concatenate([p.score for p in parts]).astype(np.float32)
+    flat = kernels.voxel_keys(X, float(voxel))
+    order = np.argsort(flat)
     fs = flat[order]
-    starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1])
-    counts = np.diff(np.concatenate([starts, [len(fs)]]))
-
-    def mean(a: NDArray[Any]) -> NDArray[np.float64]:
-        return np.add.reduceat(a[order], starts, axis=0, dtype=np.float64) / counts[:, None]
-
-    pts = mean(X)
-    cols = mean(C)
-    nrm = mean(N)
-    norm = np.linalg.norm(nrm, axis=1, keepdims=True)
-    # Opposite normals can cancel (thin structures seen from both sides): keep one member's.
-    weak = norm[:, 0] < 1e-3
-    if weak.any():
-        nrm[weak] = N[order[starts[weak]]]
-        norm = np.linalg.norm(nrm, axis=1, keepdims=True)
-    nrm = nrm / np.maximum(norm, 1e-30)
-    views = np.maximum.reduceat(V[order], starts)
-    conf = np.add.reduceat(S[order], starts, dtype=np.float64) / counts
+    starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1]).astype(np.int64)
+    pts, cols, nrm, views, conf = kernels.merge_sorted(order, starts, X, C, N, V, S)
     return PointCloud(
         points3D=pts,
-        colors=np.clip(np.rint(cols), 0, 255).astype(np.uint8),
-        normals=nrm.astype(np.float32),
-        confidence=conf.astype(np.float32),
-        attributes={"num_views": views.astype(np.int32)},
+        colors=cols,
+        normals=nrm,
+        confidence=conf,
+        attributes={"num_views": views},
     )

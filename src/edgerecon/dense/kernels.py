@@ -25,7 +25,12 @@ F32 = NDArray[np.float32]
 VAR_EPS = np.float32(1e-3)
 _NEG = np.float32(-np.inf)
 
-_jit = nb.njit(nogil=True, cache=True, fastmath=False, error_model="numpy")
+_jit = nb.njit(
+    nogil=True,
+    cache=True,
+    fastmath={"nsz", "arcp", "contract", "afn", "reassoc"},
+    error_model="numpy",
+)
 
 
 @_jit
@@ -111,31 +116,6 @@ def window_stats(img: F32, r: int) -> tuple[F32, F32, F32]:
 
 
 @_jit
-def _ncc_from_samples(
-    ref: F32, mean: F32, var: F32, count: F32, J: F32, bad: F32, r: int, out: F32
-) -> None:
-    """NCC of every window of J (bad > 0 marks missing samples) against the reference."""
-    h, w = ref.shape
-    IJ = ref * J
-    JJ = J * J
-    sJ = np.empty((h, w), np.float32)
-    sJJ = np.empty((h, w), np.float32)
-    sIJ = np.empty((h, w), np.float32)
-    sB = np.empty((h, w), np.float32)
-    _box_sums4(J, JJ, IJ, bad, r, sJ, sJJ, sIJ, sB)
-    for y in range(h):
-        for x in range(w):
-            if sB[y, x] > 0.5:
-                out[y, x] = _NEG
-                continue
-            n = count[y, x]
-            mj = sJ[y, x] / n
-            vj = max(sJJ[y, x] / n - mj * mj, np.float32(0.0)) + VAR_EPS
-            cov = sIJ[y, x] / n - mean[y, x] * mj
-            out[y, x] = cov / np.sqrt(var[y, x] * vj)
-
-
-@_jit
 def _sample(src: F32, sw: int, sh: int, x: float, y: float) -> tuple[float, bool]:
     if not (x >= 0.0 and y >= 0.0 and x <= sw - 1 and y <= sh - 1):
         return 0.0, False
@@ -150,17 +130,121 @@ def _sample(src: F32, sw: int, sh: int, x: float, y: float) -> tuple[float, bool
 
 
 @_jit
-def _aggregate_into(nccs: F32, k: int, out: F32) -> None:
-    """out = mean of the k best finite NCCs per pixel over nccs (S, h, w); -1 if none."""
-    S, h, w = nccs.shape
+def _scores(
+    ref: F32,
+    mean: F32,
+    var: F32,
+    count: F32,
+    srcs: F32,
+    sizes: NDArray[np.int64],
+    mode: int,
+    H: NDArray[np.float64],
+    a: F32,
+    b: NDArray[np.float32],
+    inv: F32,
+    r: int,
+    top_k: int,
+    out: F32,
+) -> None:
+    """Aggregated NCC of one hypothesis per pixel, streamed row by row.
+
+    ``mode`` 0: source s sees pixel (x, y) at ``H[s] (x, y, 1)`` (a plane's homography);
+    ``mode`` 1: at ``(a[s, :2] + inv b[s, :2]) / (a[s, 2] + inv b[s, 2])`` (per-pixel
+    inverse depth). The resampled rows live in a ring buffer of ``2 r + 1`` rows per source
+    and the vertical window sums are updated incrementally, so the working set stays in the
+    cache (the separable-filter version over whole images was memory-bound)."""
+    h, w = ref.shape
+    S = srcs.shape[0]
+    n_ring = 2 * r + 1
+    ringJ = np.zeros((S, n_ring, w), np.float32)
+    ringB = np.zeros((S, n_ring, w), np.float32)
+    acc = np.zeros((S, 4, w), np.float64)
+    row_ncc = np.empty((S, w), np.float32)
     best = np.empty(S, np.float32)
-    for y in range(h):
+    for y in range(-r, h):
+        # Row yi = y + r enters the window of output row y; row y - r - 1 leaves it.
+        yi = y + r
+        slot = yi % n_ring
+        yo = yi - n_ring
+        for s in range(S):
+            if yo >= 0:
+                for x in range(w):
+                    j = ringJ[s, slot, x]
+                    acc[s, 0, x] -= j
+                    acc[s, 1, x] -= j * j
+                    acc[s, 2, x] -= ref[yo, x] * j
+                    acc[s, 3, x] -= ringB[s, slot, x]
+            if yi < h:
+                sw = sizes[s, 0]
+                sh = sizes[s, 1]
+                src = srcs[s]
+                for x in range(w):
+                    ok = False
+                    v = 0.0
+                    if mode == 0:
+                        zw = H[s, 2, 0] * x + H[s, 2, 1] * yi + H[s, 2, 2]
+                        if zw > 1e-12:
+                            u = (H[s, 0, 0] * x + H[s, 0, 1] * yi + H[s, 0, 2]) / zw
+                            q = (H[s, 1, 0] * x + H[s, 1, 1] * yi + H[s, 1, 2]) / zw
+                            v, ok = _sample(src, sw, sh, u, q)
+                    else:
+                        iv = inv[yi, x]
+                        den = a[s, 2, yi, x] + iv * b[s, 2]
+                        if den > 1e-12:
+                            u = (a[s, 0, yi, x] + iv * b[s, 0]) / den
+                            q = (a[s, 1, yi, x] + iv * b[s, 1]) / den
+                            v, ok = _sample(src, sw, sh, u, q)
+                    bv = 0.0 if ok else 1.0
+                    ringJ[s, slot, x] = v
+                    ringB[s, slot, x] = bv
+                    acc[s, 0, x] += v
+                    acc[s, 1, x] += v * v
+                    acc[s, 2, x] += ref[yi, x] * v
+                    acc[s, 3, x] += bv
+            else:
+                for x in range(w):
+                    ringJ[s, slot, x] = 0.0
+                    ringB[s, slot, x] = 0.0
+        if y < 0:
+            continue
+        # Horizontal running sums of the column sums -> NCC of row y for every source.
+        for s in range(S):
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            for x in range(min(r, w)):
+                s0 += acc[s, 0, x]
+                s1 += acc[s, 1, x]
+                s2 += acc[s, 2, x]
+                s3 += acc[s, 3, x]
+            for x in range(w):
+                xi = x + r
+                if xi < w:
+                    s0 += acc[s, 0, xi]
+                    s1 += acc[s, 1, xi]
+                    s2 += acc[s, 2, xi]
+                    s3 += acc[s, 3, xi]
+                xo = x - r - 1
+                if xo >= 0:
+                    s0 -= acc[s, 0, xo]
+                    s1 -= acc[s, 1, xo]
+                    s2 -= acc[s, 2, xo]
+                    s3 -= acc[s, 3, xo]
+                if s3 > 0.5:
+                    row_ncc[s, x] = _NEG
+                else:
+                    n = count[y, x]
+                    mj = s0 / n
+                    vj = max(s1 / n - mj * mj, 0.0) + VAR_EPS
+                    cov = s2 / n - mean[y, x] * mj
+                    row_ncc[s, x] = cov / np.sqrt(var[y, x] * vj)
+        # Mean of the top_k finite scores.
         for x in range(w):
             m = 0
             for s in range(S):
-                v = nccs[s, y, x]
+                v = row_ncc[s, x]
                 if v > _NEG:
-                    # insertion into the descending list best[:m]
                     j = m
                     while j > 0 and best[j - 1] < v:
                         best[j] = best[j - 1]
@@ -170,7 +254,7 @@ def _aggregate_into(nccs: F32, k: int, out: F32) -> None:
             if m == 0:
                 out[y, x] = -1.0
             else:
-                kk = min(k, m)
+                kk = min(top_k, m)
                 t = 0.0
                 for j in range(kk):
                     t += best[j]
@@ -206,33 +290,18 @@ def sweep(
     ``[w_lo, w_hi]``. Updates ``best``/``best_idx`` (initialise best to -inf) and stores the
     scores of the planes before and after the best one in ``prev``/``nxt`` (-1 if none)."""
     h, w = ref.shape
-    S = srcs.shape[0]
     P = lams.shape[0]
-    nccs = np.empty((S, h, w), np.float32)
-    J = np.empty((h, w), np.float32)
-    bad = np.empty((h, w), np.float32)
     score = np.empty((h, w), np.float32)
     last = np.full((h, w), np.float32(-1.0))
+    dummy_a = np.zeros((1, 3, 1, 1), np.float32)
+    dummy_b = np.zeros((1, 3), np.float32)
+    dummy_inv = np.zeros((1, 1), np.float32)
     for p in range(P):
         lam = lams[p]
-        for s in range(S):
-            H = homographies[p, s]
-            sw = sizes[s, 0]
-            sh = sizes[s, 1]
-            src = srcs[s]
-            for y in range(h):
-                for x in range(w):
-                    zw = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-                    ok = False
-                    v = 0.0
-                    if zw > 1e-12:
-                        u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / zw
-                        q = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / zw
-                        v, ok = _sample(src, sw, sh, u, q)
-                    J[y, x] = v
-                    bad[y, x] = 0.0 if ok else 1.0
-            _ncc_from_samples(ref, mean, var, count, J, bad, r, nccs[s])
-        _aggregate_into(nccs, top_k, score)
+        _scores(
+            ref, mean, var, count, srcs, sizes, 0, homographies[p], dummy_a, dummy_b,
+            dummy_inv, r, top_k, score,
+        )  # fmt: skip
         for y in range(h):
             for x in range(w):
                 sc = score[y, x]
@@ -271,33 +340,196 @@ def evaluate(
     Source s sees pixel (x, y) at ``(a[s, :2] + inv b[s, :2]) / (a[s, 2] + inv b[s, 2])``.
     Scores are -1 where ``inv`` is outside ``(w_lo, w_hi)``."""
     h, w = ref.shape
-    S = srcs.shape[0]
-    nccs = np.empty((S, h, w), np.float32)
-    J = np.empty((h, w), np.float32)
-    bad = np.empty((h, w), np.float32)
-    for s in range(S):
-        sw = sizes[s, 0]
-        sh = sizes[s, 1]
-        src = srcs[s]
-        b0 = b[s, 0]
-        b1 = b[s, 1]
-        b2 = b[s, 2]
-        for y in range(h):
-            for x in range(w):
-                iv = inv[y, x]
-                den = a[s, 2, y, x] + iv * b2
-                ok = False
-                v = 0.0
-                if den > 1e-12:
-                    u = (a[s, 0, y, x] + iv * b0) / den
-                    q = (a[s, 1, y, x] + iv * b1) / den
-                    v, ok = _sample(src, sw, sh, u, q)
-                J[y, x] = v
-                bad[y, x] = 0.0 if ok else 1.0
-        _ncc_from_samples(ref, mean, var, count, J, bad, r, nccs[s])
-    _aggregate_into(nccs, top_k, out)
+    dummy_H = np.zeros((1, 3, 3), np.float64)
+    _scores(ref, mean, var, count, srcs, sizes, 1, dummy_H, a, b, inv, r, top_k, out)
     for y in range(h):
         for x in range(w):
             iv = inv[y, x]
             if not (iv > w_lo[y, x] and iv < w_hi[y, x]):
                 out[y, x] = -1.0
+
+
+# ================================================================================= fusion
+@_jit
+def _cam_point(depth: F32, Kinv: NDArray[np.float64], y: int, x: int) -> tuple[float, float, float]:
+    z = depth[y, x]
+    return (
+        (Kinv[0, 0] * x + Kinv[0, 1] * y + Kinv[0, 2]) * z,
+        (Kinv[1, 1] * y + Kinv[1, 2]) * z,
+        z,
+    )
+
+
+@_jit
+def _tangent(
+    depth: F32, Kinv: NDArray[np.float64], y: int, x: int, dy: int, dx: int, max_rel: float
+) -> tuple[float, float, float, bool]:
+    """Finite difference of the back-projected points along (dy, dx), central where both
+    neighbours are on the same surface (no depth jump), one-sided otherwise."""
+    h, w = depth.shape
+    z = depth[y, x]
+    ya, xa, yb, xb = y - dy, x - dx, y + dy, x + dx
+    ok_a = 0 <= ya < h and 0 <= xa < w and depth[ya, xa] > 0
+    ok_b = 0 <= yb < h and 0 <= xb < w and depth[yb, xb] > 0
+    if ok_a:
+        ok_a = abs(depth[ya, xa] - z) <= max_rel * z
+    if ok_b:
+        ok_b = abs(depth[yb, xb] - z) <= max_rel * z
+    if not ok_a and not ok_b:
+        return 0.0, 0.0, 0.0, False
+    if ok_a:
+        pa = _cam_point(depth, Kinv, ya, xa)
+    else:
+        pa = _cam_point(depth, Kinv, y, x)
+    if ok_b:
+        pb = _cam_point(depth, Kinv, yb, xb)
+    else:
+        pb = _cam_point(depth, Kinv, y, x)
+    return pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2], True
+
+
+@_jit
+def view_points(
+    depth: F32,
+    keep: NDArray[np.bool_],
+    Kinv: NDArray[np.float64],
+    R: NDArray[np.float64],
+    t: NDArray[np.float64],
+    stride: int,
+    max_rel: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.int64]]:
+    """World points, world unit normals (facing the camera) and flat pixel indices of the
+    ``keep`` pixels of a depth map. Normals are the cross product of the tangents at
+    ``stride`` pixels (skipping depth jumps); without tangents, the direction to the camera."""
+    h, w = depth.shape
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if keep[y, x]:
+                n += 1
+    pts = np.empty((n, 3), np.float64)
+    nrm = np.empty((n, 3), np.float32)
+    idx = np.empty(n, np.int64)
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            if not keep[y, x]:
+                continue
+            cx, cy, cz = _cam_point(depth, Kinv, y, x)
+            ux, uy, uz, oku = _tangent(depth, Kinv, y, x, 0, stride, max_rel)
+            vx, vy, vz, okv = _tangent(depth, Kinv, y, x, stride, 0, max_rel)
+            nx = uy * vz - uz * vy
+            ny = uz * vx - ux * vz
+            nz = ux * vy - uy * vx
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if oku and okv and norm > 1e-20:
+                nx /= norm
+                ny /= norm
+                nz /= norm
+                if nx * cx + ny * cy + nz * cz > 0:
+                    nx, ny, nz = -nx, -ny, -nz
+            else:
+                cn = np.sqrt(cx * cx + cy * cy + cz * cz)
+                nx, ny, nz = -cx / cn, -cy / cn, -cz / cn
+            # world = R^T (X_cam - t); normals rotate with R^T.
+            px, py, pz = cx - t[0], cy - t[1], cz - t[2]
+            for i in range(3):
+                pts[k, i] = R[0, i] * px + R[1, i] * py + R[2, i] * pz
+                nrm[k, i] = R[0, i] * nx + R[1, i] * ny + R[2, i] * nz
+            idx[k] = y * w + x
+            k += 1
+    return pts, nrm, idx
+
+
+@_jit
+def merge_sorted(
+    order: NDArray[np.int64],
+    starts: NDArray[np.int64],
+    X: NDArray[np.float64],
+    C: NDArray[np.uint8],
+    N: NDArray[np.float32],
+    V: NDArray[np.int32],
+    S: NDArray[np.float32],
+) -> tuple[
+    NDArray[np.float64],
+    NDArray[np.uint8],
+    NDArray[np.float32],
+    NDArray[np.int32],
+    NDArray[np.float32],
+]:
+    """Per run of ``order`` (voxels, from ``starts``): mean position, colour, normal
+    (renormalised; the first member's where the sum cancels), max views, mean score."""
+    m = starts.shape[0]
+    total = order.shape[0]
+    P = np.empty((m, 3), np.float64)
+    Co = np.empty((m, 3), np.uint8)
+    No = np.empty((m, 3), np.float32)
+    Vo = np.empty(m, np.int32)
+    So = np.empty(m, np.float32)
+    for g in range(m):
+        a = starts[g]
+        b = starts[g + 1] if g + 1 < m else total
+        sx = sy = sz = 0.0
+        c0 = c1 = c2 = 0.0
+        n0 = n1 = n2 = 0.0
+        vmax = 0
+        ss = 0.0
+        for j in range(a, b):
+            i = order[j]
+            sx += X[i, 0]
+            sy += X[i, 1]
+            sz += X[i, 2]
+            c0 += C[i, 0]
+            c1 += C[i, 1]
+            c2 += C[i, 2]
+            n0 += N[i, 0]
+            n1 += N[i, 1]
+            n2 += N[i, 2]
+            vmax = max(vmax, V[i])
+            ss += S[i]
+        cnt = b - a
+        P[g, 0] = sx / cnt
+        P[g, 1] = sy / cnt
+        P[g, 2] = sz / cnt
+        Co[g, 0] = np.uint8(min(255.0, c0 / cnt + 0.5))
+        Co[g, 1] = np.uint8(min(255.0, c1 / cnt + 0.5))
+        Co[g, 2] = np.uint8(min(255.0, c2 / cnt + 0.5))
+        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if nn < 1e-3 * cnt:
+            i = order[a]
+            n0, n1, n2 = N[i, 0], N[i, 1], N[i, 2]
+            nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        No[g, 0] = n0 / nn
+        No[g, 1] = n1 / nn
+        No[g, 2] = n2 / nn
+        Vo[g] = vmax
+        So[g] = ss / cnt
+    return P, Co, No, Vo, So
+
+
+@_jit
+def voxel_keys(X: NDArray[np.float64], voxel: float) -> NDArray[np.int64]:
+    """One int64 key per point: its voxel of edge ``voxel`` in a grid over the points' box."""
+    n = X.shape[0]
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for i in range(3):
+        lo[i] = X[0, i] if n else 0.0
+        hi[i] = lo[i]
+    for k in range(n):
+        for i in range(3):
+            v = X[k, i]
+            if v < lo[i]:
+                lo[i] = v
+            if v > hi[i]:
+                hi[i] = v
+    inv = 1.0 / voxel
+    span1 = np.int64((hi[1] - lo[1]) * inv) + 1
+    span2 = np.int64((hi[2] - lo[2]) * inv) + 1
+    keys = np.empty(n, np.int64)
+    for k in range(n):
+        kx = np.int64((X[k, 0] - lo[0]) * inv)
+        ky = np.int64((X[k, 1] - lo[1]) * inv)
+        kz = np.int64((X[k, 2] - lo[2]) * inv)
+        keys[k] = (kx * span1 + ky) * span2 + kz
+    return keys

@@ -301,13 +301,13 @@ def reconstruct_dense(
 
     with timings.stage("consistency"):
         id_cams = {i: cams[i] for i in depths}
-        support = support_counts(depths, id_cams, config.consistency_rel_depth)
+        support, averaged = support_counts(depths, id_cams, config.consistency_rel_depth)
         kept: dict[int, DepthMap] = {}
         keep_masks: dict[int, NDArray[np.bool_]] = {}
         for i, d in depths.items():
             keep = (d > 0) & (support[i] >= config.min_consistent_views)
             keep_masks[i] = keep
-            kept[i] = np.where(keep, d, 0.0).astype(np.float32)
+            kept[i] = np.where(keep, averaged[i], 0.0).astype(np.float32)
 
     with timings.stage("fusion"):
         parts: list[ViewPoints] = [
