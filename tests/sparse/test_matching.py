@@ -172,3 +172,22 @@ def test_empty_features_give_empty_matches():
 def test_config_validation_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         SparseConfig(**{field: value})
+
+
+def test_look_alike_next_to_the_match_makes_it_ambiguous():
+    # A feature on a seam: its epipolar line holds one candidate, but the seam's next
+    # keypoint (off the line, 8 px away) looks the same.
+    rig, _X, uv, desc, noisy = synthetic_pair(n=1, seed=7)
+    fa = make_features(uv[:, 0], desc)
+    F = fundamental_matrix(rig[0], rig[1])
+    line = F @ np.append(uv[0, 0], 1.0)
+    normal = line[:2] / np.hypot(*line[:2])
+    beside = uv[:, 1] + 8.0 * normal  # off the epipolar line
+    fb = make_features(np.vstack([uv[:, 1], beside]), np.vstack([noisy, noisy]))
+    assert len(match_pair(fa, fb, rig[0], rig[1], SparseConfig())) == 0
+    m = match_pair(fa, fb, rig[0], rig[1], SparseConfig(neighbour_competitors=0))
+    assert len(m) == 1 and m.location_b[0] == 0
+    # A different-looking neighbour does not hurt.
+    other = unit(np.random.default_rng(8), 1)
+    fb = make_features(np.vstack([uv[:, 1], beside]), np.vstack([noisy, other]))
+    assert len(match_pair(fa, fb, rig[0], rig[1], SparseConfig())) == 1

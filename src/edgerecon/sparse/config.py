@@ -62,6 +62,14 @@ class SparseConfig:
     occlusion. 0 disables the test."""
     max_descriptor_distance: float = 0.75
     """Largest (Root)SIFT descriptor distance of a match (unit-norm descriptors: 0..sqrt 2)."""
+    neighbour_competitors: int = 8
+    """Also count as ratio-test competitors this many keypoints near the match (off the
+    epipolar line) in each view; 0 = epipolar candidates only. Rejects matches along lines and
+    repeated textures whose epipolar line holds no competitor (utrecht4cam's floor seams
+    triangulated 1 m below the floor); measured: precision at 2 cm 0.87 -> 0.89 on the
+    synthetic arc7 with more points, 0.96 -> 0.99 on the 5-camera box scene."""
+    neighbour_radius: float = 0.05
+    """Radius of that neighbourhood as a share of the image diagonal (40 px at 644x486)."""
     mutual: bool = True
     """Keep only matches that are each other's best candidate in both directions."""
     min_depth: float = 0.0
@@ -119,6 +127,8 @@ class SparseConfig:
             0 < self.max_descriptor_distance <= 2,
             "must be in (0, 2]",
         )
+        check("neighbour_competitors", self.neighbour_competitors >= 0, "must be >= 0")
+        check("neighbour_radius", self.neighbour_radius > 0, "must be > 0")
         check("min_depth", self.min_depth >= 0, "must be >= 0")
         check("max_depth", self.max_depth > self.min_depth, "must be > min_depth")
         check("max_pair_angle_deg", 0 < self.max_pair_angle_deg <= 180, "must be in (0, 180]")

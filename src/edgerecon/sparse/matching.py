@@ -18,7 +18,11 @@ Per camera pair (vectorised NumPy, no per-feature Python loop):
    once, with the smallest descriptor distance);
 4. ratio test among the candidates of each location in both directions, where the second best
    must lie at another position (more than ``_SAME_PLACE_PX`` away), an absolute descriptor
-   distance bound, and mutual consistency.
+   distance bound, and mutual consistency;
+5. the same ratio test against the keypoints *near* the match off the epipolar line
+   (``neighbour_competitors``): a feature on a straight seam or a repeated texture has a single
+   candidate on each epipolar line, so step 4 cannot see its ambiguity, but its neighbours
+   along the seam look just like it.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from edgerecon.geometry.camera import Camera, fundamental_matrix
 from edgerecon.sparse.config import DEFAULT_CONFIG, SparseConfig
@@ -348,6 +353,17 @@ def match_pair(
         both = (bwd[order][pos] == fwd) if len(bwd) else np.zeros(len(fwd), bool)
         fr = np.maximum(fr, gr[order][pos]) if len(bwd) else fr
         fa, fb, fd, fr = fa[both], fb[both], fd[both], fr[both]
+    if config.neighbour_competitors > 0 and len(fa):
+        # Look-alikes *near* the match but off the epipolar line (a line feature, a repeated
+        # texture) make the match ambiguous even when the line holds no competitor.
+        k = config.neighbour_competitors
+        rad_a = config.neighbour_radius * float(np.hypot(cam_a.width, cam_a.height))
+        rad_b = config.neighbour_radius * float(np.hypot(cam_b.width, cam_b.height))
+        r_b = _local_ratio(fa, fb, fd, feats_a, feats_b, fa_of, fb_of, k, rad_b)
+        r_a = _local_ratio(fb, fa, fd, feats_b, feats_a, fb_of, fa_of, k, rad_a)
+        fr = np.maximum(fr, np.maximum(r_a, r_b)).astype(np.float32)
+        ok = fr < config.ratio
+        fa, fb, fd, fr = fa[ok], fb[ok], fd[ok], fr[ok]
     return PairMatches(
         view_a=view_a,
         view_b=view_b,
@@ -357,6 +373,41 @@ def match_pair(
         ratio=fr,
         num_candidates=num_candidates,
     )
+
+
+def _local_ratio(
+    loc_a: NDArray[np.int64],
+    loc_b: NDArray[np.int64],
+    dist: NDArray[np.float32],
+    feats_a: Features,
+    feats_b: Features,
+    fa_of: tuple[NDArray[np.int64], NDArray[np.int64]],
+    fb_of: tuple[NDArray[np.int64], NDArray[np.int64]],
+    k: int,
+    radius: float,
+) -> NDArray[np.float32]:
+    """(M,) match distance / smallest distance from a's descriptors to the ``k`` locations of
+    b nearest to the matched one within ``radius`` px (excluding the same place)."""
+    pts_b = feats_b.location_points2D
+    dd, nn = cKDTree(pts_b).query(
+        pts_b[loc_b], k=min(k + 1, len(pts_b)), distance_upper_bound=radius
+    )
+    dd, nn = dd.reshape(len(loc_b), -1), nn.reshape(len(loc_b), -1)
+    valid = np.isfinite(dd) & (dd > _SAME_PLACE_PX)
+    rows, cols = np.nonzero(valid)
+    out = np.zeros(len(loc_b), np.float32)
+    if len(rows) == 0:
+        return out
+    la, lb = loc_a[rows], nn[rows, cols].astype(np.int64)
+    ia, ib, pair = _expand(la, lb, fa_of, fb_of)
+    d = _descriptor_distances(feats_a.descriptors, feats_b.descriptors, ia, ib)
+    best = np.full(len(la), np.inf, np.float32)
+    np.minimum.at(best, pair, d)
+    second = np.full(len(loc_b), np.inf, np.float32)
+    np.minimum.at(second, rows, best)
+    with np.errstate(divide="ignore"):
+        out = np.where(np.isfinite(second), dist / second, 0.0).astype(np.float32)
+    return out
 
 
 def _features_of_locations(feats: Features) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
