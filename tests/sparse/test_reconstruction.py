@@ -162,3 +162,16 @@ def test_auto_tilts_only_for_wide_baseline_rigs():
     assert use_affine(blank_views(12), SparseConfig(affine_simulation="on"))
     assert use_affine(blank_views(5), SparseConfig())  # 72 degrees apart
     assert not use_affine(blank_views(5), SparseConfig(affine_simulation="off"))
+
+
+def test_colours_of_many_points_sampled_exactly():
+    from edgerecon.sparse.reconstruction import _colors
+
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (300, 400, 3), dtype=np.uint8)
+    cam = ring_rig(3, width=400, height_px=300)[0]
+    view = View(camera_id=0, camera=cam, image=image)
+    n = 40_000  # more than OpenCV's 32767-row limit of remap maps
+    px = np.stack([rng.integers(0, 400, n), rng.integers(0, 300, n)], axis=1)
+    colours = _colors([view], px[:, None, :].astype(float), np.ones((n, 1), bool))
+    assert np.array_equal(colours, image[px[:, 1], px[:, 0], ::-1])

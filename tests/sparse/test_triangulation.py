@@ -108,3 +108,14 @@ def test_triangulation_angle_known_answer():
     ang = max_triangulation_angle_deg(cams, X, obs)
     assert ang == pytest.approx([72.0, 144.0, 144.0])
     assert max_triangulation_angle_deg(cams, X[:1], np.array([[True] + [False] * 4]))[0] == 0.0
+
+
+def test_triangulation_angle_many_points_matches_two_view_formula():
+    from edgerecon.geometry.camera import triangulation_angle_deg
+
+    cams = list(ring_rig(5))
+    X = scene_points(200_000, seed=3)  # several chunks
+    obs = np.zeros((len(X), 5), bool)
+    obs[:, [1, 3]] = True
+    got = max_triangulation_angle_deg(cams, X, obs)
+    assert np.allclose(got, triangulation_angle_deg(cams[1], cams[3], X), atol=1e-6)

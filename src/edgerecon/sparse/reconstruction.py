@@ -230,16 +230,6 @@ def _gather_points(feats: Sequence[Features], locations: NDArray[np.int64]) -> N
     return pts
 
 
-def _evaluate(
-    cameras: Sequence[Camera],
-    X: NDArray[np.float64],
-    pts: NDArray[np.float64],
-    observed: NDArray[np.bool_],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    err, depth = reprojection_errors(cameras, X, pts, observed)
-    return err, depth
-
-
 def _triangulate(
     views: Sequence[View],
     cameras: Sequence[Camera],
@@ -445,13 +435,19 @@ def _colors(views: Sequence[View], pts: NDArray[np.float64], observed: NDArray[n
         if not np.any(obs):
             continue
         p = pts[obs, v].astype(np.float32)
+        # remap maps must stay below 32767 rows and columns: lay the samples out in rows.
+        n = len(p)
+        width = 1024
+        rows = -(-n // width)
+        grid = np.zeros((rows * width, 2), np.float32)
+        grid[:n] = p
         sample = cv2.remap(
             views[v].image,
-            p[:, 0].reshape(-1, 1),
-            p[:, 1].reshape(-1, 1),
+            grid[:, 0].reshape(rows, width),
+            grid[:, 1].reshape(rows, width),
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_REPLICATE,
-        ).reshape(-1, 3)
+        ).reshape(-1, 3)[:n]
         acc[obs] += sample[:, ::-1]
     n = np.maximum(observed.sum(axis=1), 1)[:, None]
     return np.clip(np.rint(acc / n), 0, 255).astype(np.uint8)

@@ -172,11 +172,15 @@ def max_triangulation_angle_deg(
     if T == 0:
         return np.zeros(0)
     centres = np.array([c.center for c in cameras])
-    rays = points3D[:, None, :] - centres[None]  # (T, V, 3)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rays /= np.linalg.norm(rays, axis=2, keepdims=True)
-    cos = np.einsum("tai,tbi->tab", rays, rays)
-    both = observed[:, :, None] & observed[:, None, :]
-    cos = np.where(both, cos, 1.0)
-    cos = np.nan_to_num(cos, nan=1.0)
-    return np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
+    out = np.zeros(T)
+    step = max(1, (1 << 21) // observed.shape[1] ** 2)  # bounds the (T, V, V) cosines
+    for s in range(0, T, step):
+        rays = points3D[s : s + step, None, :] - centres[None]  # (t, V, 3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+        cos = np.einsum("tai,tbi->tab", rays, rays)
+        obs = observed[s : s + step]
+        cos = np.where(obs[:, :, None] & obs[:, None, :], cos, 1.0)
+        cos = np.nan_to_num(cos, nan=1.0)
+        out[s : s + step] = np.degrees(np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0)))
+    return out
