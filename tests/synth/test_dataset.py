@@ -72,3 +72,27 @@ def test_video_output_is_lossless(tmp_path):
     want = Renderer(build_scene(cfg)).render(2).images[1]
     assert got is not None
     assert np.abs(got.astype(int) - want.astype(int)).max() <= 0
+
+
+def test_same_seed_same_files(tmp_path):
+    import hashlib
+
+    cfg = preset_config("demo", num_frames=2, background_frames=1, width=80, height=60, seed=7)
+
+    def digest(root):
+        return {
+            p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*"))
+            if p.is_file()
+        }
+
+    write_dataset(cfg, tmp_path / "a")
+    write_dataset(cfg, tmp_path / "b")
+    a, b = digest(tmp_path / "a"), digest(tmp_path / "b")
+    assert len(a) > 20 and a == b
+    write_dataset(
+        preset_config("demo", num_frames=2, background_frames=1, width=80, height=60, seed=8),
+        tmp_path / "c",
+    )
+    c = digest(tmp_path / "c")
+    assert a["frames/cam0/000001.png"] != c["frames/cam0/000001.png"]
