@@ -19,23 +19,26 @@ they prove; see ``docs/OPTIMIZER.md`` for the measurements behind the automatic 
 * ``cpsat`` — exact ILP with OR-Tools CP-SAT on the aggregated patterns
   (``sum_{n in S_k} o_n >= min_views`` enforced when ``y_k``), warm-started from local search,
   with a *deterministic* work limit so the result is reproducible.
-* ``milp`` — exact ILP with SciPy's ``milp`` (HiGHS); ``strong`` formulation
-  ``y_k <= sum_{m in S_k, m != n} o_m`` for every n in S_k, which is much tighter in the LP
-  relaxation than the paper's ``2 y_k <= sum_n A_kn o_n``.
-* ``local_search`` — reverse greedy (drop the least useful camera, N -> 3) followed by
-  best-improvement swaps. Heuristic; used as the warm start of the ILPs.
+* ``milp`` — exact ILP with SciPy's ``milp`` (HiGHS): the paper's ``2 y_k <= sum_n A_kn o_n``
+  on weighted patterns (``naive``), or ``strong``, which adds ``y_k <= sum_{m in S_k, m != n}
+  o_m`` for every n in S_k (tighter where the LP concentrates on few cameras; faster on
+  structured visibility, slower on random; HiGHS is the slowest exact solver either way).
+* ``local_search`` — reverse greedy (drop the least useful camera, N -> 1) followed by
+  best-improvement swaps and a few seeded 2-swap kicks (iterated local search): within 1 % of
+  the best known solution at N = 30 in 0.02-0.2 s, the ``auto`` choice above 20 cameras.
 
-Large problems (many distinct patterns) are first reduced to at most ``max_key_points`` weighted
-key patterns by k-means on the visibility rows (the paper's "k-means key points", done in
-pattern space: points with the same pattern are interchangeable for this objective, so the
-reduction is exact while the number of distinct patterns fits the budget). The chosen set is
-always re-scored on the full data; the local-search answer on the full data competes with it.
+For ``cpsat`` / ``milp``, problems with many distinct patterns are first reduced to at most
+``max_key_points`` weighted key patterns by k-means on the visibility rows (the paper's
+"k-means key points", done in pattern space: points with the same pattern are interchangeable
+for this objective, so the reduction is exact while the number of distinct patterns fits the
+budget — the case on real sparse clouds). The chosen set is always re-scored on the full data,
+and the local-search answer competes with it.
 
 Without points (P = 0 or no point seen twice) selection does not fail: given camera centres
 (and optionally viewing directions) it solves the same problem on *virtual* points — surface
 orientations around the point the cameras look at, seen by a camera when they face it
-(:func:`geometric_visibility`), which spreads the chosen cameras around the scene while keeping
-neighbours overlapping. Without geometry either, every subset ties and the tie-break picks the
+(:func:`geometric_visibility`): the chosen cameras form overlapping groups that cover as many
+surface orientations twice as possible. Without geometry either, every subset ties and the tie-break picks the
 lowest ids (a logged warning).
 """
 
@@ -44,7 +47,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any, Literal
@@ -96,7 +99,7 @@ class SelectionConfig:
     only at ``time_limit_s`` (wall clock: not reproducible when the limit is hit)."""
     num_workers: int = 1
     """CP-SAT workers (more than 1 is not reproducible)."""
-    milp_formulation: Literal["strong", "naive"] = "naive"
+    milp_formulation: Literal["strong", "naive"] = "strong"
     """``naive`` is the paper's ``2 y_k <= sum_n A_kn o_n`` (weak LP relaxation, slow);
     ``strong`` adds ``y_k <= sum_{m in S_k, m != n} o_m`` for each camera n of a pattern."""
     seed: int = 0
@@ -1090,8 +1093,3 @@ def camera_mapping(
         camera_centers=camera_centers,
         viewing_directions=viewing_directions,
     ).mapping(sizes)
-
-
-CameraMappingLike = (
-    CameraMapping | CameraSelector | Mapping[int, Sequence[int]] | Callable[[int], Sequence[int]]
-)
