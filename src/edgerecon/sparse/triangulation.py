@@ -115,7 +115,8 @@ def refine_points(
     iterations: int = 5,
 ) -> FloatArray:
     """Gauss-Newton refinement of (T, 3) points on the squared pixel reprojection error of
-    their observations (points in front of all observing cameras; others are left as they are)."""
+    their observations (points in front of all observing cameras; others are left as they are).
+    A step is kept only where it lowers the cost; points stop iterating once it stalls."""
     X = np.array(points3D, dtype=np.float64, copy=True)
     T = X.shape[0]
     if T == 0 or iterations == 0:
@@ -123,43 +124,47 @@ def refine_points(
     R = np.array([c.R for c in cameras])
     t = np.array([c.t for c in cameras])
     Kp = np.array([c.K[:2, :2] for c in cameras])  # (V, 2, 2) pixel from normalised
-    pts = np.nan_to_num(points2D)
-    w = observed.astype(np.float64)
-    cost = _cost(cameras, X, pts, observed)
+    pp = np.array([c.K[:2, 2] for c in cameras])  # (V, 2) principal points
+    R0, R1, R2 = R[None, :, 0], R[None, :, 1], R[None, :, 2]  # (1, V, 3)
+    pts_all = np.nan_to_num(points2D)
+    cost_all = _cost(cameras, X, pts_all, observed)
+    active = np.flatnonzero(np.all(np.isfinite(X), axis=1))
     for _ in range(iterations):
-        valid = np.all(np.isfinite(X), axis=1)
-        Xs = np.where(valid[:, None], X, 0.0)
-        Xc = np.einsum("vij,tj->tvi", R, Xs) + t[None]
+        if len(active) == 0:
+            break
+        Xa, obs, pts, cost = X[active], observed[active], pts_all[active], cost_all[active]
+        w = obs.astype(np.float64)
+        Xc = np.einsum("vij,tj->tvi", R, Xa) + t[None]
         z = Xc[:, :, 2]
-        ok = (z > 0) | ~observed
+        in_front = np.all((z > 0) | ~obs, axis=1)
         zs = np.where(z > 0, z, 1.0)
         xn = Xc[:, :, 0] / zs
         yn = Xc[:, :, 1] / zs
-        uv = np.einsum("vij,tvj->tvi", Kp, np.stack([xn, yn], 2))
-        uv += np.array([c.K[:2, 2] for c in cameras])[None]
-        r = (uv - pts) * w[:, :, None]  # (T, V, 2)
-        # d(xn, yn)/dXc then d/dX = ... @ R, then pixels via Kp.
-        dn = np.zeros((T, len(cameras), 2, 3))
-        dn[:, :, 0, 0] = 1 / zs
-        dn[:, :, 0, 2] = -xn / zs
-        dn[:, :, 1, 1] = 1 / zs
-        dn[:, :, 1, 2] = -yn / zs
-        J = np.einsum("vab,tvbc,vcd->tvad", Kp, dn, R) * w[:, :, None, None]
-        H = np.einsum("tvai,tvaj->tij", J, J)
-        g = np.einsum("tvai,tva->ti", J, r)
+        u = Kp[None, :, 0, 0] * xn + Kp[None, :, 0, 1] * yn + pp[None, :, 0]
+        v = Kp[None, :, 1, 1] * yn + pp[None, :, 1]
+        ru = (u - pts[:, :, 0]) * w
+        rv = (v - pts[:, :, 1]) * w
+        # d(xn, yn)/dX = ([R0 - xn R2], [R1 - yn R2]) / z, then pixels through K's 2x2 part.
+        wz = (w / zs)[:, :, None]
+        dx = (R0 - xn[:, :, None] * R2) * wz
+        dy = (R1 - yn[:, :, None] * R2) * wz
+        Ju = Kp[None, :, 0, 0, None] * dx + Kp[None, :, 0, 1, None] * dy  # (t, V, 3)
+        Jv = Kp[None, :, 1, 1, None] * dy
+        H = np.einsum("tvi,tvj->tij", Ju, Ju) + np.einsum("tvi,tvj->tij", Jv, Jv)
+        g = np.einsum("tvi,tv->ti", Ju, ru) + np.einsum("tvi,tv->ti", Jv, rv)
         damp = 1e-9 * np.trace(H, axis1=1, axis2=2) + 1e-300
         H = H + damp[:, None, None] * np.eye(3)
-        solvable = valid & np.all(ok, axis=1) & (np.linalg.det(H) > 0)
-        delta = np.zeros((T, 3))
+        solvable = in_front & (np.linalg.det(H) > 0)
+        delta = np.zeros_like(Xa)
         if np.any(solvable):
             delta[solvable] = -np.linalg.solve(H[solvable], g[solvable][:, :, None])[:, :, 0]
-        X_new = X + delta
-        new_cost = _cost(cameras, X_new, pts, observed)
+        X_new = Xa + delta
+        new_cost = _cost(cameras, X_new, pts, obs)
         better = solvable & (new_cost < cost)
-        X[better] = X_new[better]
-        cost[better] = new_cost[better]
-        if not np.any(better):
-            break
+        X[active[better]] = X_new[better]
+        cost_all[active[better]] = new_cost[better]
+        # Keep iterating only where the step still bought something.
+        active = active[better & (new_cost < cost * (1 - 1e-9))]
     return X
 
 
