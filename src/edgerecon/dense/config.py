@@ -51,10 +51,27 @@ class DenseConfig:
     min_texture: float = 1.5
     """Reference windows with a grey-level standard deviation below this (0..255 scale) are
     discarded: NCC is meaningless on flat patches."""
+    min_epipolar_texture: float = 0.5
+    """A source is ignored at pixels whose reference window has less texture along that
+    source's epipolar lines (RMS derivative, grey levels per pixel): edges parallel to the
+    baseline match anywhere along themselves (aperture problem); 0 disables the test."""
+    min_epipolar_share: float = 0.1
+    """... and at least this share of the window's gradient energy must lie along the
+    epipolar direction (0.1 ~ edges at least 18 degrees off the epipolar lines)."""
     consistency_rel_depth: float = 0.01
     """A depth agrees with another view when their depths differ by less than this share."""
     min_consistent_views: int = 1
     """A depth is kept only if at least this many other views agree (1 -> seen by >= 2 views)."""
+    ground_completion: bool = True
+    """Fill textureless floor pixels from the ground plane fitted to the stereo points, where
+    the other views confirm the colour and none sees through (``dense.planes``)."""
+    ground_color_tol: float = 20.0
+    """Largest per-channel difference (0..255) of 5x5-mean colours for a view to confirm."""
+    ground_max_texture: float = 4.0
+    """Only pixels whose 7x7 grey standard deviation is below this are completed: textured
+    pixels without a consistent depth are occlusions or mismatches, not blank floor."""
+    ground_min_support: int = 100
+    """Stereo points on the ground needed before the plane is used."""
     voxel_size: float | None = None
     """Fusion merges points within one voxel of this edge (rig units); None = ``voxel_rel``
     times the median pixel footprint (depth / focal) of the depth maps."""
@@ -103,6 +120,8 @@ class DenseConfig:
         need(0 <= self.propagation_iterations <= 8, "propagation_iterations", "in 0..8")
         need(-1.0 <= self.min_ncc < 1.0, "min_ncc", "in [-1, 1)")
         need(self.min_texture >= 0.0, "min_texture", ">= 0")
+        need(self.min_epipolar_texture >= 0.0, "min_epipolar_texture", ">= 0")
+        need(0.0 <= self.min_epipolar_share < 1.0, "min_epipolar_share", "in [0, 1)")
         need(0.0 < self.consistency_rel_depth < 1.0, "consistency_rel_depth", "in (0, 1)")
         need(self.min_consistent_views >= 0, "min_consistent_views", ">= 0")
         need(
@@ -110,6 +129,9 @@ class DenseConfig:
             "voxel_size",
             "None or a positive length",
         )
+        need(self.ground_color_tol > 0, "ground_color_tol", "> 0")
+        need(self.ground_max_texture > 0, "ground_max_texture", "> 0")
+        need(self.ground_min_support >= 3, "ground_min_support", ">= 3")
         need(0.1 <= self.voxel_rel <= 20.0, "voxel_rel", "in [0.1, 20]")
         need(self.max_depth_rel_scene > 0, "max_depth_rel_scene", "> 0")
         need(0.0 <= self.range_margin_rel < 1.0, "range_margin_rel", "in [0, 1)")

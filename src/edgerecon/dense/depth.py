@@ -337,6 +337,9 @@ def _sweep(
     w_lo = np.where(far > 0, 1.0 / np.maximum(far, 1e-30), np.inf).astype(np.float32)
     w_hi = np.where(near > 0, 1.0 / np.maximum(near, 1e-30), -np.inf).astype(np.float32)
     srcs, sizes = _stack_sources(pairs)
+    src_ok = _epipolar_texture_ok(
+        cam, stats, pairs, config.min_epipolar_texture, config.min_epipolar_share
+    )
     for fam in _families(cam, rays, up, config):
         lams = _plane_parameters(
             fam, rays, near, far, pairs, config.plane_step_px, config.max_planes
@@ -352,7 +355,7 @@ def _sweep(
         prev = np.full((h, w), -1.0, np.float32)
         nxt = np.full((h, w), -1.0, np.float32)
         kernels.sweep(
-            stats.image, stats.mean, stats.var, stats.count, srcs, sizes, Hs,
+            stats.image, stats.mean, stats.var, stats.count, srcs, sizes, src_ok, Hs,
             lams.astype(np.float64), fam.nray, fam.usable, w_lo, w_hi, stats.radius,
             config.ncc_top_k, best, idx, prev, nxt,
         )  # fmt: skip
@@ -394,9 +397,54 @@ class _Sources:
     """(S, 3) K_s t."""
     srcs: F32
     sizes: NDArray[np.int64]
+    ok: NDArray[np.bool_]
+    """(S, h, w) False where a source cannot decide (``_epipolar_texture_ok``)."""
 
 
-def _sources(rays: NDArray[np.float32], pairs: Sequence[_Pair]) -> _Sources:
+def _epipolar_texture_ok(
+    cam: Camera,
+    stats: _RefStats,
+    pairs: Sequence[_Pair],
+    min_texture: float,
+    min_share: float = 0.0,
+) -> NDArray[np.bool_]:
+    """(S, h, w) True where the reference window has texture along the epipolar line of
+    source s: the RMS of the image derivative along the line, in grey levels per pixel, at
+    least ``min_texture`` and at least ``min_share`` of the window's whole gradient energy.
+
+    Matching slides windows along epipolar lines; an edge parallel to them (a floor seam
+    running parallel to the baseline) matches equally well everywhere along it (the aperture
+    problem), and both views of such a pair can agree on the same wrong depth, which the
+    consistency check cannot catch."""
+    h, w = stats.image.shape
+    out = np.ones((len(pairs), h, w), dtype=bool)
+    if min_texture <= 0 and min_share <= 0:
+        return out
+    gx = as_f32(cv2.Sobel(stats.image, cv2.CV_32F, 1, 0, ksize=3, scale=0.125))
+    gy = as_f32(cv2.Sobel(stats.image, cv2.CV_32F, 0, 1, ksize=3, scale=0.125))
+    u, v = _pixel_grid(w, h)
+    k = (2 * stats.radius + 1, 2 * stats.radius + 1)
+    total = as_f32(cv2.boxFilter(gx * gx + gy * gy, -1, k)) if min_share > 0 else None
+    for i, p in enumerate(pairs):
+        # Source centre in the reference crop: x ~ K (R_ref C_s + t_ref) = K (-R^T t) ...
+        c_src = -p.R.T @ p.t  # source centre in the reference camera frame
+        e = cam.K @ c_src
+        if abs(e[2]) > 1e-9 * np.linalg.norm(e):
+            dx = u - np.float32(e[0] / e[2])
+            dy = v - np.float32(e[1] / e[2])
+        else:
+            dx = np.full((h, w), np.float32(e[0]))
+            dy = np.full((h, w), np.float32(e[1]))
+        norm = np.sqrt(dx * dx + dy * dy) + np.float32(1e-12)
+        g = (gx * dx + gy * dy) / norm
+        energy = as_f32(cv2.boxFilter(g * g, -1, k))
+        out[i] = energy >= np.float32(min_texture * min_texture)
+        if total is not None:
+            out[i] &= energy >= np.float32(min_share) * total
+    return out
+
+
+def _sources(rays: NDArray[np.float32], pairs: Sequence[_Pair], ok: NDArray[np.bool_]) -> _Sources:
     a = np.empty((len(pairs), 3, *rays.shape[:2]), np.float32)
     b = np.empty((len(pairs), 3), np.float32)
     for i, p in enumerate(pairs):
@@ -404,13 +452,13 @@ def _sources(rays: NDArray[np.float32], pairs: Sequence[_Pair]) -> _Sources:
         a[i] = np.moveaxis(rays @ M.T, -1, 0)
         b[i] = p.K @ p.t
     srcs, sizes = _stack_sources(pairs)
-    return _Sources(a=a, b=b, srcs=srcs, sizes=sizes)
+    return _Sources(a=a, b=b, srcs=srcs, sizes=sizes, ok=ok)
 
 
 def _evaluate(inv: F32, src: _Sources, stats: _RefStats, top_k: int, w_lo: F32, w_hi: F32) -> F32:
     out = np.empty(inv.shape, np.float32)
     kernels.evaluate(
-        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.a, src.b,
+        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok, src.a, src.b,
         np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi, stats.radius, top_k, out,
     )  # fmt: skip
     return out
@@ -577,7 +625,13 @@ def estimate_depth(
         near_l, far_l = _bounds_at(near, far, r, cam0, cam_l)
         w_lo = np.where(far_l > 0, 1.0 / np.maximum(far_l, 1e-30), np.inf).astype(np.float32)
         w_hi = np.where(near_l > 0, 1.0 / np.maximum(near_l, 1e-30), 0.0).astype(np.float32)
-        src = _sources(_rays(crop), pairs)
+        src = _sources(
+            _rays(crop),
+            pairs,
+            _epipolar_texture_ok(
+                crop, stats, pairs, config.min_epipolar_texture, config.min_epipolar_share
+            ),
+        )
         lo, hi = w_lo * np.float32(0.999), w_hi * np.float32(1.001)
         if inv is None:
             inv, score, wk, planes = _sweep(crop, stats, pairs, near_l, far_l, up, config)

@@ -137,6 +137,7 @@ def _scores(
     count: F32,
     srcs: F32,
     sizes: NDArray[np.int64],
+    src_ok: NDArray[np.bool_],
     mode: int,
     H: NDArray[np.float64],
     a: F32,
@@ -231,7 +232,7 @@ def _scores(
                     s1 -= acc[s, 1, xo]
                     s2 -= acc[s, 2, xo]
                     s3 -= acc[s, 3, xo]
-                if s3 > 0.5:
+                if s3 > 0.5 or not src_ok[s, y, x]:
                     row_ncc[s, x] = _NEG
                 else:
                     n = count[y, x]
@@ -269,6 +270,7 @@ def sweep(
     count: F32,
     srcs: F32,
     sizes: NDArray[np.int64],
+    src_ok: NDArray[np.bool_],
     homographies: NDArray[np.float64],
     lams: NDArray[np.float64],
     nray: F32,
@@ -299,7 +301,7 @@ def sweep(
     for p in range(P):
         lam = lams[p]
         _scores(
-            ref, mean, var, count, srcs, sizes, 0, homographies[p], dummy_a, dummy_b,
+            ref, mean, var, count, srcs, sizes, src_ok, 0, homographies[p], dummy_a, dummy_b,
             dummy_inv, r, top_k, score,
         )  # fmt: skip
         for y in range(h):
@@ -326,6 +328,7 @@ def evaluate(
     count: F32,
     srcs: F32,
     sizes: NDArray[np.int64],
+    src_ok: NDArray[np.bool_],
     a: F32,
     b: NDArray[np.float32],
     inv: F32,
@@ -341,7 +344,7 @@ def evaluate(
     Scores are -1 where ``inv`` is outside ``(w_lo, w_hi)``."""
     h, w = ref.shape
     dummy_H = np.zeros((1, 3, 3), np.float64)
-    _scores(ref, mean, var, count, srcs, sizes, 1, dummy_H, a, b, inv, r, top_k, out)
+    _scores(ref, mean, var, count, srcs, sizes, src_ok, 1, dummy_H, a, b, inv, r, top_k, out)
     for y in range(h):
         for x in range(w):
             iv = inv[y, x]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -12,12 +13,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.dense import kernels
 from edgerecon.dense.config import DenseConfig
 from edgerecon.dense.consistency import support_counts
 from edgerecon.dense.cost import as_f32, to_grey
 from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid, estimate_depth
 from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
 from edgerecon.dense.neighbors import score_sources, select_sources
+from edgerecon.dense.planes import Plane, below_plane, complete_with_plane, fit_ground_plane
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
 from edgerecon.geometry.camera import Camera
 from edgerecon.progress import track
@@ -326,27 +329,55 @@ def reconstruct_dense(
         if voxel is None:
             foot = _auto_voxel(kept, cams)
             voxel = None if foot is None else foot * config.voxel_rel
+
+    plane = None
+    if config.ground_completion and up_vec is not None and voxel and parts:
+        with timings.stage("ground"):
+            plane, extra = _complete_ground(
+                parts, kept, cams, colors, masks, plans, up_vec, voxel, config
+            )
+            if plane is not None:
+                parts = [_drop_below(p, plane, 3.0 * voxel) for p in parts]
+            for i, (d, sup) in extra.items():
+                add = d > 0
+                if not add.any():
+                    continue
+                kept[i] = np.where(add, d, kept[i]).astype(np.float32)
+                vp = view_points(
+                    views[i].camera_id, cams[i], d, colors[i], add, sup,
+                    np.zeros(d.shape, np.float32),
+                )  # fmt: skip
+                assert plane is not None
+                # Points on the plane get its normal (their neighbours may be stereo pixels).
+                vp.normals[:] = np.asarray(plane.normal, np.float32)
+                parts.append(vp)
+                stats["views"].setdefault(views[i].camera_id, {})["ground_depths"] = int(add.sum())
+
+    with timings.stage("fusion"):
         cloud = voxel_merge(parts, voxel) if voxel else voxel_merge([], 1.0)
 
     for p in plans:
         i = p["index"]
-        stats["views"][views[i].camera_id] = {
-            "sources": [views[j].camera_id for j in p["sources"]],
-            "depth_range": p["range"],
-            "range_from": p["range_from"],
-            "rois": len(p["rois"]),
-            "roi_pixels": int(sum(r.area for r in p["rois"])),
-            "planes": p["planes"],
-            "work": p["work"],
-            "raw_depths": int((depths[i] > 0).sum()) if i in depths else 0,
-            "consistent_depths": int(keep_masks[i].sum()) if i in keep_masks else 0,
-        }
+        stats["views"].setdefault(views[i].camera_id, {}).update(
+            {
+                "sources": [views[j].camera_id for j in p["sources"]],
+                "depth_range": p["range"],
+                "range_from": p["range_from"],
+                "rois": len(p["rois"]),
+                "roi_pixels": int(sum(r.area for r in p["rois"])),
+                "planes": p["planes"],
+                "work": p["work"],
+                "raw_depths": int((depths[i] > 0).sum()) if i in depths else 0,
+                "consistent_depths": int(keep_masks[i].sum()) if i in keep_masks else 0,
+            }
+        )
     stats.update(
         work=int(work),
         working_scale=scale,
         voxel_size=float(voxel) if voxel else None,
         num_points=len(cloud),
         up=None if up_vec is None else [float(x) for x in up_vec],
+        ground_plane=None if plane is None else dataclasses.asdict(plane),
     )
     logger.info(
         "dense: %d points from %d views in %.2f s (%s)",
@@ -457,3 +488,64 @@ def _auto_voxel(depths: Mapping[int, DepthMap], cams: Sequence[Camera]) -> float
         if len(z):
             foot.append(float(np.median(z)) / cams[i].focal_px)
     return float(np.median(foot)) if foot else None
+
+
+def _complete_ground(
+    parts: Sequence[ViewPoints],
+    kept: Mapping[int, DepthMap],
+    cams: Sequence[Camera],
+    colors: Sequence[Image],
+    masks: Sequence[Mask | None],
+    plans: Sequence[dict[str, Any]],
+    up: NDArray[np.float64],
+    voxel: float,
+    config: DenseConfig,
+) -> tuple[Plane | None, dict[int, tuple[DepthMap, NDArray[np.int16]]]]:
+    """Fit the ground plane to the stereo points and fill textureless floor pixels."""
+    pts = np.concatenate([p.points3D for p in parts])
+    nrm = np.concatenate([p.normals for p in parts])
+    nv = np.concatenate([p.num_views for p in parts])
+    plane = fit_ground_plane(pts, nrm, nv, up, 3.0 * voxel, config.ground_min_support)
+    if plane is None:
+        return None, {}
+    by_index = {p["index"]: p for p in plans}
+    regions = {}
+    far = {}
+    for i in kept:
+        p = by_index[i]
+        region = p["near"] > 0 if "near" in p else np.zeros(kept[i].shape, bool)
+        if masks[i] is not None:
+            region = region & masks[i]
+        grey = to_grey(colors[i])
+        _, var, _ = kernels.window_stats(grey, 3)
+        region &= var < config.ground_max_texture**2
+        regions[i] = region
+        far[i] = float(p["range"][1]) if p.get("range") else 0.0
+    extra = complete_with_plane(
+        plane,
+        kept,
+        {i: cams[i] for i in kept},
+        {i: colors[i] for i in kept},
+        regions,
+        far,
+        config.consistency_rel_depth,
+        config.ground_color_tol,
+        config.min_consistent_views,
+    )
+    logger.info("dense: ground plane %s", plane)
+    return plane, extra
+
+
+def _drop_below(part: ViewPoints, plane: Plane, band: float) -> ViewPoints:
+    """The part without its points below the ground plane."""
+    keep = ~below_plane(part.points3D, plane, band)
+    if keep.all():
+        return part
+    return ViewPoints(
+        camera_id=part.camera_id,
+        points3D=part.points3D[keep],
+        colors=part.colors[keep],
+        normals=part.normals[keep],
+        num_views=part.num_views[keep],
+        score=part.score[keep],
+    )

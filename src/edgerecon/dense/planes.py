@@ -1,0 +1,189 @@
+"""Planar-prior completion of textureless floors.
+
+Photo-consistency (NCC) cannot place pixels of an untextured floor: every depth looks the
+same. Planar-prior MVS (e.g. Xu & Tao's ACMP) fills such regions from planes supported by
+the reliable depths. Here, the ground plane is perpendicular to the scene's up direction,
+at the height of the dominant bin of a height histogram of the consistent stereo points
+whose normals are near vertical (refined to the median height of its inliers); then every pixel that has no depth and whose ray meets the plane is tested by
+projecting the plane point into the other views:
+
+* a view whose own depth lies clearly *behind* the point contradicts it (it sees through
+  the point: free-space violation) -> rejected;
+* a view whose depth lies clearly in front is occluded there and gives no evidence;
+* otherwise the view must see a similar colour (box-filtered BGR, per-channel tolerance).
+
+A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
+views confirm than deny, and none contradicts. Completed points lie exactly on the fitted
+plane, so they are only as good as the fit (reported in the stage's stats).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.geometry.camera import Camera
+from edgerecon.types import DepthMap, Image
+
+logger = logging.getLogger(__name__)
+
+#: Points whose normal is within this angle of 'up' take part in the ground-plane vote.
+_HORIZONTAL_DEG = 40.0
+
+
+@dataclass(frozen=True)
+class Plane:
+    """The plane ``normal . X = offset`` (normal: unit, pointing up)."""
+
+    normal: tuple[float, float, float]
+    offset: float
+    support: int
+    """Stereo points within the inlier band of the plane."""
+    rms: float
+    """RMS distance of those points to the plane (rig units)."""
+
+
+def fit_ground_plane(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float32],
+    num_views: NDArray[np.integer[Any]],
+    up: NDArray[np.float64],
+    band: float,
+    min_support: int,
+) -> Plane | None:
+    """The dominant horizontal plane of ``points`` (None if too few horizontal points).
+
+    Only points confirmed by at least 3 views vote when there are enough of them: a pair of
+    wide-baseline views can agree on a false line match (two different floor seams whose
+    interpretation planes meet below the floor), which produces a tight, spurious horizontal
+    cluster that a third view never confirms (utrecht4cam frame 200: 1,491 such points 1.1 m
+    below the floor, none seen by 3 views; 306 true floor points are)."""
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    horiz = normals.astype(np.float64) @ up > np.cos(np.radians(_HORIZONTAL_DEG))
+    multi = horiz & (num_views >= 3)
+    if int(multi.sum()) >= min_support:
+        horiz = multi
+    if int(horiz.sum()) < min_support:
+        return None
+    P = points[horiz]
+    h = P @ up
+    lo, hi = float(h.min()), float(h.max())
+    nbins = max(1, int(np.ceil((hi - lo) / band)))
+    counts, edges = np.histogram(h, bins=nbins, range=(lo, lo + nbins * band))
+    k = int(np.argmax(counts))
+    h0 = 0.5 * (edges[k] + edges[k + 1])
+    inl = np.abs(h - h0) <= band
+    if int(inl.sum()) < min_support:
+        return None
+    # The plane keeps the given up direction: a free normal fitted to a few hundred noisy
+    # floor points tilts by degrees (hundreds of millimetres across a room), while the rig's
+    # up (or the cameras' mean image-up) is known far better.
+    n = up
+    # Re-select inliers against the fitted plane and settle the offset on them.
+    d = points @ n
+    off = float(h0)
+    inl_all = horiz & (np.abs(d - off) <= band)
+    if int(inl_all.sum()) >= min_support:
+        off = float(np.median(d[inl_all]))
+    rms = float(np.sqrt(np.mean((d[inl_all] - off) ** 2))) if inl_all.any() else float("inf")
+    return Plane(
+        normal=(float(n[0]), float(n[1]), float(n[2])),
+        offset=off,
+        support=int(inl_all.sum()),
+        rms=rms,
+    )
+
+
+def below_plane(points: NDArray[np.float64], plane: Plane, band: float) -> NDArray[np.bool_]:
+    """(N,) True for points more than ``band`` below the plane (hidden behind an opaque floor
+    from every camera above it: stereo errors)."""
+    return points @ np.asarray(plane.normal) < plane.offset - band
+
+
+def plane_depth(camera: Camera, plane: Plane) -> DepthMap:
+    """(H, W) depth at which each pixel's ray meets the plane (0 where it does not, in front
+    of the camera)."""
+    n = np.asarray(plane.normal)
+    nc = camera.R @ n  # plane normal in the camera frame
+    dist = plane.offset - float(n @ camera.center)  # n . (C + z R^T ray) = offset
+    Kinv = np.linalg.inv(camera.K)
+    u = np.arange(camera.width, dtype=np.float64)[None, :]
+    v = np.arange(camera.height, dtype=np.float64)[:, None]
+    rx = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
+    ry = Kinv[1, 1] * v + Kinv[1, 2]
+    denom = nc[0] * rx + nc[1] * ry + nc[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = dist / denom
+    return np.where(np.isfinite(z) & (z > 0), z, 0.0).astype(np.float32)
+
+
+def complete_with_plane(
+    plane: Plane,
+    depths: Mapping[int, DepthMap],
+    cameras: Mapping[int, Camera],
+    colors: Mapping[int, Image],
+    regions: Mapping[int, NDArray[np.bool_]],
+    far: Mapping[int, float],
+    rel_tol: float,
+    color_tol: float,
+    min_views: int,
+) -> dict[int, tuple[DepthMap, NDArray[np.int16]]]:
+    """Per view, (depth map of the accepted plane pixels, number of confirming views)."""
+    blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
+    out: dict[int, tuple[DepthMap, NDArray[np.int16]]] = {}
+    for i, cam_i in cameras.items():
+        zp = plane_depth(cam_i, plane)
+        cand = (depths[i] <= 0) & (zp > 0) & (zp < far[i]) & regions[i]
+        rows, cols = np.nonzero(cand)
+        result = np.zeros(zp.shape, np.float32)
+        support = np.zeros(zp.shape, np.int16)
+        out[i] = (result, support)
+        if len(rows) == 0:
+            continue
+        z = zp[rows, cols].astype(np.float64)
+        Kinv = np.linalg.inv(cam_i.K)
+        Xc = np.stack(
+            [
+                (Kinv[0, 0] * cols + Kinv[0, 1] * rows + Kinv[0, 2]) * z,
+                (Kinv[1, 1] * rows + Kinv[1, 2]) * z,
+                z,
+            ],
+            axis=1,
+        )
+        X = (Xc - cam_i.t) @ cam_i.R
+        col_i = blurred[i][rows, cols]
+        agree = np.zeros(len(z), np.int16)
+        deny = np.zeros(len(z), np.int16)
+        contra = np.zeros(len(z), bool)
+        for j, cam_j in cameras.items():
+            if j == i:
+                continue
+            uv, zj = cam_j.project(X)
+            with np.errstate(invalid="ignore"):
+                inside = (zj > 0) & cam_j.in_image(uv, margin=0.5)
+            idx = np.nonzero(inside)[0]
+            if len(idx) == 0:
+                continue
+            cj = np.rint(uv[idx, 0]).astype(np.intp)
+            rj = np.rint(uv[idx, 1]).astype(np.intp)
+            dj = depths[j][rj, cj].astype(np.float64)
+            zz = zj[idx]
+            behind = (dj > 0) & (dj > zz * (1 + rel_tol))
+            front = (dj > 0) & (dj < zz * (1 - rel_tol))
+            visible = ~behind & ~front
+            cdiff = np.abs(blurred[j][rj, cj] - col_i[idx]).max(axis=1)
+            good = visible & (cdiff <= color_tol)
+            bad = visible & (cdiff > color_tol)
+            contra[idx[behind]] = True
+            agree[idx[good]] += 1
+            deny[idx[bad]] += 1
+        ok = ~contra & (agree >= min_views) & (agree > deny)
+        result[rows[ok], cols[ok]] = z[ok]
+        support[rows[ok], cols[ok]] = agree[ok]
+    return out
