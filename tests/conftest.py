@@ -44,3 +44,18 @@ def ring_rig(
 @pytest.fixture
 def rig5() -> Rig:
     return ring_rig(5)
+
+
+#: A small synthetic scene shared by the pipeline, runtime and CLI tests (rendered once).
+TINY_SCENE = dict(width=320, height=240, num_frames=8, background_frames=12, seed=7)
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Folder of a 5-camera 320x240 synthetic dataset (8 timestamps, 2 actors) with ground
+    truth, in the format ``open_dataset`` reads."""
+    from edgerecon.synth import preset_config, write_dataset
+
+    out = tmp_path_factory.mktemp("tiny") / "scene"
+    write_dataset(preset_config("demo", **TINY_SCENE), out)
+    return out

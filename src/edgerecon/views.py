@@ -6,6 +6,7 @@ Sparse and dense reconstruction never see distortion or the original resolution:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -114,3 +115,26 @@ def prepare_views(
             )
         )
     return views
+
+
+def with_masks(views: Sequence[View], rig: Rig, masks: Sequence[Mask | None]) -> list[View]:
+    """The same views with full-resolution per-rig-camera ``masks`` mapped onto them (a None
+    mask keeps the whole view). Avoids undistorting the images again."""
+    out = []
+    for view in views:
+        m = masks[view.camera_id]
+        if m is None:
+            out.append(dataclasses.replace(view, mask=None))
+            continue
+        cam = rig[view.camera_id]
+        if m.shape != (cam.height, cam.width):
+            raise DataError(
+                f"camera {cam.name!r}: mask is {m.shape[1]}x{m.shape[0]} but frames are "
+                f"{cam.width}x{cam.height}"
+            )
+        scale = view.camera.width / cam.width
+        mask = undistort_mask(cam, m, scale)
+        if mask.shape != (view.camera.height, view.camera.width):
+            mask = resize_mask(mask, view.camera.size)
+        out.append(dataclasses.replace(view, mask=mask))
+    return out

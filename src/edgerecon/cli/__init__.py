@@ -50,7 +50,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress.enable(error_console.is_terminal and not getattr(args, "json", False))
     try:
         return int(args.func(args) or 0)
-    except EdgereconError as exc:
+    except (EdgereconError, ValueError) as exc:
+        # Bad input (files, calibration, option values): a message, not a traceback (-vv
+        # shows the traceback for debugging).
+        if args.verbose >= 2:
+            raise
         error_console.print(f"[bold red]error:[/] {exc}", highlight=False)
         return 2
     except KeyboardInterrupt:

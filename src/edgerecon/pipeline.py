@@ -1,0 +1,382 @@
+"""One reconstruction task, composed from the stages: prepare views -> sparse -> dense.
+
+This is the whole-scene pipeline (the paper's "original pipeline" when run with the golden
+configuration). The foreground/background pipeline and the online system build on the same
+stages (see :mod:`edgerecon.scene` and :mod:`edgerecon.runtime`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
+from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense
+from edgerecon.geometry.camera import Rig
+from edgerecon.scene.foreground import ForegroundResult
+from edgerecon.scene.hull import hull_depth_range
+from edgerecon.scene.merge import merge_clouds
+from edgerecon.scene.split import SplitConfig, split_sparse
+from edgerecon.sparse import SparseReconstruction, reconstruct_sparse
+from edgerecon.types import BACKGROUND_LABEL, DataError, FrameSet, Mask, PointCloud, StageTimings
+from edgerecon.views import View, prepare_views, with_masks
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ReconstructionResult:
+    """Sparse and dense clouds of one task, with the configuration and the stage timings."""
+
+    time_index: int
+    """Frame index of the task."""
+    config: ReconstructionConfig
+    camera_ids: tuple[int, ...]
+    """Rig ids of the cameras actually used (a camera without a frame is left out)."""
+    sparse: SparseReconstruction
+    dense: DenseReconstruction | None
+    """None when the configuration asked for no dense stage."""
+    timings: StageTimings
+    """Seconds per stage: ``prepare``, ``sparse.*``, ``dense.*``."""
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-safe summary (what ``timings.json`` and ``--json`` hold)."""
+        return {
+            "time_index": self.time_index,
+            "scale": self.config.scale,
+            "camera_ids": list(self.camera_ids),
+            "num_sparse_points": self.sparse.num_points,
+            "num_dense_points": None if self.dense is None else self.dense.num_points,
+            "seconds": self.timings.to_dict(),
+            "total_seconds": round(self.timings.total, 6),
+            "sparse_stats": self.sparse.stats,
+            "dense_stats": None if self.dense is None else self.dense.stats,
+            "config": self.config.to_dict(),
+        }
+
+
+def prepare_task_views(
+    frames: FrameSet,
+    rig: Rig,
+    config: ReconstructionConfig,
+    masks: Sequence[Mask | None] | None = None,
+) -> list[View]:
+    """Undistorted, rescaled views of the configured cameras; fewer than 3 usable views is a
+    ``DataError`` naming the cameras that had no frame."""
+    views = prepare_views(frames, rig, config.scale, config.camera_ids, masks)
+    if len(views) < MIN_CAMERAS:
+        wanted = list(range(len(rig))) if config.camera_ids is None else list(config.camera_ids)
+        missing = [rig[i].name for i in wanted if frames.images[i] is None]
+        raise DataError(
+            f"time {frames.time_index}: only {len(views)} usable camera(s), need "
+            f"{MIN_CAMERAS}" + (f" (no frame from {', '.join(missing)})" if missing else "")
+        )
+    return views
+
+
+def reconstruct(
+    frames: FrameSet,
+    rig: Rig,
+    config: ReconstructionConfig | None = None,
+    dense_masks: Sequence[Mask | None] | None = None,
+) -> ReconstructionResult:
+    """Reconstruct one timestamp: sparse cloud (whole images) then, if configured, dense.
+
+    ``dense_masks`` (one full-resolution mask or None per rig camera) restrict only the dense
+    stage — the sparse stage always sees whole images, as the FG/BG split needs.
+    """
+    config = config or ReconstructionConfig()
+    timings = StageTimings()
+    with timings.stage("prepare"):
+        views = prepare_task_views(frames, rig, config)
+    sparse = reconstruct_sparse(views, config.sparse_config)
+    timings.merge(sparse.timings, "sparse.")
+    dense = None
+    if config.dense:
+        if dense_masks is not None:
+            with timings.stage("prepare"):
+                views = with_masks(views, rig, dense_masks)
+        dense = reconstruct_dense(views, config.dense_config, sparse, up=rig.up)
+        timings.merge(dense.timings, "dense.")
+    logger.info(
+        "time %d: r=%.2f cameras=%s sparse=%d dense=%s in %.2f s",
+        frames.time_index,
+        config.scale,
+        [v.camera_id for v in views],
+        sparse.num_points,
+        None if dense is None else dense.num_points,
+        timings.total,
+    )
+    return ReconstructionResult(
+        time_index=frames.time_index,
+        config=config,
+        camera_ids=tuple(v.camera_id for v in views),
+        sparse=sparse,
+        dense=dense,
+        timings=timings,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Foreground / background pipeline (the paper's application-side optimisation, Section IV-A)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, kw_only=True)
+class SplitPipelineConfig:
+    """Settings of the foreground/background pipeline around the core stages."""
+
+    fg_mask_dilation_px: int = 4
+    """Foreground masks are grown by this many full-resolution pixels before densifying (the
+    silhouettes of the background model are uncertain by a pixel or two)."""
+    bg_mask_dilation_px: int = 8
+    """The background is densified outside the foreground grown by this many pixels."""
+    use_hull_ranges: bool = True
+    """Restrict the foreground depth search to the visual hull's near/far interval per pixel."""
+    min_fg_votes: float = 1.5
+    """A dense foreground point is kept when at least this much camera weight puts it inside
+    the foreground (one noisy mask cannot keep or reject a point alone)."""
+
+    def __post_init__(self) -> None:
+        if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
+            raise ValueError("SplitPipelineConfig mask dilations must be >= 0")
+        if self.min_fg_votes < 0:
+            raise ValueError(
+                f"SplitPipelineConfig.min_fg_votes must be >= 0, got {self.min_fg_votes}"
+            )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ForegroundReconstruction:
+    """The foreground of one task: split sparse cloud and densified objects."""
+
+    labels: NDArray[np.int32]
+    """(P,) label of each sparse point (0 background, k object, -1 unknown)."""
+    fg_sparse: SparseReconstruction
+    """The sparse points labelled foreground (the online quality estimate scores these)."""
+    dense: DenseReconstruction | None
+    """Dense reconstruction of the foreground regions (None when there is no foreground)."""
+    cloud: PointCloud
+    """Dense foreground points that the masks confirm, labelled with object ids."""
+    timings: StageTimings
+
+    @property
+    def is_empty(self) -> bool:
+        return len(self.cloud) == 0
+
+
+def _dilate(mask: Mask, radius: int) -> Mask:
+    if radius <= 0 or not mask.any():
+        return mask
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    return cv2.dilate(mask.astype(np.uint8), k).astype(bool)
+
+
+def label_by_masks(
+    points3D: NDArray[np.float64],
+    rig: Rig,
+    label_images: Sequence[NDArray[np.int32] | None],
+    min_fg_votes: float,
+) -> NDArray[np.int32]:
+    """Object label of each point from its projections into every camera's object-label
+    image (all cameras that see the point vote; background when fewer than ``min_fg_votes``
+    cameras put it in a foreground object)."""
+    n = len(points3D)
+    result = split_sparse(
+        points3D,
+        np.zeros((n, len(rig)), bool),
+        rig.cameras,
+        list(label_images),
+        SplitConfig(unobserving_weight=1.0),
+    )
+    labels = result.labels.copy()
+    labels[(labels > 0) & (result.fg_votes < min_fg_votes)] = BACKGROUND_LABEL
+    return labels
+
+
+def reconstruct_foreground(
+    views: Sequence[View],
+    rig: Rig,
+    sparse: SparseReconstruction,
+    foreground: ForegroundResult,
+    dense_config: DenseConfig,
+    config: SplitPipelineConfig | None = None,
+) -> ForegroundReconstruction:
+    """Split the sparse cloud with the foreground masks, then densify only the foreground.
+
+    ``views`` are the task's views (any scale and camera subset) without masks; the masks in
+    ``foreground`` are full-resolution per rig camera. Dense work is restricted to the
+    (dilated) foreground of each view and, when available, to the visual hull's depth interval,
+    so its cost follows the foreground's area. An empty foreground gives an empty result.
+    """
+    config = config or SplitPipelineConfig()
+    timings = StageTimings()
+    label_images = foreground.label_images()
+    with timings.stage("split"):
+        split = split_sparse(
+            sparse.points3D, sparse.visibility_matrix(len(rig)), rig.cameras, label_images
+        )
+        fg_sparse = sparse.select(split.foreground)
+    has_fg = any(m is not None and m.any() for m in foreground.masks)
+    if not has_fg:
+        return ForegroundReconstruction(
+            labels=split.labels,
+            fg_sparse=fg_sparse,
+            dense=None,
+            cloud=_empty_labelled_cloud(),
+            timings=timings,
+        )
+    with timings.stage("fg_prepare"):
+        masks = [
+            None if m is None else _dilate(m, config.fg_mask_dilation_px) for m in foreground.masks
+        ]
+        # A camera without a mask (no frame for the back-end) contributes nothing.
+        masks = [
+            np.zeros((c.height, c.width), bool) if m is None else m
+            for c, m in zip(rig, masks, strict=True)
+        ]
+        fg_views = with_masks(views, rig, masks)
+        ranges = None
+        if config.use_hull_ranges and foreground.hull is not None and foreground.hull.num_voxels:
+            ranges = {}
+            for v in fg_views:
+                dr = hull_depth_range(foreground.hull, v.camera)
+                ranges[v.camera_id] = (
+                    np.nan_to_num(dr.near, nan=0.0),
+                    np.nan_to_num(dr.far, nan=0.0),
+                )
+    dense = reconstruct_dense(
+        fg_views,
+        dense_config,
+        fg_sparse if len(fg_sparse) else None,
+        depth_ranges=ranges,
+        up=rig.up,
+    )
+    timings.merge(dense.timings, "fg_dense.")
+    with timings.stage("fg_label"):
+        labels = label_by_masks(dense.cloud.points3D, rig, label_images, config.min_fg_votes)
+        keep = labels > 0
+        cloud = dense.cloud.select(keep).with_labels(labels[keep])
+    return ForegroundReconstruction(
+        labels=split.labels, fg_sparse=fg_sparse, dense=dense, cloud=cloud, timings=timings
+    )
+
+
+def reconstruct_background(
+    views: Sequence[View],
+    rig: Rig,
+    dense_config: DenseConfig,
+    foreground_masks: Sequence[Mask | None] | None = None,
+    sparse: SparseReconstruction | None = None,
+    config: SplitPipelineConfig | None = None,
+) -> DenseReconstruction:
+    """Dense background: the views minus their (dilated) foreground. With views of the
+    background model's background images, pass no masks: the whole image is background."""
+    config = config or SplitPipelineConfig()
+    if foreground_masks is not None:
+        masks = [
+            None if m is None else ~_dilate(m, config.bg_mask_dilation_px) for m in foreground_masks
+        ]
+        views = with_masks(views, rig, masks)
+    dense = reconstruct_dense(views, dense_config, sparse, up=rig.up)
+    cloud = dense.cloud.with_labels(BACKGROUND_LABEL)
+    return dataclasses.replace(dense, cloud=cloud)
+
+
+def _empty_labelled_cloud() -> PointCloud:
+    return PointCloud(
+        points3D=np.zeros((0, 3)),
+        colors=np.zeros((0, 3), np.uint8),
+        normals=np.zeros((0, 3), np.float32),
+        labels=np.zeros(0, np.int32),
+    )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class SplitReconstructionResult:
+    """One task through the FG/BG pipeline: merged cloud plus its parts."""
+
+    time_index: int
+    config: ReconstructionConfig
+    camera_ids: tuple[int, ...]
+    sparse: SparseReconstruction
+    foreground: ForegroundReconstruction
+    background: PointCloud
+    """Background cloud (label 0) merged into ``merged``."""
+    bg_version: int
+    merged: PointCloud
+    timings: StageTimings
+
+    def summary(self) -> dict[str, Any]:
+        labels = self.foreground.labels
+        return {
+            "time_index": self.time_index,
+            "scale": self.config.scale,
+            "camera_ids": list(self.camera_ids),
+            "num_sparse_points": self.sparse.num_points,
+            "num_sparse_foreground": int(np.count_nonzero(labels > 0)),
+            "num_sparse_background": int(np.count_nonzero(labels == BACKGROUND_LABEL)),
+            "num_foreground_points": len(self.foreground.cloud),
+            "num_background_points": len(self.background),
+            "num_merged_points": len(self.merged),
+            "num_objects": int(labels.max()) if labels.size and labels.max() > 0 else 0,
+            "bg_version": self.bg_version,
+            "seconds": self.timings.to_dict(),
+            "total_seconds": round(self.timings.total, 6),
+        }
+
+
+def reconstruct_split(
+    frames: FrameSet,
+    rig: Rig,
+    foreground: ForegroundResult,
+    config: ReconstructionConfig | None = None,
+    *,
+    background: PointCloud | None = None,
+    bg_version: int = 0,
+    split_config: SplitPipelineConfig | None = None,
+) -> SplitReconstructionResult:
+    """The FG/BG pipeline for one timestamp: sparse (whole images) -> split by the masks ->
+    foreground densified in its regions -> merged with ``background`` (densified here from
+    the rest of the images when not given: the first task, or ``reconstruct --split``)."""
+    config = config or ReconstructionConfig()
+    timings = StageTimings()
+    with timings.stage("prepare"):
+        views = prepare_task_views(frames, rig, config)
+    sparse = reconstruct_sparse(views, config.sparse_config)
+    timings.merge(sparse.timings, "sparse.")
+    fg = reconstruct_foreground(views, rig, sparse, foreground, config.dense_config, split_config)
+    timings.merge(fg.timings)
+    if background is None:
+        bg_sparse = sparse.select(fg.labels == BACKGROUND_LABEL)
+        bg_dense = reconstruct_background(
+            views, rig, config.dense_config, foreground.masks, bg_sparse, split_config
+        )
+        timings.merge(bg_dense.timings, "bg_dense.")
+        background = bg_dense.cloud
+    with timings.stage("merge"):
+        merged = merge_clouds(
+            fg.cloud,
+            background,
+            bg_version=bg_version,
+            scene_scale=rig.scene_scale(),
+            hull=foreground.hull,
+        )
+    return SplitReconstructionResult(
+        time_index=frames.time_index,
+        config=config,
+        camera_ids=tuple(v.camera_id for v in views),
+        sparse=sparse,
+        foreground=fg,
+        background=background,
+        bg_version=bg_version,
+        merged=merged,
+        timings=timings,
+    )

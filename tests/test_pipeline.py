@@ -1,0 +1,106 @@
+"""End-to-end tests of one task: whole-scene and foreground/background pipelines."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from edgerecon.config import ReconstructionConfig
+from edgerecon.io.dataset import open_dataset
+from edgerecon.pipeline import reconstruct, reconstruct_split
+from edgerecon.quality import evaluate_clouds
+from edgerecon.scene.foreground import RigForeground
+from edgerecon.synth import GroundTruth
+from edgerecon.types import BACKGROUND_LABEL, DataError, FrameSet
+from tests.conftest import shared_data
+
+
+@pytest.fixture(scope="module")
+def tiny(tiny_dataset):
+    ds = open_dataset(tiny_dataset)
+    with ds.open_frames() as src:
+        frames = src.read(4)
+    return ds, frames, GroundTruth.open(tiny_dataset)
+
+
+def test_golden_reconstruction_matches_ground_truth(tiny):
+    ds, frames, gt = tiny
+    result = reconstruct(frames, ds.rig)
+    assert result.camera_ids == tuple(range(len(ds.rig)))
+    assert result.sparse.num_points > 40  # 5 cameras 72 degrees apart at 320x240
+    assert result.dense is not None and result.dense.num_points > 2000
+    ref = gt.reference_cloud(4, "all", min_views=2)
+    # 320x240 pixels see ~3 cm of surface each at 4 m: score at a few pixel footprints.
+    (s,) = evaluate_clouds(result.dense.cloud, ref, 0.08)
+    assert s.precision > 0.7, s
+    assert {"prepare", "sparse.features", "dense.depth"} <= set(result.timings.seconds)
+
+
+def test_scale_and_camera_subset_reduce_work(tiny):
+    ds, frames, _ = tiny
+    full = reconstruct(frames, ds.rig, ReconstructionConfig(dense=False))
+    small = reconstruct(
+        frames, ds.rig, ReconstructionConfig(scale=0.8, camera_ids=(0, 1, 2), dense=False)
+    )
+    assert small.camera_ids == (0, 1, 2)
+    assert small.sparse.visibility.shape[1] == 3
+    assert 0 < small.sparse.num_points < full.sparse.num_points
+    assert small.dense is None
+
+
+def test_missing_frames_leave_too_few_cameras(tiny):
+    ds, frames, _ = tiny
+    images = list(frames.images)
+    images[1] = images[2] = images[3] = None
+    with pytest.raises(DataError, match=r"only 2 usable camera\(s\).*cam1"):
+        reconstruct(FrameSet(time_index=4, images=tuple(images)), ds.rig)
+
+
+def test_split_pipeline_labels_foreground_and_background(tiny, tiny_dataset):
+    ds, frames, gt = tiny
+    with ds.open_background() as bg:
+        model = RigForeground.learn_from_framesets(ds.rig, bg.iter_frames())
+    fg = model.segment(frames)
+    result = reconstruct_split(frames, ds.rig, fg)
+    merged = result.merged
+    assert merged.labels is not None and "bg_version" in merged.attributes
+    fg_pts = merged.select(merged.labels > 0)
+    bg_pts = merged.select(merged.labels == BACKGROUND_LABEL)
+    assert len(fg_pts) > 300 and len(bg_pts) > 1000
+    # Foreground points lie on the actors, background points mostly do not.
+    ref_fg = gt.reference_cloud(4, "foreground", min_views=1)
+    d_fg = evaluate_clouds(fg_pts, ref_fg, 0.08)[0]
+    d_bg = evaluate_clouds(bg_pts, ref_fg, 0.08)[0]
+    assert d_fg.precision > 0.8, d_fg
+    assert d_bg.precision < 0.1, d_bg
+    # The foreground stage densified only the foreground: far fewer points than the background.
+    assert result.foreground.dense is not None
+    assert result.foreground.dense.num_points < 0.5 * len(bg_pts)
+    s = result.summary()
+    assert s["num_objects"] >= 1 and s["num_foreground_points"] == len(fg_pts)
+
+
+def test_split_pipeline_with_empty_foreground(tiny):
+    ds, frames, _ = tiny
+    with ds.open_background() as bg:
+        framesets = list(bg.iter_frames())
+    model = RigForeground.learn_from_framesets(ds.rig, framesets)
+    empty = model.segment(framesets[0], update=False)  # the empty scene: nothing moves
+    assert not any(m.any() for m in empty.masks if m is not None)
+    result = reconstruct_split(framesets[0], ds.rig, empty)
+    assert result.foreground.is_empty and result.foreground.dense is None
+    assert len(result.merged) == len(result.background) > 0
+
+
+def test_utrecht_frame_200_golden():
+    ds = open_dataset(shared_data("utrecht4cam"))
+    with ds.open_frames() as src:
+        frames = src.read(200)
+    result = reconstruct(frames, ds.rig)
+    assert result.sparse.num_points > 30  # COLMAP's SIFT + triangulation: 3 points
+    assert result.dense is not None and result.dense.num_points > 5000
+    pts = result.dense.cloud.points3D
+    # The board frame's floor is z = 0 (Z points down): a good share of points lie on it.
+    near_floor = np.abs(pts[:, 2]) < 100
+    assert near_floor.sum() > 200
+    assert np.median(np.abs(pts[near_floor, 2])) < 30
