@@ -1,0 +1,301 @@
+"""The back-end role: masks for every task, the golden reference, background rebuilds.
+
+Per task (in arrival order, always the newest first: a stale queued task is dropped), the
+back-end's *task thread* segments the frames with its background models and publishes the
+masks, then reconstructs the golden configuration's sparse cloud (r = 1, all cameras), splits
+it with the same masks and publishes its foreground points — the reference of the front-end's
+online quality estimate. A separate *background thread*, at a lower OS priority, rebuilds the
+background (dense MVS of the latest frames outside the foreground, or of the empty scene when
+the dataset has a background clip) whenever the task thread is idle, and pushes each finished
+background to the front-end with a version number. The front-end never waits for it.
+
+The class is plain Python (usable without any cluster); the Ray engine wraps it in an actor.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from edgerecon.config import ReconstructionConfig
+from edgerecon.geometry.camera import Rig
+from edgerecon.pipeline import prepare_task_views, reconstruct_background
+from edgerecon.runtime.config import RuntimeConfig
+from edgerecon.runtime.messages import BackgroundUpdate, GoldenReply, MasksReply
+from edgerecon.scene.foreground import RigForeground
+from edgerecon.scene.split import split_sparse
+from edgerecon.sparse import reconstruct_sparse
+from edgerecon.types import FrameSet, Mask
+
+logger = logging.getLogger(__name__)
+
+PushFn = Callable[[BackgroundUpdate], None]
+
+#: Replies kept for late readers (a front-end that timed out and asks again).
+_KEEP_REPLIES = 8
+
+
+class BackendFault(RuntimeError):
+    """Raised inside the back-end by fault injection (tests and drills)."""
+
+
+class BackEnd:
+    """Back-end node role. Thread-safe; call :meth:`start` once and :meth:`stop` at the end."""
+
+    def __init__(
+        self,
+        rig: Rig,
+        config: RuntimeConfig,
+        foreground: RigForeground,
+        *,
+        push: PushFn | None = None,
+        initial_background: FrameSet | None = None,
+    ) -> None:
+        self.rig = rig
+        self.config = config
+        self._fg = foreground
+        self._push = push
+        self._lock = threading.Condition()
+        self._model_lock = threading.Lock()
+        self._pending: FrameSet | None = None
+        self._busy = False
+        self._masks: OrderedDict[int, MasksReply] = OrderedDict()
+        self._golden: OrderedDict[int, GoldenReply] = OrderedDict()
+        self._latest: tuple[FrameSet, tuple[Mask | None, ...]] | None = None
+        self._initial_background = initial_background
+        self._bg_version = 0
+        self._bg_source_done: int | None = None
+        self._last_bg_start = -np.inf
+        self._stop = False
+        self._stall_until = 0.0
+        self._crashed: str | None = None
+        self._threads: list[threading.Thread] = []
+        self.stats: dict[str, Any] = {
+            "tasks": 0,
+            "dropped": 0,
+            "backgrounds": 0,
+            "background_seconds": 0.0,
+        }
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> BackEnd:
+        for name, target in (("backend-task", self._task_loop), ("backend-bg", self._bg_loop)):
+            th = threading.Thread(target=target, name=name, daemon=True)
+            th.start()
+            self._threads.append(th)
+        return self
+
+    def stop(self, timeout: float = 30.0) -> None:
+        with self._lock:
+            self._stop = True
+            self._lock.notify_all()
+        for th in self._threads:
+            th.join(timeout)
+
+    def set_push(self, push: PushFn | None) -> None:
+        self._push = push
+
+    # ------------------------------------------------------------------ requests
+    def submit(self, frames: FrameSet) -> None:
+        """Queue a task; a task still waiting is replaced (only the newest matters)."""
+        with self._lock:
+            if self._pending is not None:
+                self.stats["dropped"] += 1
+            self._pending = frames
+            self._lock.notify_all()
+
+    def masks(self, time_index: int, timeout: float) -> MasksReply | None:
+        """The masks of ``time_index``, waiting up to ``timeout`` seconds (None if not ready)."""
+        return self._wait(self._masks, time_index, timeout)
+
+    def golden(self, time_index: int, timeout: float) -> GoldenReply | None:
+        """The golden reference of ``time_index``, waiting up to ``timeout`` (None if not ready)."""
+        return self._wait(self._golden, time_index, timeout)
+
+    def ping(self) -> dict[str, Any]:
+        """Cheap health report: alive, busy, stalled, backgrounds pushed."""
+        with self._lock:
+            return {
+                "alive": self._crashed is None and all(t.is_alive() for t in self._threads),
+                "busy": self._busy or self._pending is not None,
+                "stalled": time.monotonic() < self._stall_until,
+                "bg_version": self._bg_version,
+                "error": self._crashed,
+                **self.stats,
+            }
+
+    def inject_fault(self, kind: str, seconds: float = 0.0) -> None:
+        """Drills: ``"stall"`` blocks the task thread for ``seconds``; ``"crash"`` kills it."""
+        with self._lock:
+            if kind == "stall":
+                self._stall_until = time.monotonic() + seconds
+            elif kind == "crash":
+                self._crashed = "injected crash"
+            else:
+                raise ValueError(f"unknown fault {kind!r}: use 'stall' or 'crash'")
+            self._lock.notify_all()
+
+    def _wait(self, store: OrderedDict[int, Any], key: int, timeout: float) -> Any:
+        deadline = time.monotonic() + max(0.0, timeout)
+        with self._lock:
+            while key not in store:
+                if self._crashed is not None or self._stop:
+                    return None
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._lock.wait(remaining)
+            return store[key]
+
+    def _publish(self, store: OrderedDict[int, Any], key: int, value: Any) -> None:
+        with self._lock:
+            store[key] = value
+            while len(store) > _KEEP_REPLIES:
+                store.popitem(last=False)
+            self._lock.notify_all()
+
+    # ------------------------------------------------------------------ task thread
+    def _task_loop(self) -> None:
+        while True:
+            with self._lock:
+                while self._pending is None and not self._stop and self._crashed is None:
+                    self._lock.wait(0.5)
+                if self._stop or self._crashed is not None:
+                    return
+                frames, self._pending = self._pending, None
+                self._busy = True
+            try:
+                self._serve(frames)
+            except BackendFault:
+                return
+            except Exception as exc:  # a bad frame must not kill the node
+                logger.exception("back-end: task %d failed: %s", frames.time_index, exc)
+            finally:
+                with self._lock:
+                    self._busy = False
+                    self._lock.notify_all()
+
+    def _check_faults(self) -> None:
+        while True:
+            with self._lock:
+                if self._crashed is not None:
+                    raise BackendFault(self._crashed)
+                wait = self._stall_until - time.monotonic()
+                if wait <= 0 or self._stop:
+                    return
+                self._lock.wait(min(wait, 0.5))
+
+    def _serve(self, frames: FrameSet) -> None:
+        self._check_faults()
+        t0 = time.perf_counter()
+        with self._model_lock:
+            fg = self._fg.segment(frames)
+        self._publish(
+            self._masks,
+            frames.time_index,
+            MasksReply(
+                time_index=frames.time_index, foreground=fg, seconds=time.perf_counter() - t0
+            ),
+        )
+        with self._lock:
+            self._latest = (frames, fg.masks)
+        self._check_faults()
+        t1 = time.perf_counter()
+        golden = ReconstructionConfig(sparse_config=self.config.sparse)
+        views = prepare_task_views(frames, self.rig, golden)
+        sparse = reconstruct_sparse(views, self.config.sparse)
+        split = split_sparse(
+            sparse.points3D,
+            sparse.visibility_matrix(len(self.rig)),
+            self.rig.cameras,
+            fg.label_images(),
+        )
+        self._publish(
+            self._golden,
+            frames.time_index,
+            GoldenReply(
+                time_index=frames.time_index,
+                fg_points3D=sparse.points3D[split.foreground],
+                num_points=sparse.num_points,
+                seconds=time.perf_counter() - t1,
+            ),
+        )
+        self.stats["tasks"] += 1
+
+    # ------------------------------------------------------------------ background thread
+    def _bg_loop(self) -> None:
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self.config.background_nice)
+        except (AttributeError, OSError, PermissionError):  # not Linux / not allowed
+            pass
+        while True:
+            with self._lock:
+                while not self._stop and self._crashed is None and not self._bg_ready():
+                    self._lock.wait(0.5)
+                if self._stop or self._crashed is not None:
+                    return
+                source = self._bg_source()
+                self._last_bg_start = time.monotonic()
+            try:
+                self._rebuild(*source)
+            except Exception as exc:
+                logger.exception("back-end: background rebuild failed: %s", exc)
+
+    def _bg_ready(self) -> bool:
+        if not self.config.background_updates or self._busy or self._pending is not None:
+            return False
+        if time.monotonic() - self._last_bg_start < self.config.background_min_interval_s:
+            return False
+        if self._initial_background is not None:
+            return True
+        return self._latest is not None and self._latest[0].time_index != self._bg_source_done
+
+    def _bg_source(self) -> tuple[FrameSet, tuple[Mask | None, ...] | None]:
+        if self._initial_background is not None:
+            frames, self._initial_background = self._initial_background, None
+            return frames, None
+        assert self._latest is not None
+        frames, masks = self._latest
+        self._bg_source_done = frames.time_index
+        return frames, masks
+
+    def _rebuild(self, frames: FrameSet, masks: tuple[Mask | None, ...] | None) -> None:
+        t0 = time.perf_counter()
+        cfg = ReconstructionConfig(
+            scale=self.config.background_scale, sparse_config=self.config.sparse
+        )
+        views = prepare_task_views(frames, self.rig, cfg)
+        sparse = reconstruct_sparse(views, self.config.sparse)
+        dense = reconstruct_background(
+            views, self.rig, self.config.background_dense, masks, sparse, self.config.split
+        )
+        with self._model_lock:
+            states = tuple(self._fg.states())
+        with self._lock:
+            self._bg_version += 1
+            version = self._bg_version
+        seconds = time.perf_counter() - t0
+        self.stats["backgrounds"] += 1
+        self.stats["background_seconds"] += seconds
+        logger.info(
+            "back-end: background v%d from time %d: %d points in %.1f s",
+            version,
+            frames.time_index,
+            len(dense.cloud),
+            seconds,
+        )
+        update = BackgroundUpdate(
+            version=version, cloud=dense.cloud, seconds=seconds, model_states=states
+        )
+        if self._push is not None:
+            try:
+                self._push(update)
+            except Exception as exc:  # the front-end may be gone; keep serving
+                logger.warning("back-end: pushing background v%d failed: %s", version, exc)

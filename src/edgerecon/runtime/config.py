@@ -1,0 +1,109 @@
+"""Configuration of the online system (both roles and the session)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from edgerecon.dense import DenseConfig
+from edgerecon.geometry.camera import Rig
+from edgerecon.pipeline import SplitPipelineConfig
+from edgerecon.scene.foreground import ForegroundConfig
+from edgerecon.sparse import SparseConfig
+
+
+@dataclass(frozen=True, kw_only=True)
+class RuntimeConfig:
+    """Settings of the front-end, the back-end and the online session."""
+
+    deadline_s: float
+    """User deadline Δt on the average critical-path time of a task, seconds."""
+    eval_threshold: float | None = None
+    """Distance threshold d of the online F-score, in rig units; None = ``eval_threshold_rel``
+    x the rig's median camera distance."""
+    eval_threshold_rel: float = 0.005
+    """d relative to the rig's median camera distance (4 m rig -> 2 cm) when not given."""
+    masks_timeout_s: float | None = None
+    """How long the front-end waits for the back-end's masks before computing them itself
+    (degraded task); None = half the deadline, at least 1 s."""
+    golden_timeout_s: float | None = None
+    """How long the front-end waits, after publishing a task's cloud, for the back-end's
+    golden reference of the online estimate; None = the deadline, at least 2 s."""
+    backend_retry_s: float = 2.0
+    """While the back-end is lost, how often the front-end checks whether it is back."""
+    background_updates: bool = True
+    """Rebuild the background in the back-end's idle time and push it to the front-end."""
+    background_min_interval_s: float = 0.0
+    """Least time between the starts of two background rebuilds."""
+    background_scale: float = 1.0
+    """Image scale of background rebuilds (the back-end has time: golden by default)."""
+    background_nice: int = 10
+    """OS niceness of the background-rebuild thread (Linux), so that masks and golden
+    references for the current task are served first."""
+    warmup_frames: int = 30
+    """Frames of the stream that train the background model when the dataset has no
+    background clip."""
+    sparse: SparseConfig = field(default_factory=SparseConfig)
+    """Sparse stage of both roles."""
+    dense: DenseConfig = field(default_factory=DenseConfig)
+    """Foreground MVS on the front-end."""
+    background_dense: DenseConfig = field(default_factory=DenseConfig)
+    """Background MVS on the back-end."""
+    split: SplitPipelineConfig = field(default_factory=SplitPipelineConfig)
+    foreground: ForegroundConfig = field(default_factory=ForegroundConfig)
+
+    def __post_init__(self) -> None:
+        if not (self.deadline_s > 0 and math.isfinite(self.deadline_s)):
+            raise ValueError(f"RuntimeConfig.deadline_s must be > 0, got {self.deadline_s!r}")
+        for name in ("eval_threshold", "masks_timeout_s", "golden_timeout_s"):
+            v = getattr(self, name)
+            if v is not None and not v > 0:
+                raise ValueError(f"RuntimeConfig.{name} must be > 0 or None, got {v!r}")
+        if not 0 < self.background_scale <= 1:
+            raise ValueError(
+                f"RuntimeConfig.background_scale must be in (0, 1], got {self.background_scale}"
+            )
+        if self.warmup_frames < 1:
+            raise ValueError(f"RuntimeConfig.warmup_frames must be >= 1, got {self.warmup_frames}")
+
+    def eval_threshold_for(self, rig: Rig) -> float:
+        """The online (and offline) F-score threshold d for ``rig``, in its units."""
+        if self.eval_threshold is not None:
+            return self.eval_threshold
+        return self.eval_threshold_rel * median_camera_distance(rig)
+
+    @property
+    def masks_wait_s(self) -> float:
+        return (
+            self.masks_timeout_s
+            if self.masks_timeout_s is not None
+            else max(1.0, 0.5 * self.deadline_s)
+        )
+
+    @property
+    def golden_wait_s(self) -> float:
+        return (
+            self.golden_timeout_s
+            if self.golden_timeout_s is not None
+            else max(2.0, self.deadline_s)
+        )
+
+
+def median_camera_distance(rig: Rig) -> float:
+    """Median distance from the cameras to the point their optical axes pass closest to (a
+    natural length scale of a rig)."""
+    c = rig.centers
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for ci, cam in zip(c, rig, strict=True):
+        d = cam.viewing_direction
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ ci
+    try:
+        target = np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        target = c.mean(axis=0)
+    return float(np.median(np.linalg.norm(c - target, axis=1)))

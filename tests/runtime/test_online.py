@@ -1,0 +1,130 @@
+"""The online system on the embedded engine: outputs, faults, resume."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from edgerecon.io.dataset import open_dataset
+from edgerecon.io.ply import read_ply
+from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
+from edgerecon.runtime.engine import learn_scene_model
+
+
+@pytest.fixture(scope="module")
+def tiny(tiny_dataset):
+    ds = open_dataset(tiny_dataset)
+    return ds, learn_scene_model(ds)
+
+
+def _config(**kw):
+    kw.setdefault("deadline_s", 20.0)
+    kw.setdefault("masks_timeout_s", 10.0)
+    kw.setdefault("golden_timeout_s", 20.0)
+    return RuntimeConfig(**kw)
+
+
+def _lines(path):
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def test_embedded_run_outputs_and_summary(tiny, tmp_path):
+    ds, scene = tiny
+    opts = SessionOptions(frames=FrameRange(start=0, stop=4), ground_truth_threshold=0.08)
+    summary, metrics = run_online(ds, _config(), opts, tmp_path, scene=scene)
+    assert [m.time_index for m in metrics] == [0, 1, 2, 3]
+    assert all(m.status == "ok" and not m.degraded for m in metrics)
+    assert metrics[0].phase == "golden" and metrics[0].scale == 1.0
+    assert metrics[0].num_cameras == len(ds.rig)
+    # The golden task is its own reference: online F = 1 when the foreground is non-empty.
+    assert metrics[0].online_fscore == pytest.approx(1.0)
+    assert all(m.offline_fscore is not None and m.offline_fscore > 0.1 for m in metrics)
+    assert all(m.num_fg_points > 0 and m.critical_path_s > 0 for m in metrics)
+    assert {"sfm", "wait_masks", "split", "merge"} <= set(metrics[0].stages)
+    lines = _lines(tmp_path / "metrics.jsonl")
+    assert [x["time_index"] for x in lines] == [0, 1, 2, 3]
+    for m in metrics:
+        merged = read_ply(tmp_path / "tasks" / f"{m.time_index:06d}" / "merged.ply")
+        assert len(merged) == m.num_merged_points
+        assert (merged.labels > 0).sum() == m.num_fg_points
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["tasks"] == 4 and saved["failed"] == 0
+    assert summary.avg_time_s == pytest.approx(sum(m.critical_path_s for m in metrics) / 4)
+
+
+def test_backend_crash_midrun_degrades_and_recovers(tiny, tmp_path):
+    ds, scene = tiny
+    config = _config(backend_retry_s=0.2, background_updates=False)
+    opts = SessionOptions(frames=FrameRange(start=0, stop=6), fault=(2, "crash", 0.0))
+    summary, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
+    assert [m.status for m in metrics] == ["ok"] * 6  # nothing lost
+    assert not any(m.degraded for m in metrics[:2])
+    assert metrics[2].degraded and "no masks" in metrics[2].degraded_reason
+    assert metrics[2].online_fscore is None and metrics[2].num_fg_points > 0
+    assert not metrics[-1].degraded, "the restarted back-end serves again"
+    assert summary.degraded == sum(m.degraded for m in metrics) >= 1
+    assert len(list((tmp_path / "tasks").iterdir())) == 6
+
+
+def test_backend_stall_tasks_run_degraded(tiny, tmp_path):
+    ds, scene = tiny
+    config = _config(masks_timeout_s=0.5, backend_retry_s=0.2, background_updates=False)
+    opts = SessionOptions(frames=FrameRange(start=0, stop=4), fault=(1, "stall", 4.0))
+    _, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
+    assert metrics[1].degraded
+    assert metrics[1].stages["wait_masks"] == pytest.approx(0.5, abs=0.3)
+    assert all(m.status == "ok" for m in metrics)
+
+
+def test_resume_continues_after_last_task(tiny, tmp_path):
+    ds, scene = tiny
+    config = _config(background_updates=False)
+    run_online(
+        ds, config, SessionOptions(frames=FrameRange(start=0, stop=3)), tmp_path, scene=scene
+    )
+    state = json.loads((tmp_path / "state.json").read_text())
+    assert state["last_task"] == 2
+    summary, metrics = run_online(
+        ds,
+        config,
+        SessionOptions(frames=FrameRange(start=0, stop=5), resume=True),
+        tmp_path,
+        scene=scene,
+    )
+    lines = _lines(tmp_path / "metrics.jsonl")
+    assert [x["time_index"] for x in lines] == [0, 1, 2, 3, 4]
+    assert [x["task"] for x in lines] == [0, 1, 2, 3, 4]
+    # The controller continued where it was: no second golden task.
+    assert [x["phase"] for x in lines].count("golden") == 1
+    assert summary.tasks == 5
+
+
+def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_path):
+    import shutil
+
+    src = tmp_path_factory.mktemp("broken") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    # Corrupt one camera's frame 2 and delete another's frame 2: three cameras remain.
+    (src / "frames" / "cam0" / "000002.png").write_bytes(b"not a png")
+    (src / "frames" / "cam1" / "000002.png").unlink()
+    ds = open_dataset(src)
+    _, metrics = run_online(
+        ds,
+        _config(background_updates=False),
+        SessionOptions(frames=FrameRange(start=1, stop=4)),
+        tmp_path,
+    )
+    assert [m.status for m in metrics] == ["ok", "ok", "ok"]
+    assert metrics[1].num_cameras == 3  # cam0 and cam1 left out of time 2
+    (src / "frames" / "cam2" / "000003.png").unlink()
+    (src / "frames" / "cam3" / "000003.png").unlink()
+    (src / "frames" / "cam4" / "000003.png").write_bytes(b"")
+    _, metrics = run_online(
+        ds,
+        _config(background_updates=False),
+        SessionOptions(frames=FrameRange(start=2, stop=5)),
+        tmp_path,
+    )
+    assert [m.status for m in metrics] == ["ok", "failed", "ok"]
+    assert "usable camera" in metrics[1].error
