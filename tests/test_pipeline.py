@@ -81,7 +81,7 @@ def test_split_pipeline_labels_foreground_and_background(tiny, tiny_dataset):
 
 
 def test_split_pipeline_with_empty_foreground(tiny):
-    ds, frames, _ = tiny
+    ds, _, _ = tiny
     with ds.open_background() as bg:
         framesets = list(bg.iter_frames())
     model = RigForeground.learn_from_framesets(ds.rig, framesets)

@@ -85,7 +85,7 @@ def test_resume_continues_after_last_task(tiny, tmp_path):
     )
     state = json.loads((tmp_path / "state.json").read_text())
     assert state["last_task"] == 2
-    summary, metrics = run_online(
+    summary, _metrics = run_online(
         ds,
         config,
         SessionOptions(frames=FrameRange(start=0, stop=5), resume=True),
