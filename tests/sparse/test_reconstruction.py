@@ -175,3 +175,23 @@ def test_colours_of_many_points_sampled_exactly():
     px = np.stack([rng.integers(0, 400, n), rng.integers(0, 300, n)], axis=1)
     colours = _colors([view], px[:, None, :].astype(float), np.ones((n, 1), bool))
     assert np.array_equal(colours, image[px[:, 1], px[:, 0], ::-1])
+
+
+def test_bad_images_are_rejected_with_the_camera_named():
+    from edgerecon.types import DataError
+
+    _, views, _ = box_views(3, seed=0)
+    bad = dataclasses.replace(views[1], image=views[1].image.astype(np.float32))
+    with pytest.raises(DataError, match="cam1"):
+        reconstruct_sparse([views[0], bad, views[2]])
+
+
+def test_grey_views_work_and_cameras_at_one_centre_match_nothing():
+    _, views, planes = box_views(5, seed=2)
+    grey = [dataclasses.replace(v, image=v.image.mean(axis=2).astype(np.uint8)) for v in views]
+    rec = reconstruct_sparse(grey)
+    assert rec.num_points > 100
+    assert np.median(scene_distance(planes, rec.points3D)) < 0.01
+    # the same camera twice (a rotation-only pair has no epipolar geometry)
+    twin = View(camera_id=7, camera=views[0].camera, image=views[0].image)
+    assert reconstruct_sparse([views[0], twin]).num_points == 0

@@ -304,6 +304,9 @@ def match_pair(
     )
     if len(feats_a) == 0 or len(feats_b) == 0:
         return empty
+    baseline = float(np.linalg.norm(cam_a.center - cam_b.center))
+    if not baseline > 1e-9 * (1.0 + float(np.linalg.norm(cam_a.center))):
+        return empty  # same centre: no epipolar geometry, nothing to triangulate
     F = fundamental_matrix(cam_a, cam_b)
     # Epipolar geometry is a property of locations: test unique positions only.
     la, lb = epipolar_candidates(

@@ -26,7 +26,7 @@ from edgerecon.sparse.triangulation import (
     reprojection_errors,
     triangulate_dlt,
 )
-from edgerecon.types import Colors, PointCloud, Points2D, StageTimings
+from edgerecon.types import Colors, DataError, PointCloud, Points2D, StageTimings
 from edgerecon.views import View
 
 logger = logging.getLogger(__name__)
@@ -135,6 +135,17 @@ def _check_views(views: Sequence[View]) -> None:
     ids = [v.camera_id for v in views]
     if len(set(ids)) != len(ids):
         raise ValueError(f"reconstruct_sparse: duplicate camera ids in views: {ids}")
+    for v in views:
+        image = np.asarray(v.image)
+        if (
+            image.dtype != np.uint8
+            or image.ndim not in (2, 3)
+            or (image.ndim == 3 and image.shape[2] != 3)
+        ):
+            raise DataError(
+                f"view {v.name!r} (camera {v.camera_id}): images must be 8-bit BGR (H, W, 3) "
+                f"or grey (H, W), got {image.dtype} {image.shape}"
+            )
 
 
 def reconstruct_sparse(
@@ -441,8 +452,11 @@ def _colors(views: Sequence[View], pts: NDArray[np.float64], observed: NDArray[n
         rows = -(-n // width)
         grid = np.zeros((rows * width, 2), np.float32)
         grid[:n] = p
+        image: NDArray[Any] = views[v].image
+        if image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
         sample = cv2.remap(
-            views[v].image,
+            image,
             grid[:, 0].reshape(rows, width),
             grid[:, 1].reshape(rows, width),
             cv2.INTER_LINEAR,
