@@ -458,7 +458,7 @@ def _round_side(n: float) -> int:
     return int(min(MAX_TEXTURE_SIDE, max(64, 64 * math.ceil(n / 64))))
 
 
-@lru_cache(maxsize=256)
+@lru_cache(maxsize=64)
 def _cached_texture(
     kind: str, seed: int, index: int, shape: tuple[int, int], texel: float
 ) -> Texture:
