@@ -25,7 +25,7 @@ _COLUMNS = [
 ]
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "evaluate",
         help="score a point cloud against a reference cloud or synthetic ground truth",
