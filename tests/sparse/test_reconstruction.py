@@ -70,7 +70,7 @@ def test_colours_come_from_the_images(box6):
 def test_visibility_matrix_indexed_by_rig_camera_ids():
     _rig, views, _planes = box_views(6, seed=1)
     subset = [views[i] for i in (1, 3, 4, 5)]
-    rec = reconstruct_sparse(subset, SparseConfig())
+    rec = reconstruct_sparse(subset, SparseConfig(affine_simulation="off"))
     assert rec.camera_ids == (1, 3, 4, 5)
     A = rec.visibility_matrix(6)
     assert A.shape == (rec.num_points, 6)
@@ -101,7 +101,7 @@ def test_mask_restricts_features_and_points():
     f = extract_features(masked[0])
     assert len(f) > 50
     assert f.points2D[:, 0].max() < views[0].image.shape[1] / 2
-    rec = reconstruct_sparse(masked, SparseConfig())
+    rec = reconstruct_sparse(masked, SparseConfig(affine_simulation="off"))
     assert rec.num_points > 0
     assert rec.observation_points2D[:, 0].max() < views[0].image.shape[1] / 2
     empty_mask = dataclasses.replace(views[0], mask=np.zeros(views[0].image.shape[:2], bool))
@@ -110,7 +110,7 @@ def test_mask_restricts_features_and_points():
 
 def test_large_views_are_detected_downscaled_at_consistent_coordinates():
     _rig, views, planes = box_views(5, seed=3, width=1280, height_px=960, focal_px=1000.0)
-    small = SparseConfig(feature_max_size_px=640)
+    small = SparseConfig(feature_max_size_px=640, affine_simulation="off")
     rec = reconstruct_sparse(views, small)
     assert rec.num_points > 100
     d = scene_distance(planes, rec.points3D)
@@ -189,7 +189,7 @@ def test_bad_images_are_rejected_with_the_camera_named():
 def test_grey_views_work_and_cameras_at_one_centre_match_nothing():
     _, views, planes = box_views(5, seed=2)
     grey = [dataclasses.replace(v, image=v.image.mean(axis=2).astype(np.uint8)) for v in views]
-    rec = reconstruct_sparse(grey)
+    rec = reconstruct_sparse(grey, SparseConfig(affine_simulation="off"))
     assert rec.num_points > 100
     assert np.median(scene_distance(planes, rec.points3D)) < 0.01
     # the same camera twice (a rotation-only pair has no epipolar geometry)
