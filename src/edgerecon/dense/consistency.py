@@ -92,6 +92,14 @@ def support_counts(
             )
             agree = ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
             count += agree
+            # For the average, j's depth interpolated at the exact landing point (the nearest
+            # pixel's depth is off by up to half a pixel's depth gradient on slanted
+            # surfaces); near holes and edges the interpolation mixes in other depths and
+            # fails the tolerance, and the nearest depth is used instead.
+            dl = cv2.remap(
+                depths[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
+            dj = np.where(np.abs(dl - Z) <= rel_tol * Z, dl, dj)
             # s_j = (d_j - c_2) / m_2 amplifies j's depth error by Z / (m_2 z): weight by the
             # inverse square of that factor (1 for nearby views, ~0 for grazing rays).
             with np.errstate(divide="ignore", invalid="ignore"):

@@ -12,7 +12,7 @@ projecting the plane point into the other views:
 * a view whose depth lies clearly in front is occluded there and gives no evidence;
 * otherwise the view must see a similar colour (box-filtered BGR, per-channel tolerance).
 
-A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
+Near-black pixels are never completed (no colour evidence). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
 views confirm than deny, and none contradicts. Completed points lie exactly on the fitted
 plane, so they are only as good as the fit (reported in the stage's stats).
 """
@@ -33,6 +33,8 @@ from edgerecon.types import DepthMap, Image
 
 logger = logging.getLogger(__name__)
 
+#: Pixels darker than this (5x5 mean of the brightest channel, 0..255) are never completed.
+MIN_BRIGHTNESS = 24.0
 #: Points whose normal is within this angle of 'up' take part in the ground-plane vote.
 _HORIZONTAL_DEG = 40.0
 
@@ -139,7 +141,9 @@ def complete_with_plane(
     out: dict[int, tuple[DepthMap, NDArray[np.int16]]] = {}
     for i, cam_i in cameras.items():
         zp = plane_depth(cam_i, plane)
-        cand = (depths[i] <= 0) & (zp > 0) & (zp < far[i]) & regions[i]
+        # Near-black pixels carry no colour evidence (unlit background, sensor noise).
+        lit = blurred[i].max(axis=2) >= MIN_BRIGHTNESS
+        cand = (depths[i] <= 0) & (zp > 0) & (zp < far[i]) & regions[i] & lit
         rows, cols = np.nonzero(cand)
         result = np.zeros(zp.shape, np.float32)
         support = np.zeros(zp.shape, np.int16)

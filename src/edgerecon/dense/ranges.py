@@ -63,32 +63,35 @@ def frustum_range(
     max_depth: float,
     min_rel_baseline: float = 0.3,
     num_depths: int = 96,
+    min_views: int = 2,
 ) -> DepthRange | None:
-    """Depths at which the reference's rays are seen by at least one other camera.
+    """Depths at which the reference's rays are seen by at least ``min_views`` other cameras
+    (fewer when the rig has fewer: rings of many cameras then keep only the shared core).
 
     Samples a pixel grid and log-spaced depths up to ``max_depth``; returns the smallest and
     largest visible depth (None when no other camera sees any sample). Depths below
-    ``min_rel_baseline`` times the distance to the nearest other camera are excluded: in a rig
+    ``min_rel_baseline`` times the median distance to the other cameras are excluded: in a rig
     whose cameras see each other, the space right in front of a lens is geometrically visible
     but never holds the scene, and including it would multiply the sweep planes."""
     if not others:
         return None
-    nearest = min(float(np.linalg.norm(o.center - camera.center)) for o in others)
+    typical = float(np.median([np.linalg.norm(o.center - camera.center) for o in others]))
     pix = sample_pixels(camera)
     rays = camera.pixel_rays(pix)  # (P, 3) camera frame, z = 1
     depths = np.geomspace(max_depth * 1e-3, max_depth, num_depths)
     Xc = rays[None, :, :] * depths[:, None, None]  # (D, P, 3)
     Xw = (Xc.reshape(-1, 3) - camera.t) @ camera.R
-    seen = np.zeros(len(Xw), dtype=bool)
+    count = np.zeros(len(Xw), dtype=np.int32)
     for other in others:
         uv, z = other.project(Xw)
-        seen |= (z > 0) & other.in_image(uv)
-    seen2 = seen.reshape(len(depths), len(pix))
+        count += (z > 0) & other.in_image(uv)
+    need = max(1, min(min_views, len(others) - 1))
+    seen2 = (count >= need).reshape(len(depths), len(pix))
     rows = np.nonzero(seen2.any(axis=1))[0]
     if len(rows) == 0:
         return None
     near = float(depths[rows[0] - 1]) if rows[0] > 0 else float(depths[0])
-    near = max(near, min_rel_baseline * nearest)
+    near = max(near, min_rel_baseline * typical)
     far = float(depths[rows[-1]])
     if far <= near:
         return None

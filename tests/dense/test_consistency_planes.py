@@ -1,0 +1,115 @@
+"""Cross-view consistency and ground-plane completion on exact rendered depth maps."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.dense.consistency import support_counts
+from edgerecon.dense.planes import (
+    Plane,
+    below_plane,
+    complete_with_plane,
+    fit_ground_plane,
+    plane_depth,
+)
+from tests.conftest import ring_rig
+from tests.dense.scene import Rect, box_scene, render
+
+RIG = ring_rig(12, radius=4.0, height=2.0, width=160, height_px=120, focal_px=125.0)
+IDS = (11, 0, 1)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    rects = box_scene()
+    out = {i: render(RIG[i], rects) for i in IDS}
+    return {i: o[0] for i, o in out.items()}, {i: o[1] for i, o in out.items()}
+
+
+def test_exact_depths_support_each_other_and_outliers_do_not(rendered):
+    _, depths = rendered
+    cams = {i: RIG[i] for i in IDS}
+    noisy = {i: d.copy() for i, d in depths.items()}
+    noisy[0][40:60, 60:90] *= 1.08  # a wrong patch in the middle view (floor and cube)
+    support, averaged = support_counts(noisy, cams, 0.01)
+    s = support[0]
+    has = depths[0] > 0
+    patch = np.zeros_like(has)
+    patch[40:60, 60:90] = True
+    # The injected outliers find no support; almost every correct depth finds both others
+    # (except near occlusion boundaries and the image borders).
+    assert np.all(s[patch & has] == 0)
+    assert np.mean(s[~patch & has] >= 1) > 0.9
+    assert np.mean(s[~patch & has] == 2) > 0.5
+    # Averaging along the rays keeps exact depths exact (up to interpolation at edges).
+    good = ~patch & (s > 0)
+    rel = np.abs(averaged[0][good] - depths[0][good]) / depths[0][good]
+    assert np.median(rel) < 1e-4 and np.mean(rel < 3e-3) > 0.99
+    # Views without depth contribute nothing and get zero counts.
+    empty = {i: np.zeros_like(d) for i, d in depths.items()}
+    assert all(np.all(c == 0) for c in support_counts(empty, cams, 0.01)[0].values())
+
+
+def test_ground_plane_prefers_points_confirmed_by_three_views():
+    rng = np.random.default_rng(1)
+    floor = np.c_[rng.uniform(-2, 2, (400, 2)), rng.normal(0.0, 0.005, 400)]
+    ghost = np.c_[rng.uniform(-2, 2, (900, 2)), rng.normal(-1.1, 0.001, 900)]
+    pts = np.vstack([floor, ghost])
+    normals = np.tile(np.float32([0, 0, 1]), (len(pts), 1))
+    views = np.r_[np.full(400, 3), np.full(900, 2)]
+    plane = fit_ground_plane(pts, normals, views, np.array([0, 0, 1.0]), 0.03, 100)
+    assert plane is not None
+    assert abs(plane.offset) < 0.005 and plane.normal == (0.0, 0.0, 1.0)
+    # Without 3-view points the tighter ghost cluster would win: the vote needs them.
+    plane2 = fit_ground_plane(pts, normals, np.full(len(pts), 2), np.array([0, 0, 1.0]), 0.03, 100)
+    assert plane2 is not None and abs(plane2.offset + 1.1) < 0.005
+    assert np.all(below_plane(ghost, plane, 0.05))
+    assert not np.any(below_plane(floor, plane, 0.05))
+    # Too few horizontal points: no plane.
+    tilted = np.tile(np.float32([1, 0, 0]), (len(pts), 1))
+    assert fit_ground_plane(pts, tilted, views, np.array([0, 0, 1.0]), 0.03, 100) is None
+
+
+def test_plane_depth_is_exact(rendered):
+    _, depths = rendered
+    floor_only = render(RIG[0], box_scene()[:1])[1]
+    zp = plane_depth(RIG[0], Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=1, rms=0.0))
+    hit = floor_only > 0
+    assert np.allclose(zp[hit], floor_only[hit], rtol=1e-5)
+
+
+def test_completion_fills_a_blank_floor_but_not_behind_the_cube():
+    rects = box_scene()
+    blank = np.full_like(rects[0].texture, 90)  # a textureless grey floor
+    rects[0] = Rect(rects[0].origin, rects[0].u, rects[0].v, blank)
+    images, depths = {}, {}
+    for i in IDS:
+        images[i], depths[i] = render(RIG[i], rects)
+    # Stereo knows only the cube (its depths exact); the floor is blank.
+    cube = {i: np.where(np.abs(_world_z(RIG[i], d)) > 1e-4, d, 0) for i, d in depths.items()}
+    plane = Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=1000, rms=0.0)
+    regions = {i: np.ones(d.shape, bool) for i, d in depths.items()}
+    out = complete_with_plane(
+        plane, cube, {i: RIG[i] for i in IDS}, images, regions, {i: 20.0 for i in IDS},
+        0.01, 20.0, 1,
+    )  # fmt: skip
+    d, sup = out[0]
+    floor_px = (depths[0] > 0) & (cube[0] == 0)
+    filled = d > 0
+    assert filled[floor_px].mean() > 0.8
+    on_floor = filled & floor_px
+    assert np.allclose(d[on_floor], depths[0][on_floor], rtol=1e-4)
+    assert np.all(sup[filled] >= 1)
+    # Never behind the cube; into the black void only within the 5x5 colour blur of the
+    # floor's edge.
+    assert not (filled & (cube[0] > 0)).any()
+    near_floor = cv2.dilate(floor_px.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    assert not (filled & ~near_floor).any()
+
+
+def _world_z(cam, depth):
+    rows, cols = np.indices(depth.shape)
+    X = cam.backproject(np.c_[cols.ravel(), rows.ravel()], depth.ravel())
+    return X[:, 2].reshape(depth.shape)

@@ -1,0 +1,130 @@
+"""Known-answer tests of the compiled kernels and the NumPy reference they replace."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edgerecon.dense import kernels
+from edgerecon.dense.cost import aggregate, ncc, window_stats
+from edgerecon.dense.fusion import ViewPoints, voxel_merge
+from edgerecon.geometry import Camera, look_at
+
+R0 = 3
+
+
+def _images(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    ref = (rng.random((40, 50)) * 200 - 100).astype(np.float32)
+    src = (0.5 * ref + 20 + rng.normal(0, 10, ref.shape)).astype(np.float32)
+    return ref, src
+
+
+def test_window_stats_match_box_filters_inside():
+    ref, _ = _images()
+    mean, var, count = kernels.window_stats(ref, R0)
+    st = window_stats(ref, R0)
+    inner = np.s_[R0:-R0, R0:-R0]
+    assert np.allclose(mean[inner], st.mean[inner], atol=1e-3)
+    assert np.allclose(var[inner] - kernels.VAR_EPS, st.std[inner] ** 2, rtol=1e-3, atol=1e-2)
+    assert count[0, 0] == (R0 + 1) ** 2 and count[20, 20] == (2 * R0 + 1) ** 2
+
+
+def test_identity_homography_ncc_equals_numpy_reference():
+    ref, src = _images()
+    h, w = ref.shape
+    mean, var, count = kernels.window_stats(ref, R0)
+    srcs = src[None].copy()
+    sizes = np.array([[w, h]], np.int64)
+    ok = np.ones((1, h, w), bool)
+    best = np.full((h, w), -np.inf, np.float32)
+    idx = np.zeros((h, w), np.int32)
+    prev = np.full((h, w), -1.0, np.float32)
+    nxt = np.full((h, w), -1.0, np.float32)
+    H = np.eye(3)[None, None].repeat(1, axis=0)  # one plane, one source
+    kernels.sweep(
+        ref, mean, var, count, srcs, sizes, ok, H, np.array([1.0]),
+        np.ones((h, w), np.float32), np.ones((h, w), bool),
+        np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1,
+        best, idx, prev, nxt,
+    )  # fmt: skip
+    expected = ncc(window_stats(ref, R0), src)
+    # The last row/column samples exactly on the image border and is valid in both.
+    inner = np.s_[R0:-R0, R0:-R0]
+    assert np.allclose(best[inner], expected[inner], atol=2e-4)
+    assert np.all(best[inner] > 0.5)  # the source is a noisy copy of the reference
+
+
+def test_windows_touching_missing_samples_have_no_score():
+    ref, src = _images()
+    h, w = ref.shape
+    mean, var, count = kernels.window_stats(ref, R0)
+    a = np.zeros((1, 3, h, w), np.float32)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    a[0, 0], a[0, 1], a[0, 2] = u + 10.0, v, 1.0  # shifted 10 px right: last columns fall out
+    out = np.empty((h, w), np.float32)
+    kernels.evaluate(
+        ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
+        np.ones((1, h, w), bool), a, np.zeros((1, 3), np.float32),
+        np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+        np.full((h, w), np.inf, np.float32), R0, 1, out,
+    )  # fmt: skip
+    # Samples beyond x = w - 1 are missing: windows reaching x >= w - 10 have no score (-1).
+    assert np.all(out[:, w - 10 - R0 :] == -1.0)
+    assert np.all(out[:, : w - 11 - R0] > -1.0)
+    # A source marked unusable gives no score either.
+    kernels.evaluate(
+        ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
+        np.zeros((1, h, w), bool), a, np.zeros((1, 3), np.float32),
+        np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+        np.full((h, w), np.inf, np.float32), R0, 1, out,
+    )  # fmt: skip
+    assert np.all(out == -1.0)
+
+
+def test_aggregate_takes_the_mean_of_the_best_sources():
+    a = np.array([[0.9, np.nan]], np.float32)
+    b = np.array([[0.5, 0.2]], np.float32)
+    c = np.array([[0.7, np.nan]], np.float32)
+    assert np.allclose(aggregate([a, b, c], 1), [[0.9, 0.2]])
+    assert np.allclose(aggregate([a, b, c], 2), [[0.8, 0.2]])
+    assert np.allclose(aggregate([a, b, c], 3), [[0.7, 0.2]])
+    assert np.allclose(aggregate([np.full((1, 1), np.nan, np.float32)], 1), [[-1.0]])
+
+
+def test_view_points_backproject_exactly_with_normals_facing_the_camera():
+    R, t = look_at((0, -3, 0), (0, 0, 0), (0, 0, 1))
+    K = np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]])
+    cam = Camera(name="c", width=64, height=48, K=K, R=R, t=t)
+    depth = np.full((48, 64), 3.0, np.float32)  # the plane y = 0, facing the camera
+    keep = np.ones_like(depth, bool)
+    pts, nrm, idx = kernels.view_points(depth, keep, np.linalg.inv(K), R, t, 2, 0.05)
+    assert len(pts) == 64 * 48 and np.array_equal(idx, np.arange(64 * 48))
+    assert np.allclose(pts[:, 1], 0.0, atol=1e-9)
+    uv, z = cam.project(pts)
+    rows, cols = np.divmod(idx, 64)
+    assert np.allclose(uv[:, 0], cols, atol=1e-6) and np.allclose(z, 3.0)
+    assert np.allclose(nrm, [0.0, -1.0, 0.0], atol=1e-5)  # towards the camera at y = -3
+
+
+def _part(points, views, cid=0):
+    n = len(points)
+    return ViewPoints(
+        camera_id=cid,
+        points3D=np.asarray(points, float),
+        colors=np.full((n, 3), 100, np.uint8),
+        normals=np.tile(np.float32([0, 0, 1]), (n, 1)),
+        num_views=np.asarray(views, np.int16),
+        score=np.full(n, 0.8, np.float32),
+    )
+
+
+def test_voxel_merge_deduplicates_and_keeps_the_best_support():
+    a = _part([[0.001, 0.001, 0.001], [1.0, 1.0, 1.0]], [2, 2], 0)
+    b = _part([[0.003, 0.002, 0.004], [2.0, 2.0, 2.0]], [3, 2], 1)
+    cloud = voxel_merge([a, b], 0.01)
+    assert len(cloud) == 3
+    first = np.argmin(np.linalg.norm(cloud.points3D, axis=1))
+    assert np.allclose(cloud.points3D[first], [0.002, 0.0015, 0.0025])
+    assert cloud.attributes["num_views"][first] == 3
+    assert np.allclose(np.linalg.norm(cloud.normals, axis=1), 1.0)
+    assert len(voxel_merge([], 0.01)) == 0
