@@ -72,8 +72,7 @@ def test_ground_plane_prefers_points_confirmed_by_three_views():
     assert fit_ground_plane(pts, tilted, views, np.array([0, 0, 1.0]), 0.03, 100) is None
 
 
-def test_plane_depth_is_exact(rendered):
-    _, depths = rendered
+def test_plane_depth_is_exact():
     floor_only = render(RIG[0], box_scene()[:1])[1]
     zp = plane_depth(RIG[0], Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=1, rms=0.0))
     hit = floor_only > 0

@@ -102,7 +102,8 @@ def test_view_points_backproject_exactly_with_normals_facing_the_camera():
     assert np.allclose(pts[:, 1], 0.0, atol=1e-9)
     uv, z = cam.project(pts)
     rows, cols = np.divmod(idx, 64)
-    assert np.allclose(uv[:, 0], cols, atol=1e-6) and np.allclose(z, 3.0)
+    assert np.allclose(uv[:, 0], cols, atol=1e-6) and np.allclose(uv[:, 1], rows, atol=1e-6)
+    assert np.allclose(z, 3.0)
     assert np.allclose(nrm, [0.0, -1.0, 0.0], atol=1e-5)  # towards the camera at y = -3
 
 

@@ -124,7 +124,7 @@ def _disc_masks(views: list[View], radius_px: float) -> list[View]:
     for v in views:
         uv, _ = v.camera.project(np.array([[0.0, 0.0, 0.4]]))
         mask = np.zeros(v.image.shape[:2], np.uint8)
-        cv2.circle(mask, tuple(int(round(x)) for x in uv[0]), int(radius_px), 1, -1)
+        cv2.circle(mask, (round(float(uv[0, 0])), round(float(uv[0, 1]))), int(radius_px), 1, -1)
         out.append(dataclasses.replace(v, mask=mask.astype(bool)))
     return out
 
