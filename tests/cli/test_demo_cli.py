@@ -1,0 +1,30 @@
+import json
+
+from edgerecon.cli import main
+
+
+def test_demo_runs_online_system_and_reuses_scene(tmp_path, capsys):
+    args = [
+        "demo",
+        "--out",
+        str(tmp_path),
+        "--num-frames",
+        "5",
+        "--size",
+        "320x240",
+        "--no-background-updates",
+        "--json",
+    ]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["generated"] is True
+    tasks = result["tasks"]
+    assert [t["time_index"] for t in tasks] == [0, 1, 2, 3, 4]
+    assert tasks[0]["phase"] == "golden"
+    assert all(t["status"] == "ok" and t["offline_fscore"] is not None for t in tasks)
+    assert result["deadline_s"] > 0 and result["golden"]["seconds"] > 0
+    assert (tmp_path / "run" / "tasks" / "000004" / "merged.ply").exists()
+    # A second run finds the scene already generated.
+    assert main([*args, "--frames", "0:2"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["generated"] is False and len(again["tasks"]) == 2
