@@ -12,7 +12,8 @@ projecting the plane point into the other views:
 * a view whose depth lies clearly in front is occluded there and gives no evidence;
 * otherwise the view must see a similar colour (box-filtered BGR, per-channel tolerance).
 
-Near-black pixels are never completed (no colour evidence). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
+Near-black pixels are never completed (no colour evidence), nor pixels whose colour the
+plane's stereo points never showed (walls above a floor). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
 views confirm than deny, and none contradicts. Completed points lie exactly on the fitted
 plane, so they are only as good as the fit (reported in the stage's stats).
 """
@@ -108,6 +109,23 @@ def below_plane(points: NDArray[np.float64], plane: Plane, band: float) -> NDArr
     return points @ np.asarray(plane.normal) < plane.offset - band
 
 
+#: Colour-model bins per channel (16 -> bins of 16 grey levels).
+COLOR_BINS = 16
+
+
+def color_model(colors_rgb: NDArray[np.uint8], min_count: int = 3) -> NDArray[np.bool_]:
+    """(B, B, B) occupancy of RGB colour bins (``COLOR_BINS`` per channel) seen at least
+    ``min_count`` times, grown by one bin: the colours the plane is known to have."""
+    q = (np.asarray(colors_rgb, np.int32) * COLOR_BINS) // 256
+    flat = (q[:, 0] * COLOR_BINS + q[:, 1]) * COLOR_BINS + q[:, 2]
+    counts = np.bincount(flat, minlength=COLOR_BINS**3).reshape((COLOR_BINS,) * 3)
+    occ = (counts >= min_count).astype(np.uint8)
+    # Grow by one bin in every direction (3D dilation as three 1D maxima).
+    for axis in range(3):
+        occ = np.maximum.reduce([occ, np.roll(occ, 1, axis), np.roll(occ, -1, axis)])
+    return occ.astype(bool)
+
+
 def plane_depth(camera: Camera, plane: Plane) -> DepthMap:
     """(H, W) depth at which each pixel's ray meets the plane (0 where it does not, in front
     of the camera)."""
@@ -135,8 +153,13 @@ def complete_with_plane(
     rel_tol: float,
     color_tol: float,
     min_views: int,
+    colors_known: NDArray[np.bool_] | None = None,
 ) -> dict[int, tuple[DepthMap, NDArray[np.int16]]]:
-    """Per view, (depth map of the accepted plane pixels, number of confirming views)."""
+    """Per view, (depth map of the accepted plane pixels, number of confirming views).
+
+    ``colors_known`` (``color_model`` of the plane's stereo points) restricts completion to
+    pixels of the plane's own colours: a white wall above a green floor is not floor even
+    where every view agrees it is white."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
     out: dict[int, tuple[DepthMap, NDArray[np.int16]]] = {}
     for i, cam_i in cameras.items():
@@ -144,6 +167,9 @@ def complete_with_plane(
         # Near-black pixels carry no colour evidence (unlit background, sensor noise).
         lit = blurred[i].max(axis=2) >= MIN_BRIGHTNESS
         cand = (depths[i] <= 0) & (zp > 0) & (zp < far[i]) & regions[i] & lit
+        if colors_known is not None:
+            q = (np.clip(blurred[i], 0, 255).astype(np.int32) * COLOR_BINS) // 256
+            cand &= colors_known[q[..., 2], q[..., 1], q[..., 0]]  # BGR image, RGB model
         rows, cols = np.nonzero(cand)
         result = np.zeros(zp.shape, np.float32)
         support = np.zeros(zp.shape, np.int16)

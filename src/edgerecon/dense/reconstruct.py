@@ -20,7 +20,13 @@ from edgerecon.dense.cost import as_f32, to_grey
 from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid, estimate_depth
 from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
 from edgerecon.dense.neighbors import score_sources, select_sources
-from edgerecon.dense.planes import Plane, below_plane, complete_with_plane, fit_ground_plane
+from edgerecon.dense.planes import (
+    Plane,
+    below_plane,
+    color_model,
+    complete_with_plane,
+    fit_ground_plane,
+)
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
 from edgerecon.geometry.camera import Camera
 from edgerecon.progress import track
@@ -508,6 +514,8 @@ def _complete_ground(
     plane = fit_ground_plane(pts, nrm, nv, up, 3.0 * voxel, config.ground_min_support)
     if plane is None:
         return None, {}
+    on_plane = np.abs(pts @ np.asarray(plane.normal) - plane.offset) <= 3.0 * voxel
+    known = color_model(np.concatenate([p.colors for p in parts])[on_plane])
     by_index = {p["index"]: p for p in plans}
     regions = {}
     far = {}
@@ -531,6 +539,7 @@ def _complete_ground(
         config.consistency_rel_depth,
         config.ground_color_tol,
         config.min_consistent_views,
+        known,
     )
     logger.info("dense: ground plane %s", plane)
     return plane, extra
