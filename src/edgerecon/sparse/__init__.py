@@ -11,10 +11,17 @@ is built on:
 4. multi-view DLT + Gauss-Newton triangulation vectorised over points, reprojection /
    cheirality / triangulation-angle filters, guided extension of tracks into the views that
    did not match them (:mod:`.triangulation`, :mod:`.reconstruction`).
+
+Measured (``benchmarks/bench_sparse.py``, process CPU seconds on the shared 2-core machine):
+utrecht4cam frame 200 (4 x 644x486, cameras ~90 degrees apart; openMVG finds 0 landmarks,
+COLMAP's matching + known-pose triangulation 3): 98 points, median reprojection 0.83 px,
+0.6 s CPU (75 points at r = 0.5, 0.18 s). Middlebury templeSparseRing (16 x 640x480): 2,302
+points, 99% inside the published bounding box (+5 mm), 0.20 px. Synthetic arc7 (7 x 1920x1080):
+2,032 points, 88% within 2 cm of the true surface (94% within 5 cm), 1.8 s CPU.
 """
 
 from edgerecon.sparse.config import SparseConfig
-from edgerecon.sparse.features import Features, extract_all, extract_features
+from edgerecon.sparse.features import Features, extract_all, extract_features, use_affine
 from edgerecon.sparse.matching import PairMatches, match_pair, select_pairs
 from edgerecon.sparse.reconstruction import SparseReconstruction, reconstruct_sparse
 from edgerecon.sparse.tracks import Tracks, build_tracks
@@ -41,4 +48,5 @@ __all__ = [
     "reprojection_errors",
     "select_pairs",
     "triangulate_dlt",
+    "use_affine",
 ]

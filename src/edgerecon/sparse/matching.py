@@ -10,8 +10,9 @@ usually clearly the most similar.
 
 Per camera pair (vectorised NumPy, no per-feature Python loop):
 
-1. epipolar candidates: ``|l_b(x_a) . x_b| <= t`` with normalised lines, as one float32 GEMM per
-   block of features of view a, then the symmetric check in view a;
+1. epipolar candidates: ``|l_b(x_a) . x_b| <= t`` with normalised lines, in both views, found by
+   sorting the keypoints of b by their angle around the epipole (all epipolar lines pass
+   through it) instead of testing every pair: 0.28 s -> 0.02 s for 3.5k x 3.5k keypoints;
 2. cheirality and depth range: two-view midpoint triangulation of each candidate, depth in
    ``(min_depth, max_depth)`` in both cameras;
 3. candidates are reduced to *locations* (SIFT's several orientations at one position count
@@ -74,8 +75,8 @@ class PairMatches:
 def select_pairs(
     cameras: Sequence[Camera], config: SparseConfig = DEFAULT_CONFIG
 ) -> list[tuple[int, int]]:
-    """Index pairs (a < b) of the cameras worth matching: optical axes within
-    ``max_pair_angle_deg`` and each camera's view of the other's frustum not excluded."""
+    """Index pairs (a < b) of the cameras worth matching: those whose optical axes are within
+    ``max_pair_angle_deg`` of each other (all pairs by default)."""
     pairs = []
     cos_max = np.cos(np.radians(config.max_pair_angle_deg))
     for a in range(len(cameras)):
