@@ -184,7 +184,8 @@ def bench(
     print(
         f"{name:28s} r={scale:<4} cams={row['cameras']:14s} mask={mask_share} "
         f"total={row['total_seconds']:6.2f}s dense={row['dense_seconds']:6.2f}s "
-        f"cpu={row['dense_cpu_seconds']:6.2f}s pts={row['points']:7d} {row['stages']}",
+        f"cpu={row['dense_cpu_seconds']:6.2f}s pts={row['points']:7d} {_quality_text(row)} "
+        f"{row['stages']}",
         flush=True,
     )
     return row, rec

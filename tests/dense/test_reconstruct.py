@@ -152,3 +152,24 @@ def test_masks_restrict_output_and_work(scene, result):
     for cid, d in res.depth_maps.items():
         m = next(v.mask for v in masked if v.camera_id == cid)
         assert not np.any(d[~m] > 0)
+
+
+def test_per_pixel_depth_bounds_restrict_depths_and_work(scene, result):
+    views, gts = scene
+    ranges = {}
+    for v in views:
+        gt = gts[v.camera_id]
+        near = np.where(gt > 0, gt * 0.97, 0).astype(np.float32)
+        far = np.where(gt > 0, gt * 1.03, 0).astype(np.float32)
+        near[:, : v.camera.width // 2] = 0  # only the right half of each image
+        ranges[v.camera_id] = (near, far)
+    res = reconstruct_dense(
+        views, DenseConfig(resolution_level=0, num_threads=1), depth_ranges=ranges, up=(0, 0, 1)
+    )
+    assert res.stats["work"] < 0.7 * result.stats["work"]
+    for cid, d in res.depth_maps.items():
+        near, far = ranges[cid]
+        has = d > 0
+        assert has.sum() > 2000
+        assert not np.any(has & (near == 0))
+        assert np.all(d[has] >= near[has] * 0.999) and np.all(d[has] <= far[has] * 1.001)
