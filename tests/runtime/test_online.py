@@ -37,8 +37,12 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     assert all(m.status == "ok" and not m.degraded for m in metrics)
     assert metrics[0].phase == "golden" and metrics[0].scale == 1.0
     assert metrics[0].num_cameras == len(ds.rig)
-    # The golden task is its own reference: online F = 1 when the foreground is non-empty.
-    assert metrics[0].online_fscore == pytest.approx(1.0)
+    # The golden task is its own reference: online F = 1, unless its foreground has too few
+    # sparse points for an informative estimate (then None).
+    if metrics[0].num_sparse_fg >= 10:
+        assert metrics[0].online_fscore == pytest.approx(1.0)
+    else:
+        assert metrics[0].online_fscore is None
     assert all(m.offline_fscore is not None and m.offline_fscore > 0.1 for m in metrics)
     assert all(m.num_fg_points > 0 and m.critical_path_s > 0 for m in metrics)
     assert {"sfm", "wait_masks", "split", "merge"} <= set(metrics[0].stages)

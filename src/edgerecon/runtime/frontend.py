@@ -26,7 +26,7 @@ from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
 from edgerecon.pipeline import prepare_task_views, reconstruct_foreground
-from edgerecon.quality.metrics import fscore
+from edgerecon.quality.online import OnlineQualityConfig, online_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
@@ -191,8 +191,10 @@ class FrontEnd:
                 reason = "no golden reference from the back-end"
             else:
                 quality = online_quality(
-                    fg_rec.fg_sparse.points3D, ref.fg_points3D, self.eval_threshold
-                )
+                    fg_rec.fg_sparse.points3D,
+                    ref.fg_points3D,
+                    OnlineQualityConfig(threshold=self.eval_threshold),
+                ).value
         if plan.phase == "golden" and not self._mapping_ready:
             self._set_mapping(sparse.visibility_matrix(len(self.rig)), fg_rec.cloud)
         self.controller.observe(critical, quality)
@@ -250,11 +252,3 @@ class FrontEnd:
         self.controller.set_camera_mapping(mapping)
         self._mapping_ready = True
         logger.info("front-end: camera mapping pi(N') from %d visibility rows", len(vis))
-
-
-def online_quality(points3D: np.ndarray, reference: np.ndarray, threshold: float) -> float | None:
-    """Online quality estimate: F-score of the task's foreground sparse points against the
-    golden configuration's (None when the reference is empty: nothing to compare with)."""
-    if len(reference) == 0:
-        return None
-    return fscore(points3D, reference, threshold)
