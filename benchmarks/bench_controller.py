@@ -10,6 +10,14 @@ Sections:
 * ``exact``: noise-free random models — the search finds the optimum within tau.
 * ``adjust``: the minor adjustment's running average (paper: all tasks; ours: 5) and target.
 * ``triggers``: load steps (x0.7, x1.4, x2) — re-search delay; false re-searches without one.
+* ``real`` (not in the default set; minutes): the controller driving real reconstructions
+  (``edgerecon.pipeline.reconstruct``, sparse + dense, whole scene) on a dataset such as
+  utrecht4cam. Per task the golden configuration is reconstructed too (the back-end's job in
+  the runtime) to give the online estimate (sparse vs golden sparse) and an offline score
+  (dense vs golden dense); pi(N') comes from the golden sparse cloud of the first task.
+
+    python benchmarks/bench_controller.py --section real --dataset ../shared/data/utrecht4cam \
+        --deadline 3.5 --tasks 30
 """
 
 from __future__ import annotations
@@ -195,6 +203,192 @@ def triggers(args: argparse.Namespace) -> None:
         )
 
 
+def real(args: argparse.Namespace) -> None:
+    import time
+
+    from edgerecon.config import ReconstructionConfig
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.optimize import CameraSelector
+    from edgerecon.pipeline import reconstruct
+    from edgerecon.quality.online import (
+        OnlineQualityConfig,
+        online_offline_correlation,
+        online_quality,
+    )
+
+    ds = open_dataset(args.dataset)
+    rig = ds.rig
+    n = len(rig)
+    dirs = np.array([c.viewing_direction for c in rig])
+    qcfg = OnlineQualityConfig(threshold_rel=args.threshold_rel)
+    ctrl = BisectionController(ControllerConfig(deadline_s=args.deadline), None, n)
+    rows = []
+    with ds.open_frames() as frames:
+        for task in range(args.tasks):
+            index = args.start + task * args.step
+            fs = frames.read(index)
+            cfg = ctrl.next_config()
+            t0 = time.perf_counter()
+            golden = reconstruct(fs, rig, ReconstructionConfig())
+            golden_s = time.perf_counter() - t0
+            if cfg.phase == "golden":
+                cand, seconds = golden, golden_s
+                vis = golden.sparse.visibility_matrix(n)
+                ctrl.set_camera_mapping(
+                    CameraSelector(vis, camera_centers=rig.centers, viewing_directions=dirs)
+                )
+            else:
+                t0 = time.perf_counter()
+                cand = reconstruct(
+                    fs, rig, ReconstructionConfig(scale=cfg.scale, camera_ids=cfg.camera_ids)
+                )
+                seconds = time.perf_counter() - t0
+            online = online_quality(cand.sparse.cloud, golden.sparse.cloud, qcfg)
+            offline = online_quality(cand.dense.cloud, golden.dense.cloud, qcfg)
+            ctrl.observe(seconds, 1.0 if cfg.phase == "golden" else online.value)
+            rows.append((task, index, cfg, seconds, golden_s, online.value, offline.value))
+            emit(
+                "real",
+                task=task,
+                frame=index,
+                phase=cfg.phase,
+                r=cfg.scale,
+                cameras=",".join(map(str, cfg.camera_ids)),
+                seconds=seconds,
+                golden_seconds=golden_s,
+                online_F=online.value if online.value is not None else float("nan"),
+                offline_F=offline.value if offline.value is not None else float("nan"),
+                sparse_points=cand.sparse.num_points,
+            )
+    adjust = [r for r in rows if r[2].phase == "adjust"]
+    corr = online_offline_correlation([r[5] for r in rows[1:]], [r[6] for r in rows[1:]])
+    emit(
+        "real-sum",
+        deadline_s=args.deadline,
+        tasks=len(rows),
+        search_steps=ctrl.total_search_steps,
+        searches=ctrl.num_searches,
+        chosen="-"
+        if ctrl.chosen is None
+        else f"({ctrl.chosen.scale:.3f},{ctrl.chosen.num_cameras})",
+        adjust_tasks=len(adjust),
+        avg_time_s=float(np.mean([r[3] for r in rows])),
+        avg_time_adjust_s=float(np.mean([r[3] for r in adjust])) if adjust else float("nan"),
+        avg_golden_s=float(np.mean([r[4] for r in rows])),
+        misses_adjust=sum(r[3] > args.deadline for r in adjust),
+        avg_online_F=float(np.nanmean([np.nan if r[5] is None else r[5] for r in rows[1:]])),
+        avg_offline_F=float(np.nanmean([np.nan if r[6] is None else r[6] for r in rows[1:]])),
+        corr_pearson=corr.pearson,
+        corr_spearman=corr.spearman,
+        corr_n=corr.num_samples,
+        events=str(ctrl.events),
+    )
+
+
+def table4(args: argparse.Namespace) -> None:
+    from edgerecon.config import ReconstructionConfig
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.pipeline import reconstruct
+    from edgerecon.quality.online import (
+        OnlineQualityConfig,
+        online_offline_correlation,
+        online_quality,
+    )
+    from edgerecon.types import FrameSet
+
+    qcfg = OnlineQualityConfig(threshold_rel=args.threshold_rel)
+    scales = [1.0, 0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3]
+    frames_list = []
+    truth: list[Any] = []
+    if args.dataset.startswith("synthetic:"):
+        from edgerecon.synth import Renderer, build_scene, preset_config
+        from edgerecon.synth.groundtruth import rays_to_points
+        from edgerecon.synth.render import pixel_grid_rays
+
+        scene = build_scene(preset_config(args.dataset.split(":", 1)[1], seed=0))
+        rig = scene.rig
+        renderer = Renderer(scene)
+        for k in range(args.frames):
+            fr = renderer.render(10 + 7 * k)
+            frames_list.append(FrameSet(time_index=fr.time_index, images=fr.images))
+            pts = []
+            for cam, depth in zip(rig, fr.depths, strict=True):
+                xn, yn = pixel_grid_rays(cam)
+                sl = (slice(None, None, 4), slice(None, None, 4))
+                pts.append(rays_to_points(cam, xn[sl].ravel(), yn[sl].ravel(), depth[sl].ravel()))
+            truth.append(np.concatenate(pts))
+    else:
+        ds = open_dataset(args.dataset)
+        rig = ds.rig
+        with ds.open_frames() as src:
+            for k in range(args.frames):
+                frames_list.append(src.read(args.start + k * 40))
+    all_on, all_off, all_gt = [], [], []
+    for k, fs in enumerate(frames_list):
+        golden = reconstruct(fs, rig, ReconstructionConfig())
+        on_f, off_f, gt_f = [], [], []
+        for r in scales:
+            res = golden if r == 1.0 else reconstruct(fs, rig, ReconstructionConfig(scale=r))
+            on = online_quality(res.sparse.cloud, golden.sparse.cloud, qcfg).value
+            off = online_quality(res.dense.cloud, golden.dense.cloud, qcfg).value
+            gt = online_quality(res.dense.cloud, truth[k], qcfg).value if truth else None
+            on_f.append(on)
+            off_f.append(off)
+            gt_f.append(gt)
+            emit(
+                "table4",
+                frame=fs.time_index,
+                r=r,
+                sparse_points=res.sparse.num_points,
+                online_F=np.nan if on is None else on,
+                offline_F=np.nan if off is None else off,
+                dense_vs_truth_F=np.nan if gt is None else gt,
+            )
+        c = online_offline_correlation(on_f, off_f)
+        emit(
+            "table4-c",
+            frame=fs.time_index,
+            vs="golden dense",
+            pearson=c.pearson,
+            spearman=c.spearman,
+            trend=c.trend_agreement,
+        )
+        if truth:
+            c = online_offline_correlation(on_f, gt_f)
+            emit(
+                "table4-c",
+                frame=fs.time_index,
+                vs="truth",
+                pearson=c.pearson,
+                spearman=c.spearman,
+                trend=c.trend_agreement,
+            )
+        all_on += on_f
+        all_off += off_f
+        all_gt += gt_f
+    c = online_offline_correlation(all_on, all_off)
+    emit(
+        "table4-c",
+        frame="all",
+        vs="golden dense",
+        pearson=c.pearson,
+        spearman=c.spearman,
+        trend=c.trend_agreement,
+        n=c.num_samples,
+    )
+    if truth:
+        c = online_offline_correlation(all_on, all_gt)
+        emit(
+            "table4-c",
+            frame="all",
+            vs="truth",
+            pearson=c.pearson,
+            spearman=c.spearman,
+            trend=c.trend_agreement,
+            n=c.num_samples,
+        )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -204,10 +398,29 @@ def main() -> int:
     ap.add_argument("--tasks", type=int, default=200)
     ap.add_argument("--models", type=int, default=500, help="random models in 'exact'")
     ap.add_argument("--noise", type=float, default=0.15)
+    ap.add_argument("--dataset", help="dataset folder for the 'real' section")
+    ap.add_argument("--deadline", type=float, default=3.5, help="'real': deadline (s)")
+    ap.add_argument("--start", type=int, default=100, help="'real': first frame")
+    ap.add_argument("--step", type=int, default=5, help="'real': frames between tasks")
+    ap.add_argument(
+        "--threshold-rel",
+        type=float,
+        default=0.01,
+        help="'real': F-score threshold, share of the golden bbox diagonal",
+    )
+    ap.add_argument("--frames", type=int, default=3, help="'table4': frames to sweep")
     ap.add_argument("--json")
     args = ap.parse_args()
+    sections = {
+        "table3": table3,
+        "exact": exact,
+        "adjust": adjust,
+        "triggers": triggers,
+        "real": real,
+        "table4": table4,
+    }
     for name in args.section:
-        {"table3": table3, "exact": exact, "adjust": adjust, "triggers": triggers}[name](args)
+        sections[name](args)
     if args.json:
         commit = subprocess.run(
             ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False
