@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from edgerecon.cli import main
 
 
@@ -27,3 +29,26 @@ def test_simulate_table_and_errors(capsys):
     assert "--tasks" in capsys.readouterr().err
     assert main(["simulate", "-d", "-3"]) == 2
     assert "deadline_s" in capsys.readouterr().err
+
+
+def test_select_cameras_from_a_visibility_file(tmp_path, capsys):
+    from edgerecon.optimize import synthetic_visibility
+
+    vis = synthetic_visibility(8, 800, seed=0)[0]
+    np.save(tmp_path / "vis.npy", vis)
+    assert main(["select-cameras", str(tmp_path / "vis.npy"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    sels = {s["num_cameras"]: s for s in out["mapping"]["selections"]}
+    assert sorted(sels) == list(range(3, 9))
+    assert sels[8]["camera_ids"] == list(range(8))
+    assert all(s["optimal"] for s in sels.values())
+    assert (
+        main(["select-cameras", str(tmp_path / "vis.npy"), "--available", "0", "2", "4", "6"]) == 0
+    )
+    table = capsys.readouterr().out
+    assert "brute_force" in table and "0 2 4 6" in table
+    assert main(["select-cameras", str(tmp_path / "missing.npy")]) == 2
+    assert "not found" in capsys.readouterr().err
+    np.save(tmp_path / "bad.npy", np.full((4, 5), 3))
+    assert main(["select-cameras", str(tmp_path / "bad.npy")]) == 2
+    assert "0/1" in capsys.readouterr().err
