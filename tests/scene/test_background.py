@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
+from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.background import BackgroundConfig, BackgroundModel, working_size
-from edgerecon.scene.masks import mask_iou
 from edgerecon.types import DataError
 from tests.scene._scenes import noisy, paint, square_mask, textured_background
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from edgerecon.geometry import Camera, Rig
+from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.hull import (
     HullConfig,
     hull_cloud,
@@ -18,7 +19,6 @@ from edgerecon.scene.hull import (
     rig_region,
     visual_hull,
 )
-from edgerecon.scene.masks import mask_iou
 from tests.scene._scenes import box_silhouette, box_surface_points, ring_with_top
 
 LO = np.array([-0.3, -0.2, 0.5])
@@ -218,3 +218,28 @@ def test_rig_region_contains_where_cameras_look(rig: Rig) -> None:
         cams.append(Camera(name=f"c{i}", width=320, height=240, K=K, R=R, t=t))
     box = rig_region(cams)
     assert (box[0] < [0, 1.5, 1.0]).all() and (box[1] > [0, 1.5, 1.0]).all()
+
+
+def test_phantoms_of_two_objects_seen_by_three_cameras_are_removed() -> None:
+    # Three cameras 90-100 degrees apart and two boxes: the silhouette cones also intersect
+    # where there is no object (phantoms); they explain no pixel of their own.
+    from edgerecon.geometry import look_at
+
+    cams = []
+    for i, a in enumerate(np.radians([10, 100, 200])):
+        R, t = look_at((4 * np.cos(a), 4 * np.sin(a), 1.8), (0.0, 0.0, 0.8))
+        K = np.array([[250.0, 0, 159.5], [0, 250, 119.5], [0, 0, 1]])
+        cams.append(Camera(name=f"c{i}", width=320, height=240, K=K, R=R, t=t))
+    boxes = [
+        (np.array([0.6, 0.5, 0.0]), np.array([1.0, 0.9, 1.6])),
+        (np.array([-1.0, -0.9, 0.0]), np.array([-0.6, -0.5, 1.6])),
+    ]
+    masks = [box_silhouette(c, *boxes[0]) | box_silhouette(c, *boxes[1]) for c in cams]
+    centres = np.array([(lo + hi) / 2 for lo, hi in boxes])
+    raw = visual_hull(cams, masks, HullConfig(voxel_size=0.04, remove_phantoms=False))
+    assert raw.num_objects >= 4
+    hull = visual_hull(cams, masks, HullConfig(voxel_size=0.04))
+    assert hull.num_objects == 2
+    assert sorted(hull.label_points(centres).tolist()) == [1, 2]
+    for k, (lo, hi) in zip(hull.label_points(centres), boxes, strict=True):
+        assert (hull.label_points(box_surface_points(lo, hi, 6)) == k).all()

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.masks import (
     MaskConfig,
     clean_mask,
     fill_holes,
-    mask_iou,
     remove_small_blobs,
     resize_mask_smooth,
 )

@@ -22,6 +22,7 @@ from edgerecon.scene.hull import (
     DepthRange,
     HullConfig,
     VisualHull,
+    depth_map,
     hull_cloud,
     hull_consistent_masks,
     hull_depth_range,
@@ -29,7 +30,7 @@ from edgerecon.scene.hull import (
     rig_region,
     visual_hull,
 )
-from edgerecon.scene.masks import MaskConfig, clean_mask, fill_holes, mask_iou, remove_small_blobs
+from edgerecon.scene.masks import MaskConfig, clean_mask, fill_holes, remove_small_blobs
 from edgerecon.scene.merge import BG_VERSION, MergeConfig, merge_clouds, split_merged, write_merged
 from edgerecon.scene.objects import (
     ForegroundObject,
@@ -60,6 +61,7 @@ __all__ = [
     "SplitResult",
     "VisualHull",
     "clean_mask",
+    "depth_map",
     "fill_holes",
     "find_objects",
     "hull_cloud",
@@ -67,7 +69,6 @@ __all__ = [
     "hull_depth_range",
     "hull_silhouette",
     "learn_backgrounds",
-    "mask_iou",
     "merge_clouds",
     "remove_small_blobs",
     "rig_region",

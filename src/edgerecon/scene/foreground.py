@@ -23,7 +23,7 @@ from edgerecon.progress import track
 from edgerecon.scene.background import BackgroundConfig, BackgroundModel, BackgroundState
 from edgerecon.scene.hull import HullConfig, VisualHull, hull_consistent_masks, visual_hull
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
-from edgerecon.types import DataError, FrameSet, Image, Mask, StageTimings
+from edgerecon.types import DataError, DepthMap, FrameSet, Image, Mask, StageTimings
 
 logger = logging.getLogger(__name__)
 
@@ -99,6 +99,7 @@ class RigForeground:
         self.rig = rig
         self.config = config or ForegroundConfig()
         self.models = list(models)
+        self.occluders: list[DepthMap | None] | None = None
 
     @classmethod
     def learn(
@@ -167,6 +168,14 @@ class RigForeground:
             for model, im in zip(self.models, frames.images, strict=True)
         ]
 
+    def set_occluders(self, depth_maps: Sequence[DepthMap | None] | None) -> None:
+        """Per camera, the depth map of the static scene (e.g. ``hull.depth_map`` of the
+        background cloud): the visual hull then knows what each camera cannot see. None
+        forgets them."""
+        if depth_maps is not None and len(depth_maps) != len(self.rig):
+            raise DataError(f"{len(depth_maps)} occluder depth maps for {len(self.rig)} cameras")
+        self.occluders = None if depth_maps is None else list(depth_maps)
+
     def segment(self, frames: FrameSet, *, update: bool = True) -> ForegroundResult:
         """The foreground of one timestamp (the models learn from it unless ``update=False``)."""
         timings = StageTimings()
@@ -178,9 +187,17 @@ class RigForeground:
         with_fg = sum(m is not None and bool(m.any()) for m in model_masks)
         if cfg.hull_consistency and with_fg >= 1:
             with timings.stage("visual_hull"):
-                hull = visual_hull(self.rig.cameras, model_masks, cfg.hull)
+                hull = visual_hull(
+                    self.rig.cameras, model_masks, cfg.hull, occluders=self.occluders
+                )
             with timings.stage("hull_consistency"):
-                masks = hull_consistent_masks(hull, self.rig.cameras, model_masks)
+                masks = hull_consistent_masks(
+                    hull,
+                    self.rig.cameras,
+                    model_masks,
+                    max_missing=cfg.hull.max_missing,
+                    occluders=self.occluders,
+                )
         with timings.stage("objects"):
             objects = tuple(None if m is None else find_objects(m, cfg.objects) for m in masks)
         return ForegroundResult(

@@ -19,14 +19,17 @@ per-view near/far depth ranges for the dense stage, hull-consistent masks (foreg
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -34,6 +37,7 @@ from edgerecon.geometry.camera import Camera
 from edgerecon.types import (
     BACKGROUND_LABEL,
     DataError,
+    DepthMap,
     Image,
     Mask,
     PointCloud,
@@ -49,6 +53,8 @@ _NEIGHBOURS6 = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.int64
 )
 _CHILDREN = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+#: Splat radii (pixels) of the depth-range classes: a voxel uses the first >= its radius.
+_RADIUS_CLASSES = np.array([1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64])
 #: Projected-footprint inflation that covers lens distortion's local magnification.
 _FOOTPRINT_SLACK = 1.1
 
@@ -66,12 +72,16 @@ class HullConfig:
     """Cells along the longest side of the initial box at the coarsest level."""
     tolerance_px: float = 1.0
     """Silhouette tolerance in pixels (mask boundaries are uncertain by about this much)."""
-    min_views: int = 3
-    """A voxel must lie inside the images of at least this many cameras with a mask ..."""
-    min_views_fraction: float = 0.5
-    """... and of at least this share of them (the larger bound wins, capped at the number of
-    cameras with a mask): where few cameras see, the cones of different objects intersect in
-    'phantom' volumes (beside or below a camera, behind walls) that nothing carves away."""
+    min_views: int = 2
+    """A voxel must lie inside the silhouettes of at least this many cameras (capped at the
+    number of cameras with a mask)."""
+    remove_phantoms: bool = True
+    """Drop 'phantom' objects: where few cameras see, the cones of different objects intersect
+    in volumes that no silhouette carves away; a phantom projects inside other objects'
+    projections in every camera (see ``phantom_objects``)."""
+    phantom_unique_fraction: float = 0.15
+    """An object is real when at least this share of its projection is covered by no other
+    object in at least two cameras (or in the only camera that sees it)."""
     max_missing: int = 0
     """A voxel survives when at most this many of the cameras that see it put it outside
     their silhouette (0 = exact intersection; 1 = robust to one bad mask)."""
@@ -104,9 +114,10 @@ class HullConfig:
             raise ValueError(f"HullConfig.tolerance_px must be >= 0, got {self.tolerance_px}")
         if self.min_views < 1:
             raise ValueError(f"HullConfig.min_views must be >= 1, got {self.min_views}")
-        if not 0.0 <= self.min_views_fraction <= 1.0:
+        if not 0.0 <= self.phantom_unique_fraction <= 1.0:
             raise ValueError(
-                f"HullConfig.min_views_fraction must be in [0, 1], got {self.min_views_fraction}"
+                "HullConfig.phantom_unique_fraction must be in [0, 1], got "
+                f"{self.phantom_unique_fraction}"
             )
         if self.max_missing < 0:
             raise ValueError(f"HullConfig.max_missing must be >= 0, got {self.max_missing}")
@@ -228,87 +239,222 @@ def _lookup(sorted_keys: NDArray[np.int64], idx: NDArray[np.int64]) -> NDArray[n
     return np.where(found, pos, -1)
 
 
-def _check_masks(cameras: Sequence[Camera], masks: Sequence[Mask | None]) -> None:
+def _check_masks(
+    cameras: Sequence[Camera], masks: Sequence[NDArray[Any] | None], what: str = "mask"
+) -> None:
     if len(masks) != len(cameras):
-        raise DataError(f"visual hull: {len(masks)} masks for {len(cameras)} cameras")
+        raise DataError(f"visual hull: {len(masks)} {what}s for {len(cameras)} cameras")
     for cam, m in zip(cameras, masks, strict=True):
         if m is not None and np.shape(m) != (cam.height, cam.width):
             raise DataError(
-                f"camera {cam.name!r}: mask is {np.shape(m)[1]}x{np.shape(m)[0]} but the camera "
-                f"is {cam.width}x{cam.height}"
+                f"camera {cam.name!r}: {what} is {np.shape(m)[1]}x{np.shape(m)[0]} but the "
+                f"camera is {cam.width}x{cam.height}"
             )
 
 
-def _distance_to_silhouette(mask: Mask) -> NDArray[np.float32]:
-    """Distance (pixels) from every pixel to the nearest foreground pixel (0 inside)."""
-    m = np.asarray(mask, dtype=bool)
-    if not m.any():
-        return np.full(m.shape, np.inf, np.float32)
-    return np.asarray(
-        cv2.distanceTransform((~m).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32
+_Distances = tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]
+
+
+def _distance_to_silhouette(mask: Mask) -> _Distances:
+    """Per pixel, the distances (pixels) to the nearest foreground pixel; to the nearest
+    foreground pixel or the image border (beyond the border is unknown: it may be
+    foreground); and to the nearest background pixel or the image border (0 outside)."""
+    m = np.asarray(mask, dtype=bool).view(np.uint8)
+    if m.any():
+        to_fg = cv2.distanceTransform(1 - m, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    else:
+        to_fg = np.full(m.shape, np.inf, np.float32)
+    bg = cv2.copyMakeBorder(1 - m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    to_fg_or_border = cv2.distanceTransform(bg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    fg = cv2.copyMakeBorder(m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
+    inside = cv2.distanceTransform(fg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    return (
+        np.asarray(to_fg, np.float32),
+        np.asarray(to_fg_or_border, np.float32),
+        np.asarray(inside, np.float32),
     )
 
 
-def rig_region(cameras: Sequence[Camera], margin_fraction: float = 0.5) -> NDArray[np.float64]:
-    """(2, 3) box where a rig's cameras can see objects together: the camera centres and the
-    point nearest to all optical axes (where the cameras look), grown by ``margin_fraction``
-    of the largest distance between cameras.
+def rig_region(cameras: Sequence[Camera], margin_fraction: float = 0.05) -> NDArray[np.float64]:
+    """(2, 3) box of the capture volume: the camera centres and a ball around the point
+    nearest to all optical axes (where the cameras look) reaching 90 % of the way to the
+    nearest camera, grown by ``margin_fraction`` of the largest distance between cameras.
 
-    Objects outside some cameras' fields of view are still inside it (unlike the intersection
-    of the silhouettes' frusta, which assumes every camera sees every object).
+    Cameras standing around a scene bound it; cameras on an arc see a scene around the point
+    they look at. Objects outside some cameras' fields of view are still inside (unlike an
+    intersection of the silhouettes' frusta); space beyond the cameras is not, where cones
+    seen by only two cameras would intersect in large phantoms.
     """
     centers = np.array([c.center for c in cameras])
     axes = np.array([c.viewing_direction for c in cameras])
     proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
     A = proj.sum(axis=0)
     b = np.einsum("nij,nj->i", proj, centers)
+    span = float(np.max(np.linalg.norm(centers[:, None] - centers[None], axis=2)))
     pts = centers
     if np.linalg.cond(A) < 1e8:
-        pts = np.vstack([centers, np.linalg.solve(A, b)])
-    span = float(np.max(np.linalg.norm(centers[:, None] - centers[None], axis=2)))
+        target = np.linalg.solve(A, b)
+        reach = 0.9 * float(np.min(np.linalg.norm(centers - target, axis=1)))
+        pts = np.vstack([centers, target - reach, target + reach])
     margin = margin_fraction * max(span, 1e-9)
     return np.stack([pts.min(axis=0) - margin, pts.max(axis=0) + margin])
 
 
+def _project_voxels(
+    cam: Camera, idx: NDArray[np.int64], origin: NDArray[np.float64], size: float
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+    """(u, v, depth) of voxel centres ``origin + (idx + 0.5) * size`` in ``cam`` (distortion
+    applied), float32: the centres are an affine function of the integer indices, so this
+    avoids an (N, 3) float64 matrix product per camera."""
+    A = (cam.R * size).astype(np.float32)
+    b = (cam.R @ (origin + 0.5 * size) + cam.t).astype(np.float32)
+    f = idx.astype(np.float32)
+    i, j, k = f[:, 0], f[:, 1], f[:, 2]
+    xc = A[0, 0] * i + A[0, 1] * j + A[0, 2] * k + b[0]
+    yc = A[1, 0] * i + A[1, 1] * j + A[1, 2] * k + b[1]
+    zc = A[2, 0] * i + A[2, 1] * j + A[2, 2] * k + b[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = xc / zc
+        yn = yc / zc
+    if cam.has_distortion:
+        k1, k2, p1, p2, k3 = (np.float32(x) for x in cam.dist)
+        r2 = xn * xn + yn * yn
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+        xn, yn = xd, yd
+    K = cam.K.astype(np.float32)
+    u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
+    v = K[1, 1] * yn + K[1, 2]
+    return u, v, zc
+
+
 def _carve_level(
-    centers: Points3D,
+    idx: NDArray[np.int64],
+    origin: NDArray[np.float64],
     size: float,
     cameras: Sequence[Camera],
-    dists: Sequence[NDArray[np.float32] | None],
+    dists: Sequence[_Distances | None],
+    walls: Sequence[NDArray[np.float32] | None],
     config: HullConfig,
-) -> NDArray[np.bool_]:
-    """(M,) survivors among voxels of edge ``size`` centred at ``centers``."""
-    n = len(centers)
-    seen = np.zeros(n, np.int32)
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(keep, full) among voxels of edge ``size``: ``keep`` = survives; ``full`` = its whole
+    footprint lies inside the silhouette in every camera that can see any part of it (then
+    every child survives too and need not be tested)."""
+    n = len(idx)
+    agree = np.zeros(n, np.int32)
     missing = np.zeros(n, np.int32)
-    half_diag = 0.5 * np.sqrt(3.0) * size
-    for cam, dist in zip(cameras, dists, strict=True):
+    full = np.ones(n, bool)
+    half_diag = np.float32(0.5 * np.sqrt(3.0) * size)
+    tol = np.float32(config.tolerance_px + 0.71)  # + 0.71: the centre is rounded to a pixel
+    for cam, dist, wall in zip(cameras, dists, walls, strict=True):
         if dist is None:
             continue
-        uv, depth = cam.project(centers)
+        to_fg, to_fg_or_border, inside_dist = dist
+        u, v, depth = _project_voxels(cam, idx, origin, size)
         front = depth > half_diag
-        u = np.rint(uv[:, 0])
-        v = np.rint(uv[:, 1])
-        inside = front & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        if not inside.any():
-            continue
-        ui = u[inside].astype(np.intp)
-        vi = v[inside].astype(np.intp)
-        radius = half_diag * cam.focal_px * _FOOTPRINT_SLACK / depth[inside]
-        # + 0.71: the centre was rounded to the nearest pixel.
-        touches = dist[vi, ui] <= radius + config.tolerance_px + 0.71
-        seen[inside] += 1
-        missing[np.flatnonzero(inside)[~touches]] += 1
+        with np.errstate(invalid="ignore", divide="ignore"):
+            radius = np.where(
+                front, half_diag * np.float32(cam.focal_px * _FOOTPRINT_SLACK) / depth, np.inf
+            )
+            ur = np.rint(u)
+            vr = np.rint(v)
+            inside = front & (ur >= 0) & (ur < cam.width) & (vr >= 0) & (vr < cam.height)
+            # Any part of the footprint may reach into the image: children may be seen.
+            near = (depth > -half_diag) & ~(
+                (u < -radius - 1)
+                | (u > cam.width + radius)
+                | (v < -radius - 1)
+                | (v > cam.height + radius)
+            )
+        if wall is not None:
+            # Behind the static scene (by more than the voxel): hidden from this camera.
+            uc = np.clip(np.nan_to_num(ur), 0, cam.width - 1).astype(np.intp)
+            vc = np.clip(np.nan_to_num(vr), 0, cam.height - 1).astype(np.intp)
+            hidden = inside & (depth - half_diag > wall[vc, uc])
+            inside &= ~hidden
+            near &= ~hidden
+        ii = np.flatnonzero(inside)
+        ui = ur[ii].astype(np.intp)
+        vi = vr[ii].astype(np.intp)
+        r = radius[ii]
+        # A camera confirms a voxel whose footprint touches its silhouette, and carves one whose
+        # footprint touches neither the silhouette nor the image border (beyond the border,
+        # part of the voxel may be foreground that this camera does not see).
+        agree[ii[to_fg[vi, ui] <= r + tol]] += 1
+        missing[ii[to_fg_or_border[vi, ui] > r + tol]] += 1
+        covered = np.zeros(n, bool)
+        covered[ii] = inside_dist[vi, ui] >= r + np.float32(0.71)
+        full &= ~near | covered
     num_masks = sum(d is not None for d in dists)
-    min_views = max(config.min_views, int(np.ceil(config.min_views_fraction * num_masks)))
-    return (seen >= max(min(min_views, num_masks), 1)) & (missing <= config.max_missing)
+    # At least min_views cameras put the voxel in their foreground, at most max_missing not.
+    keep = (agree >= max(min(config.min_views, num_masks), 1)) & (missing <= config.max_missing)
+    return keep, keep & full
 
 
-def _neighbour_positions(keys: NDArray[np.int64], idx: NDArray[np.int64]) -> NDArray[np.int64]:
-    """(M, 6) position of each voxel's 6-neighbours in the sorted ``keys`` (-1 = empty)."""
-    out = np.empty((len(idx), 6), np.int64)
+def _occluder_maps(
+    occluders: Sequence[DepthMap | None] | None, n: int
+) -> list[NDArray[np.float32] | None]:
+    """Per camera, the static scene's depth with unknown pixels (NaN, <= 0) at +inf, and the
+    depth at each pixel raised to its 3x3 neighbourhood's maximum (a voxel counts as hidden
+    only where the occluder covers it with a pixel to spare)."""
+    if occluders is None:
+        return [None] * n
+    out: list[NDArray[np.float32] | None] = []
+    for d in occluders:
+        if d is None:
+            out.append(None)
+            continue
+        depth = np.asarray(d, np.float32)
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf).astype(np.float32)
+        out.append(np.asarray(cv2.dilate(depth, np.ones((3, 3), np.uint8)), np.float32))
+    return out
+
+
+def _expand(idx: NDArray[np.int64], levels: int) -> NDArray[np.int64]:
+    """All descendants ``levels`` levels down of voxels ``idx``."""
+    if levels == 0 or len(idx) == 0:
+        return idx
+    m = 1 << levels
+    r = np.arange(m, dtype=np.int64)
+    offs = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    return (idx[:, None, :] * m + offs[None]).reshape(-1, 3)
+
+
+#: Largest dense occupancy grid (cells) used for neighbour look-ups; beyond it, sorted keys.
+_MAX_DENSE_CELLS = 64_000_000
+
+
+def _occupancy(
+    idx: NDArray[np.int64], pad: int = 1
+) -> tuple[NDArray[np.bool_], NDArray[np.int64]] | None:
+    """Dense boolean grid of the voxels (with ``pad`` empty cells around) and its offset, or
+    None when it would be too large."""
+    lo = idx.min(axis=0) - pad
+    shape = idx.max(axis=0) - lo + 1 + pad
+    if int(np.prod(shape)) > _MAX_DENSE_CELLS:
+        return None
+    occ = np.zeros(tuple(int(x) for x in shape), bool)
+    p = idx - lo
+    occ[p[:, 0], p[:, 1], p[:, 2]] = True
+    return occ, lo
+
+
+def _empty_neighbours(idx: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """(M, 6) whether each voxel's 6-neighbours (in ``_NEIGHBOURS6`` order) are empty; ``idx``
+    sorted by key."""
+    out = np.empty((len(idx), 6), bool)
+    grid = _occupancy(idx)
+    if grid is not None:
+        occ, lo = grid
+        p = idx - lo
+        for j, d in enumerate(_NEIGHBOURS6):
+            q = p + d
+            out[:, j] = ~occ[q[:, 0], q[:, 1], q[:, 2]]
+        return out
+    keys = _pack(idx)
     for j, d in enumerate(_NEIGHBOURS6):
-        out[:, j] = _lookup(keys, idx + d)
+        out[:, j] = _lookup(keys, idx + d) < 0
     return out
 
 
@@ -316,18 +462,25 @@ def visual_hull(
     cameras: Sequence[Camera],
     masks: Sequence[Mask | None],
     config: HullConfig | None = None,
+    *,
+    occluders: Sequence[DepthMap | None] | None = None,
 ) -> VisualHull:
     """Carve the visual hull of the foreground masks.
 
     ``cameras`` are the rig's cameras (full resolution, with distortion: projection goes
     through ``Camera.project``) or any cameras the masks were made for; ``masks[i]`` is the
     (H, W) foreground of camera i, or None for a camera without a mask (it does not carve).
-    An empty foreground, or masks whose cones do not intersect, give an empty hull
-    (``status == "empty"``), not an error.
+    ``occluders[i]``, when given, is camera i's depth map of the static scene (e.g. rendered
+    from the background cloud by ``depth_map``; NaN or 0 = unknown): a voxel behind it is
+    hidden from camera i, which then neither carves nor confirms it (without it, an actor
+    behind furniture in one view is carved away). An empty foreground, or masks whose cones
+    do not intersect, give an empty hull (``status == "empty"``), not an error.
     """
     config = config or HullConfig()
     cameras = list(cameras)
     _check_masks(cameras, masks)
+    if occluders is not None:
+        _check_masks(cameras, occluders, "occluder depth map")
     timings = StageTimings()
     centers_all = np.array([c.center for c in cameras])
     span = (
@@ -364,6 +517,7 @@ def visual_hull(
         return empty(box)
     with timings.stage("hull_distance"):
         dists = [None if m is None else _distance_to_silhouette(m) for m in masks]
+        walls = _occluder_maps(occluders, len(cameras))
 
     extent = float(np.max(box[1] - box[0]))
     # Coarsest size is target * 2^L with L chosen so that ~coarse_cells cover the box.
@@ -373,38 +527,47 @@ def visual_hull(
     counts = np.maximum(np.ceil((box[1] + 0.5 * size - origin) / size).astype(np.int64), 1)
     idx = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), -1).reshape(-1, 3)
     status = "ok"
+    full_parts: list[tuple[NDArray[np.int64], int]] = []
     with timings.stage("hull_carve"):
         level = levels
         while True:
-            centers = origin + (idx + 0.5) * size
-            keep = _carve_level(centers, size, cameras, dists, config)
-            idx = idx[keep]
-            logger.debug("hull level %d: size %.4g, %d voxels kept", level, size, len(idx))
+            keep, full = _carve_level(idx, origin, size, cameras, dists, walls, config)
+            if full.any():
+                full_parts.append((idx[full], level))
+            idx = idx[keep & ~full]
+            logger.debug(
+                "hull level %d: size %.4g, %d boundary + %d full voxels",
+                level,
+                size,
+                len(idx),
+                int(full.sum()),
+            )
             if level == 0 or len(idx) == 0:
                 break
-            if len(idx) * 8 > config.max_voxels:
+            total = 8 * len(idx) + sum(len(f) * 8 ** (lv - level + 1) for f, lv in full_parts)
+            if total > config.max_voxels:
                 logger.warning(
-                    "visual hull: stopping at voxel size %.4g (%d voxels; max_voxels=%d)",
+                    "visual hull: stopping at voxel size %.4g (%d voxels at the next level; "
+                    "max_voxels=%d)",
                     size,
-                    len(idx),
+                    total,
                     config.max_voxels,
                 )
                 status = "coarse"
                 break
-            idx = (idx[:, None, :] * 2 + _CHILDREN[None]).reshape(-1, 3)
+            idx = _expand(idx, 1)
             size *= 0.5
             level -= 1
+        idx = np.concatenate([idx] + [_expand(f, lv - level) for f, lv in full_parts])
     if len(idx) == 0:
         return empty(box)
 
     with timings.stage("hull_topology"):
-        keys = _pack(idx)
-        order = np.argsort(keys)
-        idx, keys = idx[order], keys[order]
-        nb = _neighbour_positions(keys, idx)
-        surface = np.any(nb < 0, axis=1)
+        idx = idx[np.argsort(_pack(idx), kind="stable")]
+        empty_nb = _empty_neighbours(idx)
+        surface = np.any(empty_nb, axis=1)
         # Outward normal: the sum of the directions towards empty neighbours.
-        outward = (nb < 0).astype(np.float64) @ _NEIGHBOURS6.astype(np.float64)
+        outward = empty_nb.astype(np.float64) @ _NEIGHBOURS6.astype(np.float64)
         norm = np.linalg.norm(outward, axis=1, keepdims=True)
         normals = np.where(norm > 0, outward / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
         gap = (
@@ -423,7 +586,7 @@ def visual_hull(
             idx, labels, surface, normals = idx[keep], labels[keep], surface[keep], normals[keep]
     if len(idx) == 0:
         return empty(box)
-    return VisualHull(
+    hull = VisualHull(
         origin=origin,
         voxel_size=float(size),
         indices=idx,
@@ -434,6 +597,76 @@ def visual_hull(
         status=status,
         timings=timings,
     )
+    if config.remove_phantoms and hull.num_objects > 1:
+        with timings.stage("hull_phantoms"):
+            phantoms = phantom_objects(hull, cameras, masks, config.phantom_unique_fraction)
+            if phantoms:
+                logger.debug("visual hull: dropping phantom objects %s", phantoms)
+                hull = _without_objects(hull, phantoms)
+    return hull
+
+
+def _without_objects(hull: VisualHull, object_ids: Sequence[int]) -> VisualHull:
+    """The hull without some objects; the others renumbered 1..K by decreasing size."""
+    keep = ~np.isin(hull.labels, list(object_ids))
+    sizes = np.bincount(hull.labels[keep], minlength=hull.num_objects + 1)
+    order = [k for k in np.argsort(-sizes[1:], kind="stable") + 1 if sizes[k] > 0]
+    lut = np.zeros(hull.num_objects + 1, np.int32)
+    lut[order] = np.arange(1, len(order) + 1)
+    return dataclasses.replace(
+        hull,
+        indices=hull.indices[keep],
+        labels=lut[hull.labels[keep]],
+        surface=hull.surface[keep],
+        normals=hull.normals[keep],
+    )
+
+
+def phantom_objects(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    unique_fraction: float = 0.15,
+) -> list[int]:
+    """Ids of hull objects that explain no silhouette pixel of their own (phantoms).
+
+    Where few cameras see, the silhouette cones of real objects intersect in extra volumes.
+    A phantom lies on rays through real objects in every camera, so within the masks its
+    projection is covered by the other objects' projections; a real object has pixels only it
+    covers. An object is real when at least ``unique_fraction`` of its projection (inside the
+    mask) is its own in two cameras (or in the only camera whose image it is in). Phantoms
+    are removed one at a time, smallest first, re-counting after each: in an ambiguous
+    configuration (two objects seen by two cameras) real objects and phantoms look alike,
+    and the larger candidates are kept.
+    """
+    n = hull.num_objects
+    if n < 2:
+        return []
+    sils = []  # per camera with a mask: (n, H, W) object projections inside the mask
+    for cam, m in zip(cameras, masks, strict=True):
+        if m is None:
+            continue
+        stack = np.stack([hull_silhouette(hull, cam, object_id=k) for k in range(1, n + 1)])
+        sils.append(stack & np.asarray(m, bool)[None])
+    sizes = np.bincount(hull.labels, minlength=n + 1)[1:]
+    alive = np.ones(n, bool)
+    removed: list[int] = []
+    while alive.sum() > 1:
+        own = np.zeros(n, np.int32)
+        seen = np.zeros(n, np.int32)
+        for stack in sils:
+            cover = stack[alive].sum(axis=0)
+            area = stack.reshape(n, -1).sum(axis=1)
+            unique = (stack & (cover == 1)[None]).reshape(n, -1).sum(axis=1)
+            seen += area > 0
+            own += (area > 0) & (unique >= unique_fraction * np.maximum(area, 1))
+        phantom = alive & (own < np.minimum(2, seen))
+        if not phantom.any():
+            break
+        k = int(np.flatnonzero(phantom)[np.argmin(sizes[phantom])])
+        alive[k] = False
+        removed.append(k + 1)
+    return removed
 
 
 def _objects(
@@ -443,6 +676,13 @@ def _objects(
     ``cluster`` voxels (so parts closer than about ``cluster`` voxels join), by decreasing
     size as 1..K; 0 for components below ``min_voxels`` or ``min_fraction`` of the largest."""
     coarse = np.floor_divide(idx, max(cluster, 1))
+    grid = _occupancy(coarse, pad=0)
+    if grid is not None:
+        occ, lo = grid
+        lab, ncomp = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+        p = coarse - lo
+        voxel_comp = lab[p[:, 0], p[:, 1], p[:, 2]] - 1
+        return _rank_components(voxel_comp, ncomp, min_voxels, min_fraction)
     ckeys = _pack(coarse)
     uniq, inv = np.unique(ckeys, return_inverse=True)
     first = np.zeros(len(uniq), np.int64)
@@ -469,7 +709,13 @@ def _objects(
     c = np.concatenate(cols)
     graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(m, m))
     ncomp, comp = connected_components(graph, directed=False)
-    voxel_comp = comp[inv]
+    return _rank_components(comp[inv], ncomp, min_voxels, min_fraction)
+
+
+def _rank_components(
+    voxel_comp: NDArray[np.intp], ncomp: int, min_voxels: int, min_fraction: float
+) -> NDArray[np.int32]:
+    """Component ids -> 1..K by decreasing size, 0 for the small ones."""
     sizes = np.bincount(voxel_comp, minlength=ncomp)
     keep = (sizes >= min_voxels) & (sizes >= min_fraction * sizes.max())
     order = np.argsort(-sizes, kind="stable")
@@ -504,6 +750,26 @@ def _zbuffer_visible(
     return vis, uv
 
 
+def sample_bilinear(image: Image, points2D: NDArray[np.float64]) -> NDArray[np.float32]:
+    """(N, C) bilinear samples of an image at (N, 2) pixel positions (border replicated)."""
+    n = len(points2D)
+    if n == 0:
+        return np.zeros((0, image.shape[2] if image.ndim == 3 else 1), np.float32)
+    # remap needs maps smaller than 32767 on each side: lay the points out in rows.
+    width = 1024
+    rows = -(-n // width)
+    maps = np.zeros((2, rows * width), np.float32)
+    maps[:, :n] = points2D.T
+    out = cv2.remap(
+        image.astype(np.float32),
+        maps[0].reshape(rows, width),
+        maps[1].reshape(rows, width),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return np.asarray(out, np.float32).reshape(rows * width, -1)[:n]
+
+
 def hull_cloud(
     hull: VisualHull,
     cameras: Sequence[Camera],
@@ -536,13 +802,7 @@ def hull_cloud(
         vis, uv = _zbuffer_visible(cam, pts, hull.voxel_size, 2.0 * hull.voxel_size)
         if not vis.any():
             continue
-        m = cv2.remap(
-            img,
-            uv[vis, 0].astype(np.float32).reshape(-1, 1),
-            uv[vis, 1].astype(np.float32).reshape(-1, 1),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
-        ).reshape(-1, 3)
+        m = sample_bilinear(img, uv[vis])
         samples[ci, vis] = m[:, ::-1]  # BGR -> RGB
     num_views = np.sum(~np.isnan(samples[..., 0]), axis=0).astype(np.int32)
     with warnings.catch_warnings():
@@ -598,41 +858,43 @@ def hull_depth_range(
     for k in np.unique(lab):
         d = depth[lab == k]
         objects[int(k)] = (float(d.min() - margin), float(d.max() + margin))
-    # Splat on a grid of cells about one voxel footprint wide, then fill 3x3 neighbourhoods so
-    # that the splats of a surface cover every pixel of its projection.
-    foot = hull.voxel_size * camera.focal_px / depth
-    cell = max(1, int(np.floor(np.percentile(foot, 10))))
-    gh, gw = -(-h // cell), -(-w // cell)
-    ci = np.clip(np.rint(uv[:, 1]).astype(np.int64) // cell, 0, gh - 1)
-    cj = np.clip(np.rint(uv[:, 0]).astype(np.int64) // cell, 0, gw - 1)
-    key = ci * gw + cj
-    zn_flat = np.full(gh * gw, np.inf, np.float32)
-    zf_flat = np.full(gh * gw, -np.inf, np.float32)
-    np.minimum.at(zn_flat, key, depth.astype(np.float32))
-    np.maximum.at(zf_flat, key, depth.astype(np.float32))
-    k3 = np.ones((3, 3), np.uint8)
-    zn = np.asarray(
-        cv2.erode(zn_flat.reshape(gh, gw), k3, borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-    )
-    zf = np.asarray(
-        cv2.dilate(zf_flat.reshape(gh, gw), k3, borderType=cv2.BORDER_CONSTANT, borderValue=-np.inf)
-    )
-    valid = np.isfinite(zn) & np.isfinite(zf)
-    zn_m = np.where(valid, zn - margin, np.nan).astype(np.float32)
-    zf_m = np.where(valid, zf + margin, np.nan).astype(np.float32)
-    near[...] = np.repeat(np.repeat(zn_m, cell, axis=0), cell, axis=1)[:h, :w]
-    far[...] = np.repeat(np.repeat(zf_m, cell, axis=0), cell, axis=1)[:h, :w]
+    # Each voxel covers a disc of its projected radius: splat the centres per radius class
+    # (a few geometric classes), spread them with a min (near) / max (far) filter of that
+    # radius, and combine the classes.
+    radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * camera.focal_px / depth
+    u = np.clip(np.rint(uv[:, 0]).astype(np.intp), 0, w - 1)
+    v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1)
+    key = v * w + u
+    z = depth.astype(np.float32)
+    zn = np.full((h, w), np.inf, np.float32)
+    zf = np.full((h, w), -np.inf, np.float32)
+    classes = np.searchsorted(_RADIUS_CLASSES, radius)
+    for c in np.unique(classes):
+        sel = classes == c
+        r = int(_RADIUS_CLASSES[min(c, len(_RADIUS_CLASSES) - 1)])
+        ln = np.full(h * w, np.inf, np.float32)
+        lf = np.full(h * w, -np.inf, np.float32)
+        np.minimum.at(ln, key[sel], z[sel])
+        np.maximum.at(lf, key[sel], z[sel])
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        np.minimum(zn, cv2.erode(ln.reshape(h, w), disc), out=zn)
+        np.maximum(zf, cv2.dilate(lf.reshape(h, w), disc), out=zf)
+    # (OpenCV's filters turn infinities into +-FLT_MAX.)
+    valid = (zn < 1e30) & (zf > -1e30)
+    near[valid] = zn[valid] - margin
+    far[valid] = zf[valid] + margin
     return DepthRange(near=near, far=far, objects=objects)
 
 
-def hull_silhouette(hull: VisualHull, camera: Camera) -> Mask:
-    """(H, W) projection of the hull into ``camera`` (each voxel splatted as a disc of its
-    projected radius)."""
+def hull_silhouette(hull: VisualHull, camera: Camera, *, object_id: int | None = None) -> Mask:
+    """(H, W) projection of the hull (or of one object) into ``camera`` (each surface voxel
+    splatted as a disc of its projected radius)."""
     h, w = camera.height, camera.width
     out = np.zeros((h, w), np.uint8)
     if hull.num_voxels == 0:
         return out.astype(bool)
-    pts = hull.centers[hull.surface]
+    sel = hull.surface if object_id is None else hull.surface & (hull.labels == object_id)
+    pts = hull.origin + (hull.indices[sel] + 0.5) * hull.voxel_size
     uv, depth = camera.project(pts)
     ok = depth > 0
     if not ok.any():
@@ -657,16 +919,123 @@ def hull_silhouette(hull: VisualHull, camera: Camera) -> Mask:
     return out.astype(bool)
 
 
+def depth_map(points3D: Points3D, camera: Camera, *, fill_px: int = 2) -> NDArray[np.float32]:
+    """(H, W) depth (along the optical axis) of the nearest point per pixel of ``camera``,
+    NaN where no point projects; gaps up to ``fill_px`` pixels between the points are filled
+    with the nearest depth around them (a point cloud of the static scene becomes an occluder
+    map for ``visual_hull``)."""
+    h, w = camera.height, camera.width
+    uv, depth = camera.project(points3D)
+    ok = (depth > 0) & camera.in_image(uv)
+    z = np.full(h * w, np.inf, np.float32)
+    if ok.any():
+        u = np.clip(np.rint(uv[ok, 0]).astype(np.intp), 0, w - 1)
+        v = np.clip(np.rint(uv[ok, 1]).astype(np.intp), 0, h - 1)
+        np.minimum.at(z, v * w + u, depth[ok].astype(np.float32))
+    img = z.reshape(h, w)
+    if fill_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * fill_px + 1,) * 2)
+        img = np.minimum(img, np.asarray(cv2.erode(img, k), np.float32))
+    return np.where(np.isfinite(img), img, np.nan).astype(np.float32)
+
+
 def hull_consistent_masks(
-    hull: VisualHull, cameras: Sequence[Camera], masks: Sequence[Mask | None]
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    *,
+    max_missing: int = 0,
+    occluders: Sequence[DepthMap | None] | None = None,
+    ray_samples: int = 48,
+    pixels_per_region: int = 64,
 ) -> list[Mask | None]:
-    """Masks with the foreground that no hull voxel explains removed (e.g. a change of the
-    scene that one camera alone sees, which the other cameras carve away)."""
-    _check_masks(list(cameras), masks)
+    """Masks with the foreground that the other cameras contradict removed.
+
+    Foreground that no hull voxel explains (e.g. a change of the scene that one camera alone
+    sees) is removed when the other cameras contradict it: every point of the pixel's ray
+    inside the hull's region is seen as background by more than ``max_missing`` other
+    cameras (use the hull's ``HullConfig.max_missing``); with ``occluders`` (as for
+    ``visual_hull``), a camera does not contradict points hidden behind its static scene. Where some part of
+    the ray is seen by no other camera (an actor next to a camera, outside its neighbours'
+    fields of view), nobody can check it and the foreground stays. Each connected region of
+    unexplained pixels is decided as a whole, from up to ``pixels_per_region`` of its pixels
+    with ``ray_samples`` points along each ray.
+    """
+    cams = list(cameras)
+    _check_masks(cams, masks)
+    walls = _occluder_maps(occluders, len(cams))
     out: list[Mask | None] = []
-    for cam, m in zip(cameras, masks, strict=True):
+    for c, (cam, m) in enumerate(zip(cams, masks, strict=True)):
         if m is None:
             out.append(None)
             continue
-        out.append(np.asarray(m, bool) & hull_silhouette(hull, cam))
+        mask = np.asarray(m, bool)
+        kept = mask & hull_silhouette(hull, cam)
+        unexplained = mask & ~kept
+        if unexplained.any():
+            others = [
+                (o, np.asarray(om, bool), walls[i])
+                for i, (o, om) in enumerate(zip(cams, masks, strict=True))
+                if i != c and om is not None
+            ]
+            kept |= _uncontradicted(
+                cam, others, unexplained, hull.bounds, max_missing, ray_samples, pixels_per_region
+            )
+        out.append(kept)
     return out
+
+
+def _uncontradicted(
+    cam: Camera,
+    others: Sequence[tuple[Camera, Mask, NDArray[np.float32] | None]],
+    region_mask: Mask,
+    box: NDArray[np.float64],
+    max_missing: int,
+    ray_samples: int,
+    per_region: int,
+) -> Mask:
+    """The connected regions of ``region_mask`` where, for most sampled pixels, some point
+    of the ray inside ``box`` is not seen as background by any camera of ``others``."""
+    n, comp = cv2.connectedComponents(region_mask.view(np.uint8), connectivity=8)
+    ys, xs = np.nonzero(region_mask)
+    lab = comp[ys, xs]
+    # Up to per_region random pixels of each region: shuffle, group by region (stable), keep
+    # the first per_region of each group.
+    order = np.random.default_rng(0).permutation(len(lab))
+    order = order[np.argsort(lab[order], kind="stable")]
+    grouped = lab[order]
+    rank = np.arange(len(grouped)) - np.searchsorted(grouped, grouped, side="left")
+    pick = order[rank < per_region]
+    px = np.stack([xs[pick], ys[pick]], axis=1).astype(np.float64)
+    plab = lab[pick]
+    rays = cam.pixel_rays(px)
+    dirs = rays @ cam.R  # world directions (not unit; depth parametrisation)
+    origin = cam.center
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (box[0] - origin) / dirs
+        t2 = (box[1] - origin) / dirs
+    tnear = np.maximum(np.nanmax(np.minimum(t1, t2), axis=1), 0.0)
+    tfar = np.nanmin(np.maximum(t1, t2), axis=1)
+    hit = tfar > tnear
+    contradicted = np.zeros((len(px), ray_samples), np.int32)
+    grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    frac = (np.arange(ray_samples) + 0.5) / ray_samples
+    depth = tnear[:, None] + (tfar - tnear)[:, None] * frac[None, :]
+    pts = origin + dirs[:, None, :] * depth[..., None]  # (P, S, 3)
+    flat = pts.reshape(-1, 3)
+    for other, omask, wall in others:
+        fg = cv2.dilate(omask.view(np.uint8), grow).astype(bool)
+        uv, d = other.project(flat)
+        vis = (d > 0) & other.in_image(uv)
+        safe = np.where(vis[:, None], uv, 0.0)
+        u = np.clip(np.rint(safe[:, 0]).astype(np.intp), 0, other.width - 1)
+        v = np.clip(np.rint(safe[:, 1]).astype(np.intp), 0, other.height - 1)
+        if wall is not None:
+            vis &= ~(d > wall[v, u])
+        contradicted += (vis & ~fg[v, u]).reshape(len(px), ray_samples)
+    unverified = ~hit | ~(contradicted > max_missing).all(axis=1)
+    votes = np.bincount(plab, weights=unverified.astype(np.float64), minlength=n)
+    total = np.bincount(plab, minlength=n)
+    restore = (total > 0) & (votes >= 0.5 * np.maximum(total, 1))
+    restore[0] = False
+    return np.asarray(restore[comp], bool)

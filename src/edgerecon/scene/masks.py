@@ -123,15 +123,3 @@ def resize_mask_smooth(mask: Mask, size: tuple[int, int]) -> Mask:
         return mask.copy()
     up = cv2.resize(mask.astype(np.uint8) * 255, tuple(size), interpolation=cv2.INTER_LINEAR)
     return up > 127
-
-
-def mask_iou(pred: Mask, truth: Mask) -> float:
-    """Intersection over union of two masks; 1.0 when both are empty."""
-    p = np.asarray(pred, dtype=bool)
-    t = np.asarray(truth, dtype=bool)
-    if p.shape != t.shape:
-        raise ValueError(f"mask shapes differ: {p.shape} vs {t.shape}")
-    union = int(np.count_nonzero(p | t))
-    if union == 0:
-        return 1.0
-    return float(np.count_nonzero(p & t)) / union

@@ -39,7 +39,9 @@ class ObjectConfig:
     merge_gap_fraction: float = 0.015
     """Regions closer than this share of the image diagonal are fragments of one object."""
     sample_size: int = 1500
-    """Foreground pixels sampled for k-means and the silhouette score."""
+    """Foreground pixels sampled for k-means."""
+    silhouette_sample: int = 400
+    """Of those, pixels used for the silhouette score (its cost grows with the square)."""
     roi_margin_fraction: float = 0.1
     """Each object's region of interest is its bounding box grown by this share of its larger
     side on every side ..."""
@@ -56,6 +58,10 @@ class ObjectConfig:
         if not 0.0 <= self.merge_gap_fraction <= 1.0:
             raise ValueError(
                 f"ObjectConfig.merge_gap_fraction must be in [0, 1], got {self.merge_gap_fraction}"
+            )
+        if self.silhouette_sample < 10:
+            raise ValueError(
+                f"ObjectConfig.silhouette_sample must be >= 10, got {self.silhouette_sample}"
             )
         if self.sample_size < 10:
             raise ValueError(f"ObjectConfig.sample_size must be >= 10, got {self.sample_size}")
@@ -258,10 +264,11 @@ def _group(
     rng = np.random.default_rng(config.seed)
     size = min(config.sample_size, len(coords))
     sample = np.sort(rng.choice(len(coords), size=size, replace=False))
-    pts = coords[sample].astype(np.float64)
+    score_at = sample[:: max(1, size // config.silhouette_sample)]
+    pts = coords[score_at].astype(np.float64)
     num_groups = int(merged.max()) + 1
     if num_groups <= config.max_objects:
-        score = silhouette_score(pts, merged[comp[sample]]) if num_groups > 1 else float("nan")
+        score = silhouette_score(pts, merged[comp[score_at]]) if num_groups > 1 else float("nan")
         return merged, score
     # More separate regions than objects allowed: k-means on the pixel coordinates proposes
     # coarser groupings (k = 2..k_max), as do the single-linkage levels; the best silhouette
@@ -279,7 +286,7 @@ def _group(
         if int(group.max()) + 1 > config.max_objects or key in tried:
             continue
         tried.add(key)
-        score = silhouette_score(pts, group[comp[sample]]) if group.max() > 0 else -1.0
+        score = silhouette_score(pts, group[comp[score_at]]) if group.max() > 0 else -1.0
         if not score <= best_score:
             best, best_score = group.astype(np.int64), score
     return best, best_score
