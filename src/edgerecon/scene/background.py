@@ -56,6 +56,16 @@ class BackgroundConfig:
     min_abs_diff: float = 12.0
     """A pixel is only foreground when its colour also differs by at least this much (grey
     levels, Euclidean over BGR) from the compensated background."""
+    texture_window_px: int = 7
+    """Side of the window (working pixels, odd) of the texture cue: where the background is
+    textured, a window whose normalised cross-correlation with the background falls below
+    ``texture_max_ncc`` is foreground even when its colour is close (grey trousers on a grey
+    stone floor); shadows and illumination changes keep the texture. 0 = colour only."""
+    texture_min_std: float = 8.0
+    """The texture cue applies where the background's grey-level standard deviation in the
+    window exceeds this (grey levels): flat backgrounds have no texture to compare."""
+    texture_max_ncc: float = 0.4
+    """Windows correlating less than this with the background are foreground."""
     shadow_min_brightness: float = 0.45
     """Shadows darken the background by at most this factor (brightness ratio >= it)."""
     shadow_max_brightness: float = 1.0
@@ -87,6 +97,17 @@ class BackgroundConfig:
         for name in ("threshold_sigma", "min_noise_std", "shadow_max_chroma", "max_gain"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"BackgroundConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.texture_window_px < 0 or (
+            self.texture_window_px > 0 and self.texture_window_px % 2 == 0
+        ):
+            raise ValueError(
+                "BackgroundConfig.texture_window_px must be 0 or an odd number of pixels, got "
+                f"{self.texture_window_px}"
+            )
+        if not -1.0 <= self.texture_max_ncc <= 1.0:
+            raise ValueError(
+                f"BackgroundConfig.texture_max_ncc must be in [-1, 1], got {self.texture_max_ncc}"
+            )
         if self.jitter_px < 0:
             raise ValueError(f"BackgroundConfig.jitter_px must be >= 0, got {self.jitter_px}")
         if self.min_abs_diff < 0:
@@ -170,8 +191,8 @@ def _to_working(frame: Image, size: tuple[int, int]) -> NDArray[np.float32]:
     return frame.astype(np.float32)
 
 
-#: Frames between recomputations of the edge-jitter noise term.
-_NOISE_REFRESH = 10
+#: BGR -> grey weights (ITU-R BT.601) for cv2.transform.
+_GREY = np.array([[0.114, 0.587, 0.299]], np.float32)
 
 
 class BackgroundModel:
@@ -180,8 +201,6 @@ class BackgroundModel:
     def __init__(self, state: BackgroundState, config: BackgroundConfig | None = None) -> None:
         self.config = config or BackgroundConfig()
         self._state = state
-        self._noise_cache: NDArray[np.float32] | None = None
-        self._noise_frame = 0
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -329,21 +348,55 @@ class BackgroundModel:
         gain = np.median(ratio, axis=0).astype(np.float64)
         return np.clip(gain, self.config.min_gain, self.config.max_gain)
 
-    def _noise_var(self) -> NDArray[np.float32]:
-        """(h, w, 3) per-channel noise variance including the edge-jitter term (the edge term
-        changes as slowly as the mean: it is refreshed every ``_NOISE_REFRESH`` frames)."""
+    def _background_stats(
+        self,
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+        """From the current background: the per-channel noise variance with the edge-jitter
+        term, the grey background, its window mean and its window standard deviation.
+
+        Computed from the state each frame (a few single-channel filters), so a model
+        re-created from its state behaves exactly like the original."""
+        cfg = self.config
         s = self._state
-        if self.config.jitter_px <= 0:
-            return s.var
-        if self._noise_cache is not None and s.num_frames - self._noise_frame < _NOISE_REFRESH:
-            return self._noise_cache
-        gx = cv2.Sobel(s.mean, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
-        gy = cv2.Sobel(s.mean, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        j2 = np.float32(self.config.jitter_px**2)
-        noise = (s.var + j2 * (gx * gx + gy * gy)).astype(np.float32)
-        self._noise_cache = noise
-        self._noise_frame = s.num_frames
-        return noise
+        grey = np.asarray(cv2.transform(s.mean, _GREY), np.float32)
+        noise = s.var
+        if cfg.jitter_px > 0:
+            gx = np.asarray(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), np.float32)
+            gy = np.asarray(cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), np.float32)
+            edge = np.float32(cfg.jitter_px**2) * (gx * gx + gy * gy)
+            noise = s.var + edge[..., None]
+        if cfg.texture_window_px <= 0:
+            return noise, grey, grey, np.zeros_like(grey)
+        k = (cfg.texture_window_px,) * 2
+        mean = np.asarray(cv2.boxFilter(grey, -1, k), np.float32)
+        var = np.asarray(cv2.boxFilter(grey * grey, -1, k), np.float32) - mean * mean
+        std = np.sqrt(np.maximum(var, 0)).astype(np.float32)
+        return noise, grey, mean, std
+
+    def _texture_changed(
+        self,
+        image: NDArray[np.float32],
+        grey_b: NDArray[np.float32],
+        mean_b: NDArray[np.float32],
+        std_b: NDArray[np.float32],
+    ) -> Mask:
+        """Pixels whose window has lost the background's texture (low normalised
+        cross-correlation where the background is textured)."""
+        cfg = self.config
+        k = (cfg.texture_window_px,) * 2
+        grey = np.asarray(cv2.transform(image, _GREY), np.float32)
+        # Undo local brightness changes first (an edge-preserving median of the frame /
+        # background ratio): a window across a shadow's edge then still matches.
+        ratio = grey / np.maximum(grey_b, np.float32(1.0))
+        ratio = np.asarray(cv2.medianBlur(np.clip(ratio, 0.05, 4.0), 5), np.float32)
+        grey = grey / ratio
+        mean = np.asarray(cv2.boxFilter(grey, -1, k), np.float32)
+        var = np.asarray(cv2.boxFilter(grey * grey, -1, k), np.float32) - mean * mean
+        cov = np.asarray(cv2.boxFilter(grey * grey_b, -1, k), np.float32) - mean * mean_b
+        # Noise floor on the frame's deviation: a flat patch over texture correlates ~0.
+        std = np.sqrt(np.maximum(var, np.float32(cfg.min_noise_std**2)))
+        ncc = cov / (std * np.maximum(std_b, np.float32(1e-3)))
+        return (std_b > np.float32(cfg.texture_min_std)) & (ncc < np.float32(cfg.texture_max_ncc))
 
     def classify(self, image: NDArray[np.float32]) -> tuple[Mask, Mask, NDArray[np.float64]]:
         """Raw foreground and shadow masks of a working-resolution float32 BGR image, and the
@@ -353,11 +406,12 @@ class BackgroundModel:
         gain = self.estimate_gain(image)
         g = gain.astype(np.float32)
         ones = np.ones((1, 3), np.float32)
+        noise, grey_b, mean_b, std_b = self._background_stats()
         diff = image - s.mean * g
         d2 = diff * diff
         abs2 = cv2.transform(d2, ones)
         # Mahalanobis distance with the variance scaled by the gain (noise scales with it).
-        maha2 = cv2.transform(d2 / self._noise_var(), (1.0 / (g * g)).reshape(1, 3))
+        maha2 = cv2.transform(d2 / noise, (1.0 / (g * g)).reshape(1, 3))
         changed = (maha2 > np.float32(cfg.threshold_sigma**2)) & (
             abs2 > np.float32(cfg.min_abs_diff**2)
         )
@@ -376,6 +430,15 @@ class BackgroundModel:
             & (alpha <= np.float32(cfg.shadow_max_brightness))
             & (chroma2 <= np.float32(cfg.shadow_max_chroma**2))
         )
+        if cfg.texture_window_px > 0:
+            # A shadow keeps the texture; a camouflaged object does not. The pixel itself must
+            # differ a little too (half the threshold), or windows straddling an object's
+            # outline would grow it by half a window.
+            texture = self._texture_changed(image, grey_b, mean_b, std_b) & (
+                maha2 > np.float32((0.5 * cfg.threshold_sigma) ** 2)
+            )
+            shadow &= ~texture
+            changed |= texture
         return changed & ~shadow, shadow, gain
 
     def segment(self, frame: Image, *, update: bool = True) -> Segmentation:

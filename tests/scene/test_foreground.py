@@ -1,0 +1,129 @@
+"""The rig-level foreground stage on a synthetic scene with exact masks and depth."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+from edgerecon.quality.masks import score_mask_set
+from edgerecon.scene import (
+    ForegroundConfig,
+    RigForeground,
+    hull_depth_range,
+    split_sparse,
+)
+from edgerecon.types import DataError, FrameSet
+
+FRAMES = range(0, 6)
+
+
+@pytest.fixture(scope="module")
+def scene():  # type: ignore[no-untyped-def]
+    """The demo preset at its native 640x480 (5 cameras, 2 actors), rendered in memory."""
+    from edgerecon.synth import Renderer, build_scene, preset_config
+
+    sc = build_scene(preset_config("demo", seed=0, num_frames=len(FRAMES), background_frames=8))
+    renderer = Renderer(sc)
+    background = [renderer.render(t) for t in range(-8, 0)]
+    frames = [renderer.render(t) for t in FRAMES]
+    return sc, background, frames
+
+
+@pytest.fixture(scope="module")
+def segmented(scene):  # type: ignore[no-untyped-def]
+    sc, background, frames = scene
+    fg = RigForeground.learn_from_framesets(
+        sc.rig, [FrameSet(time_index=f.time_index, images=f.images) for f in background]
+    )
+    results = [fg.segment(FrameSet(time_index=f.time_index, images=f.images)) for f in frames]
+    return fg, results
+
+
+def test_masks_match_ground_truth(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    _, _, frames = scene
+    _, results = segmented
+    preds = [m for r in results for m in r.masks]
+    gts = [m for f in frames for m in f.masks]
+    score = score_mask_set(preds, gts)
+    assert score.foreground_iou > 0.9, score
+    assert score.precision > 0.93 and score.recall > 0.9
+    # The hull consistency step does not cost quality against the model's own masks.
+    model = score_mask_set([m for r in results for m in r.model_masks], gts)
+    assert score.foreground_iou > model.foreground_iou - 0.01
+
+
+def test_hull_depth_ranges_bracket_the_true_depth(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    sc, _, frames = scene
+    _, results = segmented
+    hits = total = 0
+    for f, r in zip(frames[-2:], results[-2:], strict=True):
+        assert r.hull is not None and r.hull.num_objects >= 1
+        for c, cam in enumerate(sc.rig):
+            dr = hull_depth_range(r.hull, cam)
+            m = f.masks[c] > 0
+            d = f.depths[c][m]
+            hits += int(((dr.near[m] <= d) & (d <= dr.far[m])).sum())
+            total += int(m.sum())
+    assert hits / total > 0.9
+
+
+def test_sparse_split_of_true_surface_points(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    sc, _, frames = scene
+    _, results = segmented
+    f, r = frames[-1], results[-1]
+    rng = np.random.default_rng(0)
+    pts, truth, vis = [], [], []
+    for c, cam in enumerate(sc.rig):
+        ys, xs = np.nonzero(np.ones_like(f.masks[c]))
+        pick = rng.choice(len(xs), 300, replace=False)
+        uv = np.stack([xs[pick], ys[pick]], axis=1).astype(float)
+        p = cam.backproject(uv, f.depths[c][ys[pick], xs[pick]].astype(float))
+        pts.append(p)
+        truth.append(f.masks[c][ys[pick], xs[pick]] > 0)
+        row = np.zeros((len(p), len(sc.rig)), bool)
+        row[:, c] = True
+        # Other cameras observe the point when their true depth agrees (no occlusion).
+        for o, other in enumerate(sc.rig):
+            if o == c:
+                continue
+            ouv, od = other.project(p)
+            ok = (od > 0) & other.in_image(ouv)
+            ouv = np.where(ok[:, None], ouv, 0.0)
+            u = np.clip(np.rint(ouv[:, 0]).astype(int), 0, other.width - 1)
+            v = np.clip(np.rint(ouv[:, 1]).astype(int), 0, other.height - 1)
+            row[:, o] = ok & (np.abs(f.depths[o][v, u] - od) < 0.03)
+        vis.append(row)
+    points, is_fg, visibility = np.vstack(pts), np.concatenate(truth), np.vstack(vis)
+    split = split_sparse(points, visibility, sc.rig.cameras, r.label_images())
+    voted = split.labels >= 0
+    accuracy = np.mean((split.labels[voted] > 0) == is_fg[voted])
+    assert voted.mean() > 0.99 and accuracy > 0.97, accuracy
+
+
+def test_states_round_trip(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    sc, _, frames = scene
+    fg, _ = segmented
+    clone = RigForeground.from_states(sc.rig, pickle.loads(pickle.dumps(fg.states())), fg.config)
+    fs = FrameSet(time_index=0, images=frames[0].images)
+    a = fg.segment(fs, update=False)
+    b = clone.segment(fs, update=False)
+    for ma, mb in zip(a.masks, b.masks, strict=True):
+        np.testing.assert_array_equal(ma, mb)
+
+
+def test_missing_camera_frame_and_bad_input(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    _, _, frames = scene
+    fg, _ = segmented
+    images = list(frames[0].images)
+    images[1] = None
+    res = fg.segment(FrameSet(time_index=0, images=tuple(images)), update=False)
+    assert res.masks[1] is None and res.objects[1] is None and res.areas()[1] is None
+    assert res.masks[0] is not None and res.masks[0].any()
+    with pytest.raises(DataError, match="2 images for 5 cameras"):
+        fg.segment(FrameSet(time_index=0, images=tuple(images[:2])))
+    with pytest.raises(DataError, match="occluder"):
+        fg.set_occluders([None])
+    with pytest.raises(ValueError, match="ForegroundConfig.hull"):
+        ForegroundConfig(hull=None)  # type: ignore[arg-type]
