@@ -389,7 +389,7 @@ class BackgroundModel:
         # background ratio): a window across a shadow's edge then still matches.
         ratio = grey / np.maximum(grey_b, np.float32(1.0))
         ratio = np.asarray(cv2.medianBlur(np.clip(ratio, 0.05, 4.0), 5), np.float32)
-        grey = grey / ratio
+        grey = np.asarray(grey / ratio, np.float32)
         mean = np.asarray(cv2.boxFilter(grey, -1, k), np.float32)
         var = np.asarray(cv2.boxFilter(grey * grey, -1, k), np.float32) - mean * mean
         cov = np.asarray(cv2.boxFilter(grey * grey_b, -1, k), np.float32) - mean * mean_b
