@@ -112,6 +112,9 @@ def test_depth_range_brackets_the_box_surface(rig: Rig, box_hull) -> None:  # ty
     assert k == 1 and zmin <= depth.min() and depth.max() <= zmax
     # Pixels that see no hull have no range.
     assert not dr.mask[0, 0]
+    near_map, far_map = dr.maps()
+    assert near_map[0, 0] == 0 and far_map[0, 0] == 0
+    assert (near_map[v, u] == near).all() and (far_map[v, u] == far).all()
 
 
 def test_hull_silhouette_matches_the_masks(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]

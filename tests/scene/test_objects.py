@@ -87,3 +87,14 @@ def test_silhouette_score_known_answer() -> None:
 def test_object_config_validation() -> None:
     with pytest.raises(ValueError, match="max_objects"):
         ObjectConfig(max_objects=0)
+
+
+def test_small_fragment_joins_the_nearest_object_but_not_a_far_one() -> None:
+    m = _person(200, 400, 100, 40, scale=2)  # ~1900 px
+    foot = square_mask(200, 400, 150, 148, 4)  # 16 px, 18 px below the body
+    far = square_mask(200, 400, 380, 10, 4)  # 16 px, far away
+    seg = find_objects(m | foot)
+    assert seg.num_objects == 1
+    seg = find_objects(m | foot | far)
+    assert seg.num_objects == 2
+    assert seg.labels[150, 151] == seg.labels[60, 110] != seg.labels[11, 381]

@@ -834,6 +834,13 @@ class DepthRange:
         """(H, W) pixels whose ray meets the hull."""
         return ~np.isnan(self.near)
 
+    def maps(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """(near, far) with 0 where the ray misses the hull: the per-pixel form of
+        ``dense.reconstruct_dense(..., depth_ranges={camera_id: maps})``."""
+        near = np.where(np.isnan(self.near), 0.0, np.maximum(self.near, 0.0))
+        far = np.where(np.isnan(self.far), 0.0, self.far)
+        return near.astype(np.float32), far.astype(np.float32)
+
 
 def hull_depth_range(
     hull: VisualHull, camera: Camera, *, margin: float | None = None

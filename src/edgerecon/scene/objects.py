@@ -9,7 +9,9 @@ prefers too few clusters when three actors are unevenly spaced (72 % of images r
 1. 8-connected components of the clean mask; a region is never split (two actors who overlap
    in an image are one object in that view; the visual hull separates them in 3D);
 2. fragments closer than ``merge_gap_fraction`` of the image diagonal (a foot cut off by a
-   mask hole) join one object (single linkage on the gaps between region outlines);
+   mask hole) join one object (single linkage on the gaps between region outlines), and
+   small fragments (< ``fragment_fraction`` of the largest object) join the nearest object
+   within ``fragment_gap_fraction``;
 3. when more than ``max_objects`` groups remain, coarser groupings are proposed by k-means on
    the foreground pixel coordinates (k = 2..k_max; each region joins the cluster holding most
    of its pixels, clusters sharing a region merge) and by further single linkage; the grouping
@@ -38,6 +40,10 @@ class ObjectConfig:
     """Largest number of objects (k_max of the k-means search)."""
     merge_gap_fraction: float = 0.015
     """Regions closer than this share of the image diagonal are fragments of one object."""
+    fragment_fraction: float = 0.05
+    """A group smaller than this share of the largest object ..."""
+    fragment_gap_fraction: float = 0.06
+    """... joins the nearest object within this share of the image diagonal."""
     sample_size: int = 1500
     """Foreground pixels sampled for k-means."""
     silhouette_sample: int = 400
@@ -63,6 +69,11 @@ class ObjectConfig:
             raise ValueError(
                 f"ObjectConfig.silhouette_sample must be >= 10, got {self.silhouette_sample}"
             )
+        for name in ("fragment_fraction", "fragment_gap_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(
+                    f"ObjectConfig.{name} must be in [0, 1], got {getattr(self, name)}"
+                )
         if self.sample_size < 10:
             raise ValueError(f"ObjectConfig.sample_size must be >= 10, got {self.sample_size}")
         if self.roi_margin_fraction < 0 or self.roi_margin_px < 0:
@@ -243,6 +254,39 @@ def _single_linkage(gaps: NDArray[np.float64]) -> list[tuple[float, NDArray[np.i
     return out
 
 
+def _absorb_fragments(
+    group: NDArray[np.int64],
+    gaps: NDArray[np.float64],
+    areas: NDArray[np.intp],
+    fraction: float,
+    max_gap: float,
+) -> NDArray[np.int64]:
+    """Merge each group smaller than ``fraction`` of the largest into the nearest group
+    within ``max_gap`` pixels (a hand or a foot cut off from its body), smallest first."""
+    group = group.copy()
+    while True:
+        ids = np.unique(group)
+        if len(ids) < 2:
+            return group
+        area = np.array([areas[group == g].sum() for g in ids])
+        small = np.flatnonzero(area < fraction * area.max())
+        merged_any = False
+        for i in small[np.argsort(area[small])]:
+            mine = group == ids[i]
+            others = ~mine
+            if not others.any():
+                break
+            d = gaps[np.ix_(mine, others)]
+            j = np.unravel_index(np.argmin(d), d.shape)
+            if d[j] <= max_gap:
+                group[mine] = group[np.flatnonzero(others)[j[1]]]
+                merged_any = True
+                break
+        if not merged_any:
+            _, canon = np.unique(group, return_inverse=True)
+            return canon.astype(np.int64)
+
+
 def _group(
     m: Mask,
     cc: NDArray[np.int32],
@@ -258,8 +302,16 @@ def _group(
     linkage: list[tuple[float, NDArray[np.int64]]] = []
     merged = np.arange(num_comp, dtype=np.int64)
     if num_comp <= _MAX_LINKAGE_COMPONENTS:
-        linkage = _single_linkage(_component_gaps(cc, num_comp))
+        gaps = _component_gaps(cc, num_comp)
+        linkage = _single_linkage(gaps)
         merged = next(g for gap, g in reversed(linkage) if gap <= merge_gap)
+        merged = _absorb_fragments(
+            merged,
+            gaps,
+            np.bincount(comp, minlength=num_comp),
+            config.fragment_fraction,
+            config.fragment_gap_fraction * diag,
+        )
     coords = np.stack([xs, ys], axis=1).astype(np.float32)
     rng = np.random.default_rng(config.seed)
     size = min(config.sample_size, len(coords))
