@@ -13,6 +13,7 @@ from edgerecon.dense.planes import (
     complete_with_plane,
     fit_ground_plane,
     plane_depth,
+    support_region,
 )
 from tests.conftest import ring_rig
 from tests.dense.scene import Rect, box_scene, render
@@ -112,3 +113,18 @@ def _world_z(cam, depth):
     rows, cols = np.indices(depth.shape)
     X = cam.backproject(np.c_[cols.ravel(), rows.ravel()], depth.ravel())
     return X[:, 2].reshape(depth.shape)
+
+
+def test_support_region_is_the_convex_hull_of_the_inliers():
+    rng = np.random.default_rng(2)
+    plane = Plane(normal=(0.0, 0.0, 1.0), offset=0.5, support=500, rms=0.0)
+    inliers = np.c_[rng.uniform(-1, 1, (500, 2)), np.full(500, 0.5)]
+    inliers[0] = (30.0, 30.0, 0.5)  # an outlier far away is trimmed
+    region = support_region(plane, inliers, trim=0.01)
+    assert region is not None
+    probe = np.array([[0.0, 0.0, 0.5], [0.9, -0.9, 0.5], [1.2, 0.0, 0.5], [5.0, 5.0, 0.5]])
+    assert region.inside(probe).tolist() == [True, True, False, False]
+    # Degenerate supports (collinear, too few points) give no region.
+    line = np.c_[np.linspace(-1, 1, 50), np.zeros(50), np.full(50, 0.5)]
+    assert support_region(plane, line) is None
+    assert support_region(plane, inliers[:2]) is None

@@ -55,9 +55,13 @@ class DenseConfig:
     """A source is ignored at pixels whose reference window has less texture along that
     source's epipolar lines (RMS derivative, grey levels per pixel): edges parallel to the
     baseline match anywhere along themselves (aperture problem); 0 disables the test."""
-    min_epipolar_share: float = 0.1
+    min_epipolar_share: float = 0.0
     """... and at least this share of the window's gradient energy must lie along the
-    epipolar direction (0.1 ~ edges at least 18 degrees off the epipolar lines)."""
+    epipolar direction (0.1 ~ edges at least 18 degrees off the epipolar lines); 0 disables
+    it. Off by default: on the synthetic arc (cameras side by side, near-horizontal epipolar
+    lines) 0.1 drops the F-score at 2 cm from 0.84 to 0.77 (horizontal stripes and seams
+    are lost with the mismatches), while utrecht4cam's floor moves only 4 mm closer to
+    z = 0 (27 vs 31 mm median)."""
     consistency_rel_depth: float = 0.01
     """A depth agrees with another view when their depths differ by less than this share."""
     min_consistent_views: int = 1

@@ -13,7 +13,8 @@ projecting the plane point into the other views:
 * otherwise the view must see a similar colour (box-filtered BGR, per-channel tolerance).
 
 Near-black pixels are never completed (no colour evidence), nor pixels whose colour the
-plane's stereo points never showed (walls above a floor). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
+plane's stereo points never showed (walls above a floor), nor points outside the convex hull
+of the plane's stereo points (behind the walls of a room). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
 views confirm than deny, and none contradicts. Completed points lie exactly on the fitted
 plane, so they are only as good as the fit (reported in the stage's stats).
 """
@@ -126,6 +127,53 @@ def color_model(colors_rgb: NDArray[np.uint8], min_count: int = 3) -> NDArray[np
     return occ.astype(bool)
 
 
+def plane_basis(plane: Plane) -> NDArray[np.float64]:
+    """(3, 2) orthonormal axes spanning the plane."""
+    n = np.asarray(plane.normal)
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    return np.stack([a, np.cross(n, a)], axis=1)
+
+
+@dataclass(frozen=True)
+class PlaneRegion:
+    """A convex polygon in a plane: ``inside(X)`` for 3D points on the plane."""
+
+    basis: NDArray[np.float64]
+    """(3, 2) in-plane axes (``plane_basis``)."""
+    normals: NDArray[np.float64]
+    """(E, 2) outward edge normals in plane coordinates."""
+    offsets: NDArray[np.float64]
+    """(E,) a point uv is inside when ``normals @ uv <= offsets`` for every edge."""
+
+    def inside(self, points3D: NDArray[np.float64]) -> NDArray[np.bool_]:
+        uv = np.asarray(points3D, np.float64) @ self.basis
+        return np.all(uv @ self.normals.T <= self.offsets, axis=1)
+
+
+def support_region(
+    plane: Plane, inliers: NDArray[np.float64], trim: float = 0.01
+) -> PlaneRegion | None:
+    """The convex hull of the plane's stereo inliers in plane coordinates, without the
+    ``trim`` share farthest from their median; None if degenerate. Completion stays inside
+    it: a uniform wall would otherwise extend the floor behind it."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    basis = plane_basis(plane)
+    uv = inliers @ basis
+    if len(uv) < 3:
+        return None
+    d = np.linalg.norm(uv - np.median(uv, axis=0), axis=1)
+    uv = uv[d <= np.quantile(d, 1.0 - trim)]
+    try:
+        hull = ConvexHull(uv)
+    except (QhullError, ValueError):
+        return None
+    # Qhull's facet equations: normal . x + offset <= 0 inside (normals point outwards).
+    eq = hull.equations
+    return PlaneRegion(basis=basis, normals=eq[:, :2], offsets=-eq[:, 2])
+
+
 def plane_depth(camera: Camera, plane: Plane) -> DepthMap:
     """(H, W) depth at which each pixel's ray meets the plane (0 where it does not, in front
     of the camera)."""
@@ -154,12 +202,17 @@ def complete_with_plane(
     color_tol: float,
     min_views: int,
     colors_known: NDArray[np.bool_] | None = None,
+    region: PlaneRegion | None = None,
+    stereo_on_plane: Mapping[int, int] | None = None,
 ) -> dict[int, tuple[DepthMap, NDArray[np.int16]]]:
     """Per view, (depth map of the accepted plane pixels, number of confirming views).
 
     ``colors_known`` (``color_model`` of the plane's stereo points) restricts completion to
     pixels of the plane's own colours: a white wall above a green floor is not floor even
-    where every view agrees it is white."""
+    where every view agrees it is white. ``region`` (``support_region``) bounds the completed
+    points in the plane. A view whose stereo pixels on the plane (``stereo_on_plane``)
+    outnumber its candidates is left alone: its floor is textured and already matched, and
+    its blank pixels that meet the plane are other things (walls, furniture, occluders)."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
     out: dict[int, tuple[DepthMap, NDArray[np.int16]]] = {}
     for i, cam_i in cameras.items():
@@ -187,6 +240,13 @@ def complete_with_plane(
             axis=1,
         )
         X = (Xc - cam_i.t) @ cam_i.R
+        if region is not None:
+            inside = region.inside(X)
+            rows, cols, z, X = rows[inside], cols[inside], z[inside], X[inside]
+            if len(rows) == 0:
+                continue
+        if stereo_on_plane is not None and stereo_on_plane.get(i, 0) >= len(rows):
+            continue
         col_i = blurred[i][rows, cols]
         agree = np.zeros(len(z), np.int16)
         deny = np.zeros(len(z), np.int16)

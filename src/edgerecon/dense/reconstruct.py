@@ -19,13 +19,14 @@ from edgerecon.dense.consistency import support_counts
 from edgerecon.dense.cost import as_f32, to_grey
 from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid, estimate_depth
 from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
-from edgerecon.dense.neighbors import score_sources, select_sources
+from edgerecon.dense.neighbors import point_weights, select_sources
 from edgerecon.dense.planes import (
     Plane,
     below_plane,
     color_model,
     complete_with_plane,
     fit_ground_plane,
+    support_region,
 )
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
 from edgerecon.geometry.camera import Camera
@@ -313,10 +314,13 @@ def reconstruct_dense(
         support, averaged = support_counts(depths, id_cams, config.consistency_rel_depth)
         kept: dict[int, DepthMap] = {}
         keep_masks: dict[int, NDArray[np.bool_]] = {}
+        by_index = {p["index"]: p for p in plans}
         for i, d in depths.items():
             keep = (d > 0) & (support[i] >= config.min_consistent_views)
             keep_masks[i] = keep
-            kept[i] = np.where(keep, averaged[i], 0.0).astype(np.float32)
+            # The average over views stays within the view's own depth bounds.
+            avg = np.clip(averaged[i], by_index[i]["near"], by_index[i]["far"])
+            kept[i] = np.where(keep, avg, 0.0).astype(np.float32)
 
     with timings.stage("fusion"):
         parts: list[ViewPoints] = [
@@ -460,17 +464,31 @@ def _plan_view(
             np.full((cam.height, cam.width), far, np.float32),
         )
     plan["near"], plan["far"] = bounds
-    # Sources, judged on the reference's sparse points or on rays through its depth range.
-    samples = np.zeros((0, 3))
+    # Sources, judged on the reference's sparse points (where its surfaces are) and on rays
+    # through its depth range (every part of its image, sparse points or not), half each.
+    surface = np.zeros((0, 3))
     if sparse_vis is not None:
-        samples = sparse_pts[sparse_vis[:, index]]
-    if len(samples) < config.min_sparse_points:
-        pix = sample_pixels(cam)
-        depths = np.geomspace(near, far, 5)
-        samples = np.concatenate([cam.backproject(pix, np.full(len(pix), d)) for d in depths])
-    scores = score_sources(cam, cams, index, samples)
+        surface = sparse_pts[sparse_vis[:, index]]
+    if len(surface) < config.min_sparse_points:
+        surface = np.zeros((0, 3))
+    pix = sample_pixels(cam)
+    depths = np.geomspace(near, far, 5)
+    rays = np.concatenate([cam.backproject(pix, np.full(len(pix), d)) for d in depths])
+    samples = np.concatenate([surface, rays])
+    sample_weights = np.concatenate(
+        [
+            np.full(len(surface), 0.5 / max(len(surface), 1)),
+            np.full(len(rays), (0.5 if len(surface) else 1.0) / len(rays)),
+        ]
+    )
+    scores, weights = point_weights(cam, cams, index, samples)
     plan["sources"] = select_sources(
-        scores, config.max_source_views, config.min_source_angle_deg, config.max_source_angle_deg
+        scores,
+        config.max_source_views,
+        config.min_source_angle_deg,
+        config.max_source_angle_deg,
+        weights=weights,
+        sample_weights=sample_weights,
     )
     plan["source_scores"] = scores
     if not plan["sources"]:
@@ -516,6 +534,10 @@ def _complete_ground(
         return None, {}
     on_plane = np.abs(pts @ np.asarray(plane.normal) - plane.offset) <= 3.0 * voxel
     known = color_model(np.concatenate([p.colors for p in parts])[on_plane])
+    hull = support_region(plane, pts[on_plane])
+    # Stereo points on the plane per view (parts are in the order of ``kept``).
+    sizes = np.cumsum([0] + [len(p.points3D) for p in parts])
+    on_plane_count = {i: int(on_plane[sizes[k] : sizes[k + 1]].sum()) for k, i in enumerate(kept)}
     by_index = {p["index"]: p for p in plans}
     regions = {}
     far = {}
@@ -540,6 +562,8 @@ def _complete_ground(
         config.ground_color_tol,
         config.min_consistent_views,
         known,
+        hull,
+        on_plane_count,
     )
     logger.info("dense: ground plane %s", plane)
     return plane, extra
