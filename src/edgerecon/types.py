@@ -118,8 +118,8 @@ class PointCloud:
             points3D=self.points3D,
             colors=self.colors,
             normals=self.normals,
-            labels=lab,
-            confidence=self.confidence,  # type: ignore[arg-type]
+            labels=np.asarray(lab, np.int32),
+            confidence=self.confidence,
             attributes=dict(self.attributes),
         )
 

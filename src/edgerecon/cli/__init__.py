@@ -14,6 +14,8 @@ import pkgutil
 import sys
 from collections.abc import Sequence
 
+from rich.markup import escape
+
 from edgerecon import __version__, progress
 from edgerecon.cli._common import console, error_console
 from edgerecon.types import EdgereconError
@@ -55,7 +57,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # shows the traceback for debugging).
         if args.verbose >= 2:
             raise
-        error_console.print(f"[bold red]error:[/] {exc}", highlight=False)
+        # Never wrapped (paths stay whole in logs) and never read as rich markup.
+        error_console.print(
+            f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True
+        )
         return 2
     except KeyboardInterrupt:
         error_console.print("[yellow]interrupted[/]")

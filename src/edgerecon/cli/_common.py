@@ -59,7 +59,8 @@ def print_table(
 
 def _fmt(v: Any) -> str:
     if isinstance(v, float | np.floating):
-        return f"{v:.4g}" if abs(v) < 1e4 else f"{v:,.0f}"
+        x = float(v)
+        return f"{x:.4g}" if abs(x) < 1e4 else f"{x:,.0f}"
     return str(v)
 
 

@@ -24,7 +24,7 @@ from edgerecon.runtime.online import run_online
 from edgerecon.synth import GroundTruth, preset_config, write_dataset
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
         help="generate a synthetic scene and run the online system on it (no data needed)",

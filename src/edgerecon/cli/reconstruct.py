@@ -40,7 +40,7 @@ def parse_cameras(text: str | None, rig: Rig) -> tuple[int, ...] | None:
     return tuple(rig.index(tok.strip()) for tok in text.split(",") if tok.strip())
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "reconstruct",
         help="reconstruct one timestamp (sparse + dense point clouds)",

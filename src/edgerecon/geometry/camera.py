@@ -242,7 +242,7 @@ class Camera:
                 None,
                 (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12),
             ).reshape(-1, 2)
-            und = _refine_undistortion(und, pts, self.K, self.dist)
+            und = _refine_undistortion(np.asarray(und, np.float64), pts, self.K, self.dist)
         else:
             Kinv = np.linalg.inv(self.K)
             und = pts @ Kinv[:2, :2].T + Kinv[:2, 2]
@@ -287,15 +287,20 @@ class Camera:
             if scale == 1.0:
                 return image
             target = self.scaled(scale)
-            return cv2.resize(image, target.size, interpolation=cv2.INTER_AREA)
+            return np.asarray(
+                cv2.resize(image, target.size, interpolation=cv2.INTER_AREA), np.uint8
+            )
         if scale < 1.0:
             # Smooth before resampling with remap (which does no area averaging) to avoid
             # aliasing; cheaper than undistorting at full size then resizing.
             sigma = 0.5 / scale
-            image = cv2.GaussianBlur(image, (0, 0), sigmaX=sigma * 0.8)
+            image = np.asarray(cv2.GaussianBlur(image, (0, 0), sigmaX=sigma * 0.8), np.uint8)
         mx, my = self.undistort_maps(scale)
-        return cv2.remap(
-            image, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+        return np.asarray(
+            cv2.remap(
+                image, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+            ),
+            np.uint8,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -336,7 +341,7 @@ def _undistort_maps_cached(
     mx, my = cv2.initUndistortRectifyMap(
         camera.K, camera.dist, None, target.K, target.size, cv2.CV_32FC1
     )
-    return mx, my
+    return np.asarray(mx, np.float32), np.asarray(my, np.float32)
 
 
 def _refine_undistortion(
@@ -485,7 +490,7 @@ class Rig:
         cams = tuple(Camera.from_dict(c) for c in d.get("cameras", []))
         return cls(
             cameras=cams, unit=str(d.get("unit", "m")), up=tuple(d.get("up", (0.0, 0.0, 1.0)))
-        )  # type: ignore[arg-type]
+        )
 
 
 def fundamental_matrix(cam_a: Camera, cam_b: Camera) -> NDArray[np.float64]:

@@ -78,7 +78,11 @@ def evaluate_clouds(
     thresholds: float | Sequence[float],
 ) -> list[QualityScore]:
     """Score ``pred`` against ``ref`` at each threshold (one KD-tree query per direction)."""
-    ths = [float(thresholds)] if np.isscalar(thresholds) else [float(t) for t in thresholds]  # type: ignore[arg-type]
+    ths = (
+        [float(thresholds)]
+        if isinstance(thresholds, int | float | np.number)
+        else [float(t) for t in thresholds]
+    )
     for th in ths:
         if not (th > 0 and math.isfinite(th)):
             raise ValueError(f"threshold must be a positive number, got {th!r}")

@@ -36,7 +36,7 @@ from edgerecon.types import FrameSet, Mask
 
 logger = logging.getLogger(__name__)
 
-PushFn = Callable[[BackgroundUpdate], None]
+PushFn = Callable[[BackgroundUpdate], object]
 
 #: Replies kept for late readers (a front-end that timed out and asks again).
 _KEEP_REPLIES = 8
@@ -171,6 +171,7 @@ class BackEnd:
                     return
                 frames, self._pending = self._pending, None
                 self._busy = True
+            assert frames is not None  # the wait above ends only with a pending task
             try:
                 self._serve(frames)
             except BackendFault:
