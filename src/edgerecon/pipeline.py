@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
-from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense
+from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
 from edgerecon.geometry.camera import Rig
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.hull import hull_depth_range
@@ -247,14 +247,17 @@ def reconstruct_foreground(
         if config.use_hull_ranges and foreground.hull is not None and foreground.hull.num_voxels:
             ranges = {}
             for v in fg_views:
-                dr = hull_depth_range(foreground.hull, v.camera)
+                # At the depth maps' resolution: a quarter of the pixels to splat.
+                dr = hull_depth_range(foreground.hull, working_camera(v, dense_config))
                 ranges[v.camera_id] = (
                     np.nan_to_num(dr.near, nan=0.0),
                     np.nan_to_num(dr.far, nan=0.0),
                 )
+    # Foreground is never floor: no ground-plane completion (nor a plane fitted to the tops
+    # of the actors' heads that would cut away everything below them).
     dense = reconstruct_dense(
         fg_views,
-        dense_config,
+        dataclasses.replace(dense_config, ground_completion=False),
         fg_sparse if len(fg_sparse) else None,
         depth_ranges=ranges,
         up=rig.up,

@@ -128,3 +128,29 @@ def test_support_region_is_the_convex_hull_of_the_inliers():
     line = np.c_[np.linspace(-1, 1, 50), np.zeros(50), np.full(50, 0.5)]
     assert support_region(plane, line) is None
     assert support_region(plane, inliers[:2]) is None
+
+
+def test_ground_plane_is_never_above_most_of_the_scene():
+    # A foreground-only cloud: two standing people, the tops of their heads the largest
+    # horizontal patch. A plane there would cut away everything below it.
+    rng = np.random.default_rng(3)
+    bodies = []
+    for cx in (-0.5, 0.6):
+        a = rng.uniform(0, 2 * np.pi, 3000)
+        z = rng.uniform(0.0, 1.6, 3000)
+        bodies.append(np.c_[cx + 0.2 * np.cos(a), 0.2 * np.sin(a), z])
+    side = np.vstack(bodies)
+    side_n = np.c_[side[:, 0] - np.repeat([-0.5, 0.6], 3000), side[:, 1], np.zeros(len(side))]
+    heads = np.c_[rng.uniform(-0.6, -0.4, 800), rng.uniform(-0.1, 0.1, 800), np.full(800, 1.7)]
+    pts = np.vstack([side, heads])
+    normals = np.vstack([side_n, np.tile([0.0, 0.0, 1.0], (800, 1))]).astype(np.float32)
+    views = np.full(len(pts), 3)
+    assert fit_ground_plane(pts, normals, views, np.array([0, 0, 1.0]), 0.03, 100) is None
+    # With a floor under them, the floor is found.
+    floor = np.c_[rng.uniform(-2, 2, (600, 2)), rng.normal(0.0, 0.004, 600)]
+    pts2 = np.vstack([pts, floor])
+    normals2 = np.vstack([normals, np.tile(np.float32([0, 0, 1]), (600, 1))])
+    plane = fit_ground_plane(
+        pts2, normals2, np.full(len(pts2), 3), np.array([0, 0, 1.0]), 0.03, 100
+    )
+    assert plane is not None and abs(plane.offset) < 0.01

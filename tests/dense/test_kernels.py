@@ -42,7 +42,7 @@ def test_identity_homography_ncc_equals_numpy_reference():
     nxt = np.full((h, w), -1.0, np.float32)
     H = np.eye(3)[None, None].repeat(1, axis=0)  # one plane, one source
     kernels.sweep(
-        ref, mean, var, count, srcs, sizes, ok, H, np.array([1.0]),
+        ref, mean, var, count, srcs, sizes, ok, np.ones((h, w), bool), H, np.array([1.0]),
         np.ones((h, w), np.float32), np.ones((h, w), bool),
         np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1,
         best, idx, prev, nxt,
@@ -64,21 +64,37 @@ def test_windows_touching_missing_samples_have_no_score():
     out = np.empty((h, w), np.float32)
     kernels.evaluate(
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
-        np.ones((1, h, w), bool), a, np.zeros((1, 3), np.float32),
+        np.ones((1, h, w), bool), np.ones((h, w), bool), a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
         np.full((h, w), np.inf, np.float32), R0, 1, out,
     )  # fmt: skip
+    full = out.copy()
     # Samples beyond x = w - 1 are missing: windows reaching x >= w - 10 have no score (-1).
     assert np.all(out[:, w - 10 - R0 :] == -1.0)
     assert np.all(out[:, : w - 11 - R0] > -1.0)
     # A source marked unusable gives no score either.
     kernels.evaluate(
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
-        np.zeros((1, h, w), bool), a, np.zeros((1, 3), np.float32),
+        np.zeros((1, h, w), bool), np.ones((h, w), bool), a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
         np.full((h, w), np.inf, np.float32), R0, 1, out,
     )  # fmt: skip
     assert np.all(out == -1.0)
+    # Sampling only an active block: windows inside it score exactly as before, windows
+    # reaching outside it have no score.
+    active = np.zeros((h, w), bool)
+    active[10:30, 5:25] = True
+    kernels.evaluate(
+        ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
+        np.ones((1, h, w), bool), active, a, np.zeros((1, 3), np.float32),
+        np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+        np.full((h, w), np.inf, np.float32), R0, 1, out,
+    )  # fmt: skip
+    inner = np.s_[10 + R0 : 30 - R0, 5 + R0 : 25 - R0]
+    assert np.allclose(out[inner], full[inner], atol=1e-5)  # running sums: rounding only
+    outside = np.ones((h, w), bool)
+    outside[10 - R0 : 30 + R0, 5 - R0 : 25 + R0] = False
+    assert np.all(out[outside] == -1.0)
 
 
 def test_aggregate_takes_the_mean_of_the_best_sources():

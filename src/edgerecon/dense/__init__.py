@@ -5,6 +5,17 @@ and its measured quality and speed are described in :mod:`edgerecon.dense.depth`
 """
 
 from edgerecon.dense.config import DenseConfig
-from edgerecon.dense.reconstruct import DenseReconstruction, estimate_up, reconstruct_dense
+from edgerecon.dense.reconstruct import (
+    DenseReconstruction,
+    estimate_up,
+    reconstruct_dense,
+    working_camera,
+)
 
-__all__ = ["DenseConfig", "DenseReconstruction", "estimate_up", "reconstruct_dense"]
+__all__ = [
+    "DenseConfig",
+    "DenseReconstruction",
+    "estimate_up",
+    "reconstruct_dense",
+    "working_camera",
+]

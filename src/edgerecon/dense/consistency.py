@@ -45,28 +45,26 @@ def support_counts(
     (``s = (d_j - c_2) / (M_2 . [u, v, 1])``); averaging these with the reference depth cuts
     the depth noise of points seen by several views (about 1/sqrt(n)).
 
-    Whole-image arithmetic: for views i and j, pixel (u, v) of depth z in i lands in j at
-    ``z M [u, v, 1] + c`` with ``M = K_j R_ji K_i^-1`` and ``c = K_j t_ji``; j's depth there
-    is read with a nearest-neighbour ``cv2.remap``."""
+    Vectorised over the pixels with a depth: for views i and j, pixel (u, v) of depth z in i
+    lands in j at ``z M [u, v, 1] + c`` with ``M = K_j R_ji K_i^-1`` and ``c = K_j t_ji``;
+    j's depth there is read with a nearest-neighbour ``cv2.remap``."""
     out: dict[int, NDArray[np.int16]] = {}
     averaged: dict[int, DepthMap] = {}
-    grids: dict[tuple[int, int], tuple[NDArray[np.float32], NDArray[np.float32]]] = {}
     for i, depth_i in depths.items():
         h, w = depth_i.shape
-        count = np.zeros((h, w), np.int16)
-        out[i] = count
-        total = depth_i.astype(np.float32).copy()
-        weight = np.ones((h, w), np.float32)
-        averaged[i] = total
-        valid = depth_i > 0
-        if not valid.any():
+        out[i] = np.zeros((h, w), np.int16)
+        averaged[i] = depth_i.astype(np.float32).copy()
+        # Only the pixels with a depth (a few percent of the image for a foreground), as
+        # (N, 1) arrays.
+        rows, cols = np.nonzero(depth_i > 0)
+        if len(rows) == 0:
             continue
-        if (h, w) not in grids:
-            grids[(h, w)] = (
-                np.arange(w, dtype=np.float32)[None, :].repeat(h, axis=0),
-                np.arange(h, dtype=np.float32)[:, None].repeat(w, axis=1),
-            )
-        u, v = grids[(h, w)]
+        u = cols.astype(np.float32)[:, None]
+        v = rows.astype(np.float32)[:, None]
+        z = depth_i[rows, cols].astype(np.float32)[:, None]
+        count = np.zeros(z.shape, np.int16)
+        total = z.copy()
+        weight = np.ones(z.shape, np.float32)
         cam_i = cameras[i]
         Kinv = np.linalg.inv(cam_i.K)
         others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
@@ -78,27 +76,22 @@ def support_counts(
             t = cam_j.t - R @ cam_i.t
             M = (cam_j.K @ R @ Kinv).astype(np.float32)
             c = (cam_j.K @ t).astype(np.float32)
-            z = depth_i
             X = z * (M[0, 0] * u + M[0, 1] * v + M[0, 2]) + c[0]
             Y = z * (M[1, 0] * u + M[1, 1] * v + M[1, 2]) + c[1]
             m2 = M[2, 0] * u + M[2, 1] * v + M[2, 2]
             Z = z * m2 + c[2]
-            ok = valid & (Z > 0)
+            ok = Z > 0
             Zs = np.where(ok, Z, 1.0)
             mx = np.where(ok, X / Zs, -1e6).astype(np.float32)
             my = np.where(ok, Y / Zs, -1e6).astype(np.float32)
-            dj = cv2.remap(
-                depths[j], mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-            )
+            dj = _sample(depths[j], mx, my, cv2.INTER_NEAREST)
             agree = ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
             count += agree
             # For the average, j's depth interpolated at the exact landing point (the nearest
             # pixel's depth is off by up to half a pixel's depth gradient on slanted
             # surfaces); near holes and edges the interpolation mixes in other depths and
             # fails the tolerance, and the nearest depth is used instead.
-            dl = cv2.remap(
-                depths[j], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-            )
+            dl = _sample(depths[j], mx, my, cv2.INTER_LINEAR)
             dj = np.where(np.abs(dl - Z) <= rel_tol * Z, dl, dj)
             # s_j = (d_j - c_2) / m_2 amplifies j's depth error by Z / (m_2 z): weight by the
             # inverse square of that factor (1 for nearby views, ~0 for grazing rays).
@@ -108,12 +101,31 @@ def support_counts(
                 sj = np.where(wj > 0, (dj - c[2]) / np.where(m2 != 0, m2, 1.0), 0.0)
             total += (wj * sj).astype(np.float32)
             weight += wj.astype(np.float32)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            avg = np.where(valid, total / weight, 0.0)
+        avg = total / weight
         # The average stays within the agreement tolerance of the view's own depth.
-        avg = np.clip(avg, depth_i * (1 - rel_tol), depth_i * (1 + rel_tol))
-        averaged[i] = avg.astype(np.float32)
+        avg = np.clip(avg, z * (1 - rel_tol), z * (1 + rel_tol))
+        out[i][rows, cols] = count[:, 0]
+        averaged[i][rows, cols] = avg[:, 0]
     return out, averaged
+
+
+#: Width of the map images that ``_sample`` hands to ``cv2.remap`` (which needs sides
+#: below 32767).
+_SAMPLE_WIDTH = 1024
+
+
+def _sample(
+    image: DepthMap, mx: NDArray[np.float32], my: NDArray[np.float32], interpolation: int
+) -> NDArray[np.float32]:
+    """``image`` at the (N, 1) points (mx, my) (0 outside), via ``cv2.remap`` on maps folded
+    into rows of ``_SAMPLE_WIDTH``."""
+    n = mx.shape[0]
+    rows = -(-n // _SAMPLE_WIDTH)
+    pad = rows * _SAMPLE_WIDTH - n
+    fx = np.pad(mx[:, 0], (0, pad), constant_values=-1e6).reshape(rows, _SAMPLE_WIDTH)
+    fy = np.pad(my[:, 0], (0, pad), constant_values=-1e6).reshape(rows, _SAMPLE_WIDTH)
+    out = cv2.remap(image, fx, fy, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return np.asarray(out, np.float32).reshape(-1)[:n, None]
 
 
 def agrees(

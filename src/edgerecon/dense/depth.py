@@ -292,16 +292,41 @@ class _RefStats:
     """Window variance + ``kernels.VAR_EPS``."""
     count: F32
     radius: int
+    scored: NDArray[np.bool_]
+    """Pixels to score."""
+    active: NDArray[np.bool_]
+    """Pixels whose sources are sampled: those to score, grown by the window radius."""
 
     @property
     def std(self) -> F32:
         return np.sqrt(np.maximum(self.var - kernels.VAR_EPS, 0.0)).astype(np.float32)
 
 
-def _ref_stats(grey: F32, radius: int) -> _RefStats:
+def _ref_stats(
+    grey: F32, radius: int, region: NDArray[np.bool_] | None = None, min_texture: float = 0.0
+) -> _RefStats:
+    """Statistics of the reference crop ``grey``; ``region`` (same shape) the pixels to score
+    (None = all), without those whose window's grey standard deviation is below
+    ``min_texture`` (their depths would be discarded)."""
     grey = np.ascontiguousarray(grey, dtype=np.float32)
     mean, var, count = kernels.window_stats(grey, radius)
-    return _RefStats(image=grey, mean=mean, var=var, count=count, radius=radius)
+    if min_texture > 0:
+        textured = var - kernels.VAR_EPS >= np.float32(min_texture) ** 2
+        region = textured if region is None else region & textured
+    if region is None or region.all():
+        region = active = np.ones(grey.shape, dtype=bool)
+    else:
+        k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * radius + 3, 2 * radius + 3))
+        active = cv2.dilate(region.astype(np.uint8), k).astype(bool)
+    return _RefStats(
+        image=grey,
+        mean=mean,
+        var=var,
+        count=count,
+        radius=radius,
+        scored=np.asarray(region, bool),
+        active=active,
+    )
 
 
 def _stack_sources(pairs: Sequence[_Pair]) -> tuple[F32, NDArray[np.int64]]:
@@ -325,8 +350,10 @@ def _sweep(
     far: F32,
     up: NDArray[np.float64] | None,
     config: DenseConfig,
+    src_ok: NDArray[np.bool_],
 ) -> tuple[F32, F32, int, int]:
-    """Plane sweep over all families: (inverse depth, score, work, number of planes)."""
+    """Plane sweep over all families: (inverse depth, score, work, number of planes).
+    ``src_ok`` (S, h, w): where each source may score (``_epipolar_texture_ok``)."""
     h, w = cam.height, cam.width
     rays = _rays(cam)
     Kinv = np.linalg.inv(cam.K)
@@ -337,9 +364,6 @@ def _sweep(
     w_lo = np.where(far > 0, 1.0 / np.maximum(far, 1e-30), np.inf).astype(np.float32)
     w_hi = np.where(near > 0, 1.0 / np.maximum(near, 1e-30), -np.inf).astype(np.float32)
     srcs, sizes = _stack_sources(pairs)
-    src_ok = _epipolar_texture_ok(
-        cam, stats, pairs, config.min_epipolar_texture, config.min_epipolar_share
-    )
     for fam in _families(cam, rays, up, config):
         lams = _plane_parameters(
             fam, rays, near, far, pairs, config.plane_step_px, config.max_planes
@@ -355,7 +379,7 @@ def _sweep(
         prev = np.full((h, w), -1.0, np.float32)
         nxt = np.full((h, w), -1.0, np.float32)
         kernels.sweep(
-            stats.image, stats.mean, stats.var, stats.count, srcs, sizes, src_ok, Hs,
+            stats.image, stats.mean, stats.var, stats.count, srcs, sizes, src_ok, stats.active, Hs,
             lams.astype(np.float64), fam.nray, fam.usable, w_lo, w_hi, stats.radius,
             config.ncc_top_k, best, idx, prev, nxt,
         )  # fmt: skip
@@ -458,7 +482,8 @@ def _sources(rays: NDArray[np.float32], pairs: Sequence[_Pair], ok: NDArray[np.b
 def _evaluate(inv: F32, src: _Sources, stats: _RefStats, top_k: int, w_lo: F32, w_hi: F32) -> F32:
     out = np.empty(inv.shape, np.float32)
     kernels.evaluate(
-        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok, src.a, src.b,
+        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok, stats.active,
+        src.a, src.b,
         np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi, stats.radius, top_k, out,
     )  # fmt: skip
     return out
@@ -578,6 +603,16 @@ def _bounds_at(near: F32, far: F32, roi: Roi, cam0: Camera, cam: Camera) -> tupl
     )
 
 
+def _region_at(region: NDArray[np.bool_], roi: Roi, cam0: Camera, cam: Camera) -> NDArray[np.bool_]:
+    """The crop ``roi`` of level camera ``cam`` of a working-resolution ``region``: a level
+    pixel belongs to it when any of the working pixels it covers does."""
+    if cam.size != cam0.size:
+        k = max(1, round(cam0.width / cam.width))
+        grown = cv2.dilate(region.astype(np.uint8), np.ones((k, k), np.uint8))
+        region = cv2.resize(grown, cam.size, interpolation=cv2.INTER_NEAREST) > 0
+    return np.asarray(region[roi.y0 : roi.y1, roi.x0 : roi.x1], bool)
+
+
 def estimate_depth(
     ref: ViewPyramid,
     sources: Sequence[ViewPyramid],
@@ -586,11 +621,14 @@ def estimate_depth(
     far: F32,
     up: NDArray[np.float64] | None,
     config: DenseConfig,
+    region: NDArray[np.bool_] | None = None,
 ) -> DepthEstimate:
     """Depth of the pixels of ``roi`` (working resolution) of ``ref``.
 
     ``near``/``far`` are (H, W) per-pixel depth bounds of the whole working image (0 = pixel
     excluded). ``up`` is the scene's up direction (world frame) for the "ground" family.
+    ``region`` (H, W) restricts the work to these pixels (and their windows) inside the ROI
+    (default: the pixels with bounds).
     """
     cam0 = ref.cameras[0]
     empty = DepthEstimate(
@@ -620,21 +658,29 @@ def estimate_depth(
         cam_l = ref.cameras[level]
         r = roi_at_level(roi, cam0, cam_l) if level else roi
         crop = crop_camera(cam_l, r.x0, r.y0, r.width, r.height)
-        stats = _ref_stats(ref.greys[level][r.y0 : r.y1, r.x0 : r.x1], config.window_radius)
-        pairs = [_pair(crop, s.cameras[level], s.greys[level]) for s in sources]
         near_l, far_l = _bounds_at(near, far, r, cam0, cam_l)
+        todo = near_l > 0
+        if region is not None:
+            todo &= _region_at(region, r, cam0, cam_l)
+        # At the working level, textureless windows are discarded whatever they score: no
+        # work for them.
+        stats = _ref_stats(
+            ref.greys[level][r.y0 : r.y1, r.x0 : r.x1],
+            config.window_radius,
+            todo,
+            config.min_texture if level == 0 else 0.0,
+        )
+        pairs = [_pair(crop, s.cameras[level], s.greys[level]) for s in sources]
         w_lo = np.where(far_l > 0, 1.0 / np.maximum(far_l, 1e-30), np.inf).astype(np.float32)
         w_hi = np.where(near_l > 0, 1.0 / np.maximum(near_l, 1e-30), 0.0).astype(np.float32)
-        src = _sources(
-            _rays(crop),
-            pairs,
-            _epipolar_texture_ok(
-                crop, stats, pairs, config.min_epipolar_texture, config.min_epipolar_share
-            ),
+        src_ok = _epipolar_texture_ok(
+            crop, stats, pairs, config.min_epipolar_texture, config.min_epipolar_share
         )
+        src_ok &= stats.scored[None]  # no scores outside the region
+        src = _sources(_rays(crop), pairs, src_ok)
         lo, hi = w_lo * np.float32(0.999), w_hi * np.float32(1.001)
         if inv is None:
-            inv, score, wk, planes = _sweep(crop, stats, pairs, near_l, far_l, up, config)
+            inv, score, wk, planes = _sweep(crop, stats, pairs, near_l, far_l, up, config, src_ok)
             work += wk
             # Propagation at the coarsest level cleans the winner-take-all noise; the local
             # search waits for the next (finer) level unless this is the last one.

@@ -130,6 +130,24 @@ def _sample(src: F32, sw: int, sh: int, x: float, y: float) -> tuple[float, bool
 
 
 @_jit
+def _spans(active: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Per row, the first and one past the last active column (lo >= hi: none)."""
+    h, w = active.shape
+    lo = np.full(h, w, np.int64)
+    hi = np.zeros(h, np.int64)
+    for y in range(h):
+        for x in range(w):
+            if active[y, x]:
+                lo[y] = x
+                break
+        for x in range(w - 1, -1, -1):
+            if active[y, x]:
+                hi[y] = x + 1
+                break
+    return lo, hi
+
+
+@_jit
 def _scores(
     ref: F32,
     mean: F32,
@@ -138,6 +156,7 @@ def _scores(
     srcs: F32,
     sizes: NDArray[np.int64],
     src_ok: NDArray[np.bool_],
+    active: NDArray[np.bool_],
     mode: int,
     H: NDArray[np.float64],
     a: F32,
@@ -153,10 +172,18 @@ def _scores(
     ``mode`` 1: at ``(a[s, :2] + inv b[s, :2]) / (a[s, 2] + inv b[s, 2])`` (per-pixel
     inverse depth). The resampled rows live in a ring buffer of ``2 r + 1`` rows per source
     and the vertical window sums are updated incrementally, so the working set stays in the
-    cache (the separable-filter version over whole images was memory-bound)."""
+    cache (the separable-filter version over whole images was memory-bound).
+
+    Only ``active`` pixels are sampled and summed, and only windows inside each row's span
+    of active pixels are scored (-1 elsewhere): pass the pixels to score dilated by the
+    window radius (``src_ok`` False elsewhere), and the cost follows their area, not the
+    crop's. A window whose pixels are all active sums exactly what it would sum with every
+    pixel active (each active sample is added when its row enters and removed when it
+    leaves); other windows are never scored."""
     h, w = ref.shape
     S = srcs.shape[0]
     n_ring = 2 * r + 1
+    lo, hi = _spans(active)
     ringJ = np.zeros((S, n_ring, w), np.float32)
     ringB = np.zeros((S, n_ring, w), np.float32)
     acc = np.zeros((S, 4, w), np.float64)
@@ -169,7 +196,9 @@ def _scores(
         yo = yi - n_ring
         for s in range(S):
             if yo >= 0:
-                for x in range(w):
+                for x in range(lo[yo], hi[yo]):
+                    if not active[yo, x]:
+                        continue
                     j = ringJ[s, slot, x]
                     acc[s, 0, x] -= j
                     acc[s, 1, x] -= j * j
@@ -179,7 +208,9 @@ def _scores(
                 sw = sizes[s, 0]
                 sh = sizes[s, 1]
                 src = srcs[s]
-                for x in range(w):
+                for x in range(lo[yi], hi[yi]):
+                    if not active[yi, x]:
+                        continue
                     ok = False
                     v = 0.0
                     if mode == 0:
@@ -202,24 +233,28 @@ def _scores(
                     acc[s, 1, x] += v * v
                     acc[s, 2, x] += ref[yi, x] * v
                     acc[s, 3, x] += bv
-            else:
-                for x in range(w):
-                    ringJ[s, slot, x] = 0.0
-                    ringB[s, slot, x] = 0.0
         if y < 0:
             continue
-        # Horizontal running sums of the column sums -> NCC of row y for every source.
+        x0 = lo[y]
+        x1 = hi[y]
+        for x in range(w):
+            if x < x0 or x >= x1:
+                out[y, x] = -1.0
+        if x0 >= x1:
+            continue
+        # Horizontal running sums of the column sums -> NCC of row y for every source, over
+        # the row's active span.
         for s in range(S):
             s0 = 0.0
             s1 = 0.0
             s2 = 0.0
             s3 = 0.0
-            for x in range(min(r, w)):
+            for x in range(max(x0 - r, 0), min(x0 + r, w)):
                 s0 += acc[s, 0, x]
                 s1 += acc[s, 1, x]
                 s2 += acc[s, 2, x]
                 s3 += acc[s, 3, x]
-            for x in range(w):
+            for x in range(x0, x1):
                 xi = x + r
                 if xi < w:
                     s0 += acc[s, 0, xi]
@@ -241,7 +276,7 @@ def _scores(
                     cov = s2 / n - mean[y, x] * mj
                     row_ncc[s, x] = cov / np.sqrt(var[y, x] * vj)
         # Mean of the top_k finite scores.
-        for x in range(w):
+        for x in range(x0, x1):
             m = 0
             for s in range(S):
                 v = row_ncc[s, x]
@@ -271,6 +306,7 @@ def sweep(
     srcs: F32,
     sizes: NDArray[np.int64],
     src_ok: NDArray[np.bool_],
+    active: NDArray[np.bool_],
     homographies: NDArray[np.float64],
     lams: NDArray[np.float64],
     nray: F32,
@@ -301,7 +337,7 @@ def sweep(
     for p in range(P):
         lam = lams[p]
         _scores(
-            ref, mean, var, count, srcs, sizes, src_ok, 0, homographies[p], dummy_a, dummy_b,
+            ref, mean, var, count, srcs, sizes, src_ok, active, 0, homographies[p], dummy_a, dummy_b,
             dummy_inv, r, top_k, score,
         )  # fmt: skip
         for y in range(h):
@@ -329,6 +365,7 @@ def evaluate(
     srcs: F32,
     sizes: NDArray[np.int64],
     src_ok: NDArray[np.bool_],
+    active: NDArray[np.bool_],
     a: F32,
     b: NDArray[np.float32],
     inv: F32,
@@ -344,7 +381,9 @@ def evaluate(
     Scores are -1 where ``inv`` is outside ``(w_lo, w_hi)``."""
     h, w = ref.shape
     dummy_H = np.zeros((1, 3, 3), np.float64)
-    _scores(ref, mean, var, count, srcs, sizes, src_ok, 1, dummy_H, a, b, inv, r, top_k, out)
+    _scores(
+        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k, out
+    )
     for y in range(h):
         for x in range(w):
             iv = inv[y, x]

@@ -24,6 +24,9 @@ from edgerecon.geometry.camera import Camera
 GOOD_ANGLE_DEG = 10.0
 #: Above this angle (degrees), the weight decays (appearance changes, self-occlusion).
 WIDE_ANGLE_DEG = 45.0
+#: Chance that one source under a good angle matches a point (occlusion, specularity, image
+#: border): below 1, so that a second source for the same points still counts.
+MATCH_PROBABILITY = 0.7
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -53,9 +56,9 @@ def point_weights(
     ref: Camera, cameras: Sequence[Camera], ref_index: int, samples: NDArray[np.float64]
 ) -> tuple[list[SourceScore], NDArray[np.float64]]:
     """Scores of every other camera as a source for ``cameras[ref_index]`` = ``ref``, and the
-    (len(cameras), len(samples)) weights: ``angle_weight`` of the triangulation angle at each
-    sample point the source sees (in front, inside its image), 0 elsewhere and for the
-    reference itself."""
+    (len(cameras), len(samples)) weights: ``MATCH_PROBABILITY`` x ``angle_weight`` of the
+    triangulation angle at each sample point the source sees (in front, inside its image), 0
+    elsewhere and for the reference itself."""
     out: list[SourceScore] = []
     weights = np.zeros((len(cameras), len(samples)))
     if len(samples) == 0:
@@ -74,7 +77,7 @@ def point_weights(
         to_src /= np.linalg.norm(to_src, axis=1, keepdims=True) + 1e-300
         cos = np.clip(np.einsum("ij,ij->i", to_ref[seen], to_src), -1.0, 1.0)
         angles = np.degrees(np.arccos(cos))
-        weights[j, seen] = [angle_weight(float(a)) for a in angles]
+        weights[j, seen] = [MATCH_PROBABILITY * angle_weight(float(a)) for a in angles]
         out.append(
             SourceScore(
                 index=j,

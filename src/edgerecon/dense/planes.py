@@ -39,6 +39,8 @@ logger = logging.getLogger(__name__)
 MIN_BRIGHTNESS = 24.0
 #: Points whose normal is within this angle of 'up' take part in the ground-plane vote.
 _HORIZONTAL_DEG = 40.0
+#: Largest share of all points more than 3 bands below a ground-plane candidate.
+_MAX_BELOW_SHARE = 0.1
 
 
 @dataclass(frozen=True)
@@ -80,8 +82,19 @@ def fit_ground_plane(
     lo, hi = float(h.min()), float(h.max())
     nbins = max(1, int(np.ceil((hi - lo) / band)))
     counts, edges = np.histogram(h, bins=nbins, range=(lo, lo + nbins * band))
+    # A ground plane has (almost) nothing under it: the tops of heads, tables or seats can
+    # hold the most horizontal points (a foreground-only cloud), but most points lie below.
+    # Counted among the points 3 views confirm when there are enough (two-view ghosts below
+    # the floor do not count).
+    confirmed = num_views >= 3
+    heights = np.sort((points[confirmed] if confirmed.sum() >= min_support else points) @ up)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    below = np.searchsorted(heights, centres - 3.0 * band) / max(len(heights), 1)
+    counts = np.where(below <= _MAX_BELOW_SHARE, counts, 0)
     k = int(np.argmax(counts))
-    h0 = 0.5 * (edges[k] + edges[k + 1])
+    if counts[k] < min_support:
+        return None
+    h0 = centres[k]
     inl = np.abs(h - h0) <= band
     if int(inl.sum()) < min_support:
         return None

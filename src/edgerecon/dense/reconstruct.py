@@ -111,6 +111,11 @@ def _check_views(views: Sequence[View]) -> None:
             )
 
 
+def working_camera(view: View, config: DenseConfig) -> Camera:
+    """The pinhole camera of ``view``'s depth map (``config.working_scale`` of the view)."""
+    return view.camera.scaled(config.working_scale)
+
+
 def _bounds_maps(
     view: View, cam: Camera, bounds: DepthBounds | None
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
@@ -137,10 +142,14 @@ def _bounds_maps(
     near_a = np.asarray(near, dtype=np.float32)
     far_a = np.asarray(far, dtype=np.float32)
     shape = view.image.shape[:2]
-    if near_a.shape != shape or far_a.shape != shape:
+    working = (cam.height, cam.width)
+    if near_a.shape == far_a.shape == working:
+        shape = working  # already at the working resolution: used as they are
+    elif near_a.shape != shape or far_a.shape != shape:
         raise DataError(
             f"dense: depth bound maps of camera {view.camera_id} must be {shape[1]}x{shape[0]} "
-            f"(the view's size), got {near_a.shape[::-1]} and {far_a.shape[::-1]}"
+            f"(the view's size) or {cam.width}x{cam.height} (the working resolution), got "
+            f"{near_a.shape[::-1]} and {far_a.shape[::-1]}"
         )
     near_a = np.nan_to_num(near_a, nan=0.0, posinf=0.0, neginf=0.0)
     far_a = np.nan_to_num(far_a, nan=0.0, posinf=0.0, neginf=0.0)
@@ -214,8 +223,9 @@ def reconstruct_dense(
     ``views`` are undistorted pinhole views (``edgerecon.views.prepare_views``); a view's
     ``mask`` restricts the output (and the work, roughly in proportion) to its region.
     ``sparse`` (optional) gives per-view depth ranges and source selection; ``depth_ranges``
-    (camera id -> (near, far) or per-pixel near/far maps at the view's size, 0 = excluded)
-    overrides them, e.g. from a visual hull. ``up`` is the world's up direction (the rig's
+    (camera id -> (near, far) or per-pixel near/far maps at the view's size or at the working
+    resolution ``working_camera(view, config)``, 0 = excluded) overrides them, e.g. from a
+    visual hull. ``up`` is the world's up direction (the rig's
     ``up``) for ground-plane hypotheses; default: estimated from the cameras.
 
     Fewer than two views, empty masks or nothing consistent give an empty cloud (not an error).
@@ -230,7 +240,7 @@ def reconstruct_dense(
 
     with timings.stage("prepare"):
         scale = config.working_scale
-        cams = [v.camera.scaled(scale) for v in views]
+        cams = [working_camera(v, config) for v in views]
         colors: list[Image] = [
             v.image
             if c.size == v.camera.size
@@ -269,7 +279,9 @@ def reconstruct_dense(
         }
 
     with timings.stage("depth"):
-        jobs = [(p, roi) for p in plans for roi in p["rois"]]
+        # Largest first: the threads finish together instead of one waiting for the last
+        # big job (results are matched to jobs, so the order does not matter otherwise).
+        jobs = sorted(((p, roi) for p in plans for roi in p["rois"]), key=lambda job: -job[1].area)
 
         def run(job: tuple[dict[str, Any], Roi]) -> DepthEstimate:
             p, roi = job
@@ -281,6 +293,7 @@ def reconstruct_dense(
                 p["far"],
                 up_vec,
                 config,
+                p["region"],
             )
 
         if config.num_threads > 1 and len(jobs) > 1:
@@ -464,21 +477,24 @@ def _plan_view(
             np.full((cam.height, cam.width), far, np.float32),
         )
     plan["near"], plan["far"] = bounds
+    region = bounds[0] > 0
+    if mask is not None:
+        region &= mask
+    plan["region"] = region
     # Sources, judged on the reference's sparse points (where its surfaces are) and on rays
-    # through its depth range (every part of its image, sparse points or not), half each.
+    # through the pixels to reconstruct (every part of the region, sparse points or not)
+    # across their depth bounds, half each.
     surface = np.zeros((0, 3))
     if sparse_vis is not None:
         surface = sparse_pts[sparse_vis[:, index]]
     if len(surface) < config.min_sparse_points:
         surface = np.zeros((0, 3))
-    pix = sample_pixels(cam)
-    depths = np.geomspace(near, far, 5)
-    rays = np.concatenate([cam.backproject(pix, np.full(len(pix), d)) for d in depths])
+    rays = _region_samples(cam, region, bounds)
     samples = np.concatenate([surface, rays])
     sample_weights = np.concatenate(
         [
             np.full(len(surface), 0.5 / max(len(surface), 1)),
-            np.full(len(rays), (0.5 if len(surface) else 1.0) / len(rays)),
+            np.full(len(rays), (0.5 if len(surface) else 1.0) / max(len(rays), 1)),
         ]
     )
     scores, weights = point_weights(cam, cams, index, samples)
@@ -493,15 +509,39 @@ def _plan_view(
     plan["source_scores"] = scores
     if not plan["sources"]:
         return plan
-    region = bounds[0] > 0
-    if mask is not None:
-        region &= mask
     if region.all():
         plan["rois"] = [Roi(0, 0, cam.width, cam.height)]
     elif region.any():
         min_area = (2 * config.window_radius + 1) ** 2 // 4
         plan["rois"] = mask_rois(region, config.roi_margin_px, min_area)
     return plan
+
+
+def _region_samples(
+    cam: Camera,
+    region: NDArray[np.bool_],
+    bounds: tuple[DepthMap, DepthMap],
+    num_pixels: int = 108,
+    num_depths: int = 5,
+) -> NDArray[np.float64]:
+    """Points on the rays of up to ``num_pixels`` pixels spread over ``region`` (a regular
+    grid when it is the whole image), at ``num_depths`` depths across each pixel's bounds."""
+    if region.all():
+        pix = sample_pixels(cam)
+    else:
+        rows, cols = np.nonzero(region)
+        if len(rows) == 0:
+            return np.zeros((0, 3))
+        pick = np.unique(np.linspace(0, len(rows) - 1, min(len(rows), num_pixels)).astype(int))
+        pix = np.stack([cols[pick], rows[pick]], axis=1).astype(np.float64)
+    r = np.rint(pix[:, 1]).astype(int).clip(0, cam.height - 1)
+    c = np.rint(pix[:, 0]).astype(int).clip(0, cam.width - 1)
+    near = bounds[0][r, c].astype(np.float64)
+    far = np.maximum(bounds[1][r, c].astype(np.float64), near)
+    fractions = np.linspace(0.0, 1.0, num_depths)
+    # Geometric spacing between each pixel's near and far (its own bounds).
+    depths = near[None] * (far / near)[None] ** fractions[:, None]
+    return np.concatenate([cam.backproject(pix, d) for d in depths])
 
 
 def _auto_voxel(depths: Mapping[int, DepthMap], cams: Sequence[Camera]) -> float | None:

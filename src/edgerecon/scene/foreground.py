@@ -15,15 +15,17 @@ import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry.camera import Rig
+from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.progress import track
 from edgerecon.scene.background import BackgroundConfig, BackgroundModel, BackgroundState
 from edgerecon.scene.hull import HullConfig, VisualHull, hull_consistent_masks, visual_hull
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
 from edgerecon.types import DataError, DepthMap, FrameSet, Image, Mask, StageTimings
+from edgerecon.views import resize_mask
 
 logger = logging.getLogger(__name__)
 
@@ -38,12 +40,18 @@ class ForegroundConfig:
     """Object clustering in each image."""
     hull: HullConfig = field(default_factory=lambda: HullConfig(max_missing=0))
     """Visual hull used for the cross-camera consistency of the masks."""
+    hull_max_width: int = 960
+    """The hull is carved from masks downscaled to at most this width (pixels)."""
     hull_consistency: bool = True
     """Remove the foreground that the visual hull of all masks does not explain: a detection
     that the other cameras seeing the same space contradict, or that fewer than
     ``hull.min_views`` cameras see (it could not be reconstructed anyway)."""
 
     def __post_init__(self) -> None:
+        if self.hull_max_width < 16:
+            raise ValueError(
+                f"ForegroundConfig.hull_max_width must be >= 16, got {self.hull_max_width}"
+            )
         for name, cls in (
             ("background", BackgroundConfig),
             ("objects", ObjectConfig),
@@ -176,6 +184,27 @@ class RigForeground:
             raise DataError(f"{len(depth_maps)} occluder depth maps for {len(self.rig)} cameras")
         self.occluders = None if depth_maps is None else list(depth_maps)
 
+    def _hull_inputs(
+        self, masks: Sequence[Mask | None]
+    ) -> tuple[list[Camera], list[Mask | None], list[DepthMap | None] | None]:
+        """Cameras, masks and occluder maps at most ``hull_max_width`` pixels wide."""
+        width = self.config.hull_max_width
+        cams: list[Camera] = []
+        small: list[Mask | None] = []
+        occ: list[DepthMap | None] = []
+        for i, (cam, m) in enumerate(zip(self.rig, masks, strict=True)):
+            c = cam.scaled(width / cam.width) if cam.width > width else cam
+            cams.append(c)
+            small.append(None if m is None else resize_mask(m, c.size))
+            d = None if self.occluders is None else self.occluders[i]
+            if d is not None and c is not cam:
+                d = np.asarray(
+                    cv2.resize(np.asarray(d, np.float32), c.size, interpolation=cv2.INTER_NEAREST),
+                    np.float32,
+                )
+            occ.append(d)
+        return cams, small, (None if self.occluders is None else occ)
+
     def segment(self, frames: FrameSet, *, update: bool = True) -> ForegroundResult:
         """The foreground of one timestamp (the models learn from it unless ``update=False``)."""
         timings = StageTimings()
@@ -186,18 +215,21 @@ class RigForeground:
         masks: list[Mask | None] = list(model_masks)
         with_fg = sum(m is not None and bool(m.any()) for m in model_masks)
         if cfg.hull_consistency and with_fg >= 1:
+            # The hull is carved from masks at <= hull_max_width (the background model's
+            # resolution): the same geometry for a fraction of the pixel work.
+            cams, small, occ = self._hull_inputs(model_masks)
             with timings.stage("visual_hull"):
-                hull = visual_hull(
-                    self.rig.cameras, model_masks, cfg.hull, occluders=self.occluders
-                )
+                hull = visual_hull(cams, small, cfg.hull, occluders=occ)
             with timings.stage("hull_consistency"):
-                masks = hull_consistent_masks(
-                    hull,
-                    self.rig.cameras,
-                    model_masks,
-                    max_missing=cfg.hull.max_missing,
-                    occluders=self.occluders,
+                consistent = hull_consistent_masks(
+                    hull, cams, small, max_missing=cfg.hull.max_missing, occluders=occ
                 )
+                for i, (m, sm, cm) in enumerate(zip(model_masks, small, consistent, strict=True)):
+                    if m is None or sm is None or cm is None:
+                        continue
+                    removed = sm & ~cm
+                    if removed.any():
+                        masks[i] = m & ~resize_mask(removed, (m.shape[1], m.shape[0]))
         with timings.stage("objects"):
             objects = tuple(None if m is None else find_objects(m, cfg.objects) for m in masks)
         return ForegroundResult(

@@ -64,10 +64,11 @@ class HullConfig:
     """Parameters of the visual-hull carving."""
 
     voxel_size: float | None = None
-    """Edge of the finest voxels in rig units; None = ``voxel_fraction`` x the rig's scale."""
-    voxel_fraction: float = 0.003
-    """Finest voxel edge relative to the rig's scale (median camera distance) when
-    ``voxel_size`` is None."""
+    """Edge of the finest voxels in rig units; None = ``voxel_px`` pixels at the distance
+    where the cameras look (so the hull is as fine as the masks it is carved from)."""
+    voxel_px: float = 3.0
+    """Finest voxel edge in pixels of the masks, at the median distance from the cameras to
+    the point they look at, when ``voxel_size`` is None."""
     coarse_cells: int = 16
     """Cells along the longest side of the initial box at the coarsest level."""
     tolerance_px: float = 1.0
@@ -94,7 +95,7 @@ class HullConfig:
     """Parts of the hull closer than about this (rig units) belong to one object; None =
     ``object_gap_fraction`` x the rig's scale."""
     object_gap_fraction: float = 0.02
-    """``object_gap`` relative to the rig's scale (median camera distance)."""
+    """``object_gap`` relative to the rig's scale (median distance between cameras)."""
     min_object_voxels: int = 8
     """Objects with fewer finest voxels are dropped as noise ..."""
     min_object_fraction: float = 0.05
@@ -104,10 +105,8 @@ class HullConfig:
     def __post_init__(self) -> None:
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise ValueError(f"HullConfig.voxel_size must be > 0 or None, got {self.voxel_size}")
-        if not 0 < self.voxel_fraction < 1:
-            raise ValueError(
-                f"HullConfig.voxel_fraction must be in (0, 1), got {self.voxel_fraction}"
-            )
+        if not self.voxel_px > 0:
+            raise ValueError(f"HullConfig.voxel_px must be > 0, got {self.voxel_px}")
         if self.coarse_cells < 1:
             raise ValueError(f"HullConfig.coarse_cells must be >= 1, got {self.coarse_cells}")
         if self.tolerance_px < 0:
@@ -275,6 +274,31 @@ def _distance_to_silhouette(mask: Mask) -> _Distances:
     )
 
 
+def convergence_point(cameras: Sequence[Camera]) -> NDArray[np.float64] | None:
+    """(3,) point nearest (least squares) to all optical axes, or None when they are nearly
+    parallel."""
+    centers = np.array([c.center for c in cameras])
+    axes = np.array([c.viewing_direction for c in cameras])
+    proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    A = proj.sum(axis=0)
+    if np.linalg.cond(A) >= 1e8:
+        return None
+    return np.asarray(np.linalg.solve(A, np.einsum("nij,nj->i", proj, centers)), np.float64)
+
+
+def _pixel_footprint(cameras: Sequence[Camera], fallback_distance: float) -> float:
+    """Size (rig units) of one pixel at the median distance from the cameras to where they
+    look (their convergence point; ``fallback_distance`` without one)."""
+    target = convergence_point(cameras)
+    centers = np.array([c.center for c in cameras])
+    dist = (
+        float(np.median(np.linalg.norm(centers - target, axis=1)))
+        if target is not None
+        else fallback_distance
+    )
+    return dist / float(np.median([c.focal_px for c in cameras]))
+
+
 def rig_region(cameras: Sequence[Camera], margin_fraction: float = 0.05) -> NDArray[np.float64]:
     """(2, 3) box of the capture volume: the camera centres and a ball around the point
     nearest to all optical axes (where the cameras look) reaching 90 % of the way to the
@@ -286,14 +310,10 @@ def rig_region(cameras: Sequence[Camera], margin_fraction: float = 0.05) -> NDAr
     seen by only two cameras would intersect in large phantoms.
     """
     centers = np.array([c.center for c in cameras])
-    axes = np.array([c.viewing_direction for c in cameras])
-    proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
-    A = proj.sum(axis=0)
-    b = np.einsum("nij,nj->i", proj, centers)
     span = float(np.max(np.linalg.norm(centers[:, None] - centers[None], axis=2)))
     pts = centers
-    if np.linalg.cond(A) < 1e8:
-        target = np.linalg.solve(A, b)
+    target = convergence_point(cameras)
+    if target is not None:
         reach = 0.9 * float(np.min(np.linalg.norm(centers - target, axis=1)))
         pts = np.vstack([centers, target - reach, target + reach])
     margin = margin_fraction * max(span, 1e-9)
@@ -494,7 +514,11 @@ def visual_hull(
         if len(cameras) > 1
         else 1.0
     )
-    target = config.voxel_size if config.voxel_size is not None else config.voxel_fraction * span
+    target = (
+        config.voxel_size
+        if config.voxel_size is not None
+        else config.voxel_px * _pixel_footprint(cameras, span)
+    )
 
     def empty(bounds: NDArray[np.float64]) -> VisualHull:
         return VisualHull(

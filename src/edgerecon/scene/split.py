@@ -222,9 +222,12 @@ def _mode_component(node: NDArray[np.int64], comp: NDArray[np.int32]) -> NDArray
     """(P,) the most frequent component among each row's nodes (-1 for rows without)."""
     valid = node >= 0
     pt_comp = np.where(valid, comp[np.maximum(node, 0)], -1)
-    # For each entry, how many entries of its row share its component.
-    same = (pt_comp[:, :, None] == pt_comp[:, None, :]) & valid[:, :, None] & valid[:, None, :]
-    support = np.where(valid, same.sum(axis=2), -1)
+    # For each entry, how many entries of its row share its component (one column at a
+    # time: no (P, C, C) temporary).
+    support = np.full(node.shape, -1, np.int32)
+    for j in range(node.shape[1]):
+        same = (pt_comp == pt_comp[:, j : j + 1]) & valid
+        support[:, j] = np.where(valid[:, j], np.count_nonzero(same, axis=1), -1)
     return np.asarray(pt_comp[np.arange(len(node)), np.argmax(support, axis=1)], np.int64)
 
 
