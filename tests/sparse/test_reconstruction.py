@@ -108,6 +108,26 @@ def test_mask_restricts_features_and_points():
     assert len(extract_features(empty_mask)) == 0
 
 
+def test_masked_detection_on_the_crop_finds_the_same_keypoints():
+    _rig, views, _planes = box_views(3, seed=4)
+    view = views[0]
+    h, w = view.image.shape[:2]
+    box = np.zeros((h, w), bool)
+    box[h // 4 : 3 * h // 4, w // 3 : 2 * w // 3] = True
+    full = extract_features(view)
+    crop = extract_features(dataclasses.replace(view, mask=box))
+    # All inside the mask, in view coordinates ...
+    u, v = np.rint(crop.points2D).astype(int).T
+    assert len(crop) > 20 and box[v.clip(0, h - 1), u.clip(0, w - 1)].all()
+    # ... and, away from the box's edges, where detection on the whole view puts them.
+    inner = np.zeros_like(box)
+    inner[h // 4 + 16 : 3 * h // 4 - 16, w // 3 + 16 : 2 * w // 3 - 16] = True
+    fu, fv = np.rint(full.points2D).astype(int).T
+    ref = full.points2D[inner[fv.clip(0, h - 1), fu.clip(0, w - 1)]]
+    d = np.linalg.norm(ref[:, None] - crop.points2D[None], axis=2).min(axis=1)
+    assert len(ref) > 10 and np.mean(d < 0.5) > 0.9
+
+
 def test_large_views_are_detected_downscaled_at_consistent_coordinates():
     _rig, views, planes = box_views(5, seed=3, width=1280, height_px=960, focal_px=1000.0)
     small = SparseConfig(feature_max_size_px=640, affine_simulation="off")

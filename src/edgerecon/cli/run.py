@@ -10,6 +10,7 @@ from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.io.dataset import open_dataset
 from edgerecon.runtime import FrameRange, RunSummary, RuntimeConfig, SessionOptions, TaskMetrics
+from edgerecon.runtime.config import SPARSE_SCOPES
 from edgerecon.runtime.online import run_online
 
 
@@ -53,6 +54,13 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "--no-background-updates",
         action="store_true",
         help="the back-end never rebuilds the background",
+    )
+    p.add_argument(
+        "--sparse-scope",
+        choices=SPARSE_SCOPES,
+        default="foreground",
+        help="foreground: SfM of the foreground masks only, after they arrive (default); "
+        "scene: the paper's SfM of the whole frames, then the split",
     )
     p.add_argument("--no-clouds", action="store_true", help="do not write per-task clouds")
     p.add_argument(
@@ -134,10 +142,13 @@ def live_printer(enabled: bool) -> Any:
 
     def on_task(m: TaskMetrics) -> None:
         if not state["printed"]:
-            console.print(f"[bold]{header}[/]")
+            console.print(f"[bold]{header}[/]", soft_wrap=True)
             state["printed"] = True
         row = task_row(m)
-        console.print(" ".join(str(v).rjust(w) for v, w in zip(row, widths, strict=True)))
+        # One line per task even on an 80-column pipe (no wrapping).
+        console.print(
+            " ".join(str(v).rjust(w) for v, w in zip(row, widths, strict=True)), soft_wrap=True
+        )
 
     return on_task
 
@@ -188,7 +199,9 @@ def run(args: argparse.Namespace) -> int:
     if args.deadline is None:
         raise ValueError("--deadline is required")
     config = RuntimeConfig(
-        deadline_s=args.deadline, background_updates=not args.no_background_updates
+        deadline_s=args.deadline,
+        background_updates=not args.no_background_updates,
+        sparse_scope=args.sparse_scope,
     )
     fixed = None
     if args.fixed is not None:

@@ -26,7 +26,7 @@ import numpy as np
 
 from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
-from edgerecon.pipeline import prepare_task_views, reconstruct_background
+from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_background
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import BackgroundUpdate, GoldenReply, MasksReply
 from edgerecon.scene.foreground import RigForeground
@@ -211,6 +211,10 @@ class BackEnd:
         t1 = time.perf_counter()
         golden = ReconstructionConfig(sparse_config=self.config.sparse)
         views = prepare_task_views(frames, self.rig, golden)
+        if self.config.sparse_scope == "foreground":  # as the front-end's SfM
+            views = foreground_views(
+                views, self.rig, fg.masks, self.config.split.fg_mask_dilation_px
+            )
         sparse = reconstruct_sparse(views, self.config.sparse)
         split = split_sparse(
             sparse.points3D,

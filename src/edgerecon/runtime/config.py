@@ -13,6 +13,9 @@ from edgerecon.pipeline import SplitPipelineConfig
 from edgerecon.scene.foreground import ForegroundConfig
 from edgerecon.sparse import SparseConfig
 
+#: Values of ``RuntimeConfig.sparse_scope``.
+SPARSE_SCOPES = ("foreground", "scene")
+
 
 @dataclass(frozen=True, kw_only=True)
 class RuntimeConfig:
@@ -47,6 +50,13 @@ class RuntimeConfig:
     background clip."""
     sparse: SparseConfig = field(default_factory=SparseConfig)
     """Sparse stage of both roles."""
+    sparse_scope: str = "foreground"
+    """What the sparse stage of both roles (the task's SfM and the golden reference) covers:
+    "foreground" = only the dilated foreground masks, so the front-end first waits for the
+    back-end's masks, then runs SfM on the masked crops (its cost follows the foreground's
+    area; the split, the online estimate and pi(N') need nothing else); "scene" = the
+    paper's order: SfM of the whole frames, in parallel with the back-end's masks, then
+    the split."""
     dense: DenseConfig = field(default_factory=DenseConfig)
     """Foreground MVS on the front-end."""
     background_dense: DenseConfig = field(default_factory=DenseConfig)
@@ -64,6 +74,11 @@ class RuntimeConfig:
         if not 0 < self.background_scale <= 1:
             raise ValueError(
                 f"RuntimeConfig.background_scale must be in (0, 1], got {self.background_scale}"
+            )
+        if self.sparse_scope not in SPARSE_SCOPES:
+            raise ValueError(
+                f"RuntimeConfig.sparse_scope must be one of {SPARSE_SCOPES}, "
+                f"got {self.sparse_scope!r}"
             )
         if self.warmup_frames < 1:
             raise ValueError(f"RuntimeConfig.warmup_frames must be >= 1, got {self.warmup_frames}")

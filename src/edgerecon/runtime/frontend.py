@@ -25,7 +25,7 @@ from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
-from edgerecon.pipeline import prepare_task_views, reconstruct_foreground
+from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_foreground
 from edgerecon.quality.online import OnlineQualityConfig, online_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
@@ -153,9 +153,11 @@ class FrontEnd:
         cfg = ReconstructionConfig(
             scale=plan.scale, camera_ids=plan.camera_ids, sparse_config=self.config.sparse
         )
-        with timings.stage("sfm"):
-            views = prepare_task_views(frames, self.rig, cfg)
-            sparse = reconstruct_sparse(views, self.config.sparse)
+        scene_sfm = self.config.sparse_scope == "scene"
+        if scene_sfm:  # the paper's order: SfM of the whole frames while masks are computed
+            with timings.stage("sfm"):
+                views = prepare_task_views(frames, self.rig, cfg)
+                sparse = reconstruct_sparse(views, self.config.sparse)
         degraded, reason = False, ""
         with timings.stage("wait_masks"):
             reply = masks(self.config.masks_wait_s)
@@ -167,6 +169,15 @@ class FrontEnd:
             fg = reply.foreground
             # Back to normal: the next outage starts from the back-end's newest snapshot.
             self._local_fg = None
+        if not scene_sfm:  # SfM of the foreground only
+            with timings.stage("sfm"):
+                views = prepare_task_views(frames, self.rig, cfg)
+                sparse = reconstruct_sparse(
+                    foreground_views(
+                        views, self.rig, fg.masks, self.config.split.fg_mask_dilation_px
+                    ),
+                    self.config.sparse,
+                )
         fg_rec = reconstruct_foreground(
             views, self.rig, sparse, fg, self.config.dense, self.config.split
         )

@@ -77,6 +77,11 @@ def _detector(config: SparseConfig) -> cv2.Feature2D:
     )
 
 
+#: Pixels kept around a mask's bounding box when detecting on it (SIFT's descriptor window
+#: at the scales that matter).
+_CROP_MARGIN_PX = 24
+
+
 def _sift(
     gray: NDArray[Any], mask: NDArray[Any] | None, config: SparseConfig
 ) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.float32]]:
@@ -122,10 +127,18 @@ def extract_features(
     gray: NDArray[Any] = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     h, w = gray.shape[:2]
     mask: NDArray[Any] | None = None
+    x0 = y0 = 0
     if view.mask is not None:
         mask = (view.mask.astype(np.uint8) * 255).astype(np.uint8)
         if not mask.any():
             return Features.empty()
+        # Detect on the mask's bounding box (plus the descriptors' support): the cost of the
+        # scale space follows the masked area, not the image's.
+        bx, by, bw, bh = cv2.boundingRect(mask)
+        x0, y0 = max(bx - _CROP_MARGIN_PX, 0), max(by - _CROP_MARGIN_PX, 0)
+        x1, y1 = min(bx + bw + _CROP_MARGIN_PX, w), min(by + bh + _CROP_MARGIN_PX, h)
+        gray, mask = gray[y0:y1, x0:x1], mask[y0:y1, x0:x1]
+    ch, cw = gray.shape[:2]
     base = 1.0
     longest = max(w, h)
     if config.feature_max_size_px and longest > config.feature_max_size_px:
@@ -141,10 +154,12 @@ def extract_features(
         if len(pts) == 0:
             continue
         # Pixel centres: x_view = (x_small + 0.5) * (W / w) - 0.5, per axis.
-        fx, fy = w / g.shape[1], h / g.shape[0]
+        fx, fy = cw / g.shape[1], ch / g.shape[0]
         if (fx, fy) != (1.0, 1.0):
             pts = (pts + 0.5) * [fx, fy] - 0.5
             sizes = sizes * np.float32(np.sqrt(fx * fy))
+        if x0 or y0:
+            pts = pts + [x0, y0]
         parts.append((pts, sizes, desc))
     if not parts:
         return Features.empty()
