@@ -255,6 +255,31 @@ def test_sustained_load_change_triggers_a_research_but_noise_alone_rarely_does()
     assert sum(n - 1 for n in quiet) <= 1
 
 
+def test_adjustment_catches_up_with_a_workload_jump_within_a_few_tasks():
+    """A second actor walks in: every task is 40 % slower at the same (r, N'). Bounded
+    proportional steps bring the time back near the deadline in a few tasks; the paper's
+    fixed 0.02 steps take several times longer."""
+    sim = SimulatorConfig(time_noise=0.0, quality_noise=0.0)
+    model = PipelineModel(sim)
+    catch_up = {}
+    for max_step in (0.1, 0.02):
+        cfg = ControllerConfig(
+            deadline_s=7.5, adjust_max_step=max_step, research_jump=0.0, research_drift=0.0
+        )
+        ctrl = BisectionController(cfg, LOWEST, sim.num_cameras)
+        rng = np.random.default_rng(0)
+        run_search(ctrl, model, rng)
+        for i in range(200):
+            c = ctrl.next_config()
+            t = 1.4 * model.time_s(c.scale, c.num_cameras)
+            ctrl.observe(t, model.quality(c.scale, c.num_cameras))
+            if t <= 1.05 * 7.5:
+                catch_up[max_step] = i + 1
+                break
+    assert catch_up[0.1] <= 6
+    assert catch_up[0.02] >= 2 * catch_up[0.1]
+
+
 def test_infeasible_deadline_runs_the_fastest_configuration_without_looping():
     ctrl = BisectionController(ControllerConfig(deadline_s=1.0), LOWEST, 5)
     for _ in range(80):

@@ -71,6 +71,12 @@ class ControllerConfig:
     """Rule 3: abandon an N' when a too-slow r already has quality <= the best solution."""
     adjust_step: float = 0.02
     """Minor-adjustment step of r after the search (paper: 0.02)."""
+    adjust_max_step: float = 0.1
+    """Largest step when the running average is far from the target: half the change of r
+    that would bring it there if time grew with r squared, between ``adjust_step`` and this
+    (= ``adjust_step``: the paper's fixed steps). Under timing noise alone the step stays
+    ``adjust_step``; after the workload jumps (a second actor walks in) r follows within a few
+    tasks instead of tens."""
     adjust_window: int = 5
     """Tasks in the running average of the minor adjustment (0 = every task since the
     adjustment began, as in the paper; a short window oscillates less, see OPTIMIZER.md)."""
@@ -103,8 +109,13 @@ class ControllerConfig:
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a non-negative number, got {v!r}")
 
-        for name in ("deadline_s", "r_min", "r_max", "tau", "adjust_step"):
+        for name in ("deadline_s", "r_min", "r_max", "tau", "adjust_step", "adjust_max_step"):
             positive(name)
+        if self.adjust_max_step < self.adjust_step:
+            raise ValueError(
+                f"adjust_max_step ({self.adjust_max_step}) must be >= adjust_step "
+                f"({self.adjust_step})"
+            )
         for name in ("margin_s", "margin_rel", "research_jump", "research_drift"):
             non_negative(name)
         if self.r_min >= self.r_max:
@@ -573,7 +584,13 @@ class BisectionController:
         elif avg > dl and t > dl:
             want = -1
         r_old = s.r_star
-        s.r_star = min(max(r_old + want * c.adjust_step, c.r_min), c.r_max)
+        step = c.adjust_step
+        if want and c.adjust_max_step > c.adjust_step and avg > 0:
+            # T ~ a + b r^2: r sqrt(dl / avg) would be right if a were 0 (with a > 0 it
+            # undershoots, never overshoots).
+            proportional = abs(r_old * (math.sqrt(dl / avg) - 1.0))
+            step = min(max(step, proportional), c.adjust_max_step)
+        s.r_star = min(max(r_old + want * step, c.r_min), c.r_max)
         s.r_star = round(s.r_star, 6)
         at_min = r_old <= c.r_min + _EPS
         at_max = r_old >= c.r_max - _EPS
