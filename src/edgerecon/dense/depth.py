@@ -498,11 +498,15 @@ def _step_map(inv: F32, src: _Sources, step_px: float) -> F32:
         den = a[2] + inv * b[2]
         ok = den > 1e-12
         den = np.where(ok, den, 1.0)
-        mx = (a[0] + inv * b[0]) / den
-        my = (a[1] + inv * b[1]) / den
-        dx = (b[0] - mx * b[2]) / den
-        dy = (b[1] - my * b[2]) / den
-        sens = np.maximum(sens, np.where(ok, np.sqrt(dx * dx + dy * dy), 0.0))
+        # Rays nearly parallel to a source's image plane overflow float32 (rig units of
+        # millimetres): no usable sensitivity there.
+        with np.errstate(over="ignore", invalid="ignore"):
+            mx = (a[0] + inv * b[0]) / den
+            my = (a[1] + inv * b[1]) / den
+            dx = (b[0] - mx * b[2]) / den
+            dy = (b[1] - my * b[2]) / den
+            norm = np.sqrt(dx * dx + dy * dy)
+        sens = np.maximum(sens, np.where(ok & np.isfinite(norm), norm, 0.0))
     return (step_px / np.maximum(sens, 1e-12)).astype(np.float32)
 
 
