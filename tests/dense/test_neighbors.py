@@ -49,3 +49,27 @@ def test_sources_cover_what_only_the_neighbour_sees():
     assert chosen == select_sources(scores, 3, 2.0, 110.0, weights=weights)
     assert select_sources(scores, 1, 2.0, 110.0, weights=weights) == chosen[:1]
     assert select_sources(scores, 3, 100.0, 110.0, weights=weights) == []
+
+
+def test_sources_beyond_the_minimum_must_add_coverage():
+    cams = _arc()
+    rng = np.random.default_rng(1)
+    samples = np.c_[rng.uniform(-1.2, 1.2, 400), np.full(400, 4.0), rng.uniform(0.3, 2.5, 400)]
+    scores, weights = point_weights(cams[3], cams, 3, samples)
+    every = select_sources(scores, 6, 2.0, 110.0, weights=weights)
+    assert len(every) == 6
+    # Gains of successive sources shrink (each covers what the earlier ones missed); a
+    # threshold between two of them cuts the list there, never below the minimum count.
+    missed = np.ones(weights.shape[1])
+    gains = []
+    for j in every:
+        gains.append(float((missed * weights[j]).mean()))
+        missed *= 1.0 - weights[j]
+    assert all(a >= b for a, b in zip(gains, gains[1:], strict=False))
+    cut = (gains[2] + gains[3]) / 2
+    assert gains[2] > gains[3]
+    assert select_sources(scores, 6, 2.0, 110.0, weights=weights, min_gain=cut) == every[:3]
+    assert select_sources(
+        scores, 6, 2.0, 110.0, weights=weights, min_gain=1.0, min_sources=2
+    ) == every[:2]
+    assert select_sources(scores, 2, 2.0, 110.0, weights=weights, min_gain=0.0) == every[:2]

@@ -104,6 +104,8 @@ def select_sources(
     min_overlap: float = 0.05,
     weights: NDArray[np.float64] | None = None,
     sample_weights: NDArray[np.float64] | None = None,
+    min_gain: float = 0.0,
+    min_sources: int = 0,
 ) -> list[int]:
     """Indices of the chosen sources within the angle and overlap limits, best first.
 
@@ -111,8 +113,9 @@ def select_sources(
     the importance of each sample point), sources are added greedily by their gain in
     ``sum_p sample_weight_p (1 - prod_chosen (1 - w_jp))``: the expected share of sample
     points at least one chosen source matches, which still rewards a second source for the
-    same points (occlusions, ambiguities) but first covers what no source sees yet. Without
-    ``weights``, the best ``max_sources`` by score. Ties go to the lower index."""
+    same points (occlusions, ambiguities) but first covers what no source sees yet; after the
+    first ``min_sources``, a source is added only if its gain is at least ``min_gain``.
+    Without ``weights``, the best ``max_sources`` by score. Ties go to the lower index."""
     ok = [
         s
         for s in scores
@@ -132,7 +135,7 @@ def select_sources(
     while len(chosen) < max_sources and candidates:
         gains = [float(sw @ (missed * weights[j])) for j in candidates]
         best = int(np.argmax(gains))
-        if gains[best] <= 0:
+        if gains[best] <= 0 or (len(chosen) >= min_sources and gains[best] < min_gain):
             break
         j = candidates.pop(best)
         chosen.append(j)

@@ -505,6 +505,8 @@ def _plan_view(
         config.max_source_angle_deg,
         weights=weights,
         sample_weights=sample_weights,
+        min_gain=config.min_source_gain,
+        min_sources=config.min_source_views,
     )
     plan["source_scores"] = scores
     if not plan["sources"]:
