@@ -45,7 +45,7 @@ def test_identity_homography_ncc_equals_numpy_reference():
         ref, mean, var, count, srcs, sizes, ok, np.ones((h, w), bool), H, np.array([1.0]),
         np.ones((h, w), np.float32), np.ones((h, w), bool),
         np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1,
-        best, idx, prev, nxt,
+        best, idx, prev, nxt, 0, h,
     )  # fmt: skip
     expected = ncc(window_stats(ref, R0), src)
     # The last row/column samples exactly on the image border and is valid in both.
@@ -66,7 +66,7 @@ def test_windows_touching_missing_samples_have_no_score():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.ones((1, h, w), bool), np.ones((h, w), bool), a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1, out,
+        np.full((h, w), np.inf, np.float32), R0, 1, out, 0, h,
     )  # fmt: skip
     full = out.copy()
     # Samples beyond x = w - 1 are missing: windows reaching x >= w - 10 have no score (-1).
@@ -77,7 +77,7 @@ def test_windows_touching_missing_samples_have_no_score():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.zeros((1, h, w), bool), np.ones((h, w), bool), a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1, out,
+        np.full((h, w), np.inf, np.float32), R0, 1, out, 0, h,
     )  # fmt: skip
     assert np.all(out == -1.0)
     # Sampling only an active block: windows inside it score exactly as before, windows
@@ -88,7 +88,7 @@ def test_windows_touching_missing_samples_have_no_score():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.ones((1, h, w), bool), active, a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1, out,
+        np.full((h, w), np.inf, np.float32), R0, 1, out, 0, h,
     )  # fmt: skip
     inner = np.s_[10 + R0 : 30 - R0, 5 + R0 : 25 - R0]
     assert np.allclose(out[inner], full[inner], atol=1e-5)  # running sums: rounding only
@@ -145,3 +145,75 @@ def test_voxel_merge_deduplicates_and_keeps_the_best_support():
     assert cloud.attributes["num_views"][first] == 3
     assert np.allclose(np.linalg.norm(cloud.normals, axis=1), 1.0)
     assert len(voxel_merge([], 0.01)) == 0
+
+
+def test_row_bands_score_like_one_call():
+    """The kernels are row-separable: bands (as RowBands runs them on idle threads) give the
+    scores of one call over all rows, up to the rounding of the running sums."""
+    ref, src = _images(3)
+    h, w = ref.shape
+    mean, var, count = kernels.window_stats(ref, R0)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    a = np.zeros((1, 3, h, w), np.float32)
+    a[0, 0], a[0, 1], a[0, 2] = u + 0.3 * v, v, 1.0
+    active = np.ones((h, w), bool)
+    active[5:12, 8:30] = False
+    args = (
+        ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
+        np.ones((1, h, w), bool), active, a, np.zeros((1, 3), np.float32),
+        np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+        np.full((h, w), np.inf, np.float32), R0, 1,
+    )  # fmt: skip
+    whole = np.empty((h, w), np.float32)
+    kernels.evaluate(*args, whole, 0, h)
+    banded = np.full((h, w), np.nan, np.float32)
+    for row0, row1 in [(0, 7), (7, 8), (8, 25), (25, h)]:
+        kernels.evaluate(*args, banded, row0, row1)
+    assert np.allclose(banded, whole, atol=1e-5)
+    # The sweep likewise, bands writing only their rows of the winner maps.
+    H = np.stack([np.eye(3), np.array([[1.0, 0, 1.5], [0, 1, 0], [0, 0, 1]])])[:, None]
+    maps = []
+    for bands in ([(0, h)], [(0, 13), (13, 14), (14, h)]):
+        best = np.full((h, w), -np.inf, np.float32)
+        out = (best, np.zeros((h, w), np.int32), np.full((h, w), -1.0, np.float32))
+        nxt = np.full((h, w), -1.0, np.float32)
+        for row0, row1 in bands:
+            kernels.sweep(
+                ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
+                np.ones((1, h, w), bool), active, H, np.array([1.0, 2.0]),
+                np.ones((h, w), np.float32), np.ones((h, w), bool),
+                np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1,
+                *out, nxt, row0, row1,
+            )  # fmt: skip
+        maps.append((*out, nxt))
+    for one, split in zip(*maps, strict=True):
+        assert np.allclose(one, split, atol=1e-5)
+
+
+def test_row_bands_lend_idle_threads():
+    import threading
+
+    from edgerecon.dense.threads import RowBands
+
+    seen: list[tuple[int, int, str]] = []
+    me = threading.current_thread().name
+
+    def kernel(row0: int, row1: int) -> None:
+        seen.append((row0, row1, threading.current_thread().name))
+
+    with RowBands(2) as bands:
+        bands.run(kernel, 100)  # nobody idle: the same bands, one after the other here
+        assert seen == [(0, 50, me), (50, 100, me)]
+        seen.clear()
+        bands.lend()
+        bands.run(kernel, 100)  # an idle thread: the second band on the helper
+        assert sorted(s[:2] for s in seen) == [(0, 50), (50, 100)]
+        assert {s[2] for s in seen if s[0] == 50} != {me}
+        seen.clear()
+        bands.run(kernel, 40)  # too few rows to split
+        assert [s[:2] for s in seen] == [(0, 40)]
+    with RowBands(1) as bands:
+        bands.lend()
+        seen.clear()
+        bands.run(kernel, 100)
+        assert seen == [(0, 100, me)]

@@ -9,6 +9,7 @@ outliers (mismatches, occlusion artefacts) and are dropped before fusion.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -35,6 +36,7 @@ def support_counts(
     cameras: Mapping[int, Camera],
     rel_tol: float,
     partners: Mapping[int, Sequence[int]] | None = None,
+    num_threads: int = 1,
 ) -> tuple[dict[int, NDArray[np.int16]], dict[int, DepthMap]]:
     """Per view, an (H, W) map of how many *other* views support each depth (0 where the
     view has no depth), and the depth map averaged over the supporting views.
@@ -47,18 +49,39 @@ def support_counts(
 
     Vectorised over the pixels with a depth: for views i and j, pixel (u, v) of depth z in i
     lands in j at ``z M [u, v, 1] + c`` with ``M = K_j R_ji K_i^-1`` and ``c = K_j t_ji``;
-    j's depth there is read with a nearest-neighbour ``cv2.remap``."""
-    out: dict[int, NDArray[np.int16]] = {}
-    averaged: dict[int, DepthMap] = {}
-    for i, depth_i in depths.items():
-        h, w = depth_i.shape
-        out[i] = np.zeros((h, w), np.int16)
-        averaged[i] = depth_i.astype(np.float32).copy()
-        # Only the pixels with a depth (a few percent of the image for a foreground), as
-        # (N, 1) arrays.
-        rows, cols = np.nonzero(depth_i > 0)
-        if len(rows) == 0:
-            continue
+    j's depth there is read with a nearest-neighbour ``cv2.remap``. Views are checked on
+    ``num_threads`` threads (NumPy and OpenCV release the GIL)."""
+
+    def one(i: int) -> tuple[NDArray[np.int16], DepthMap]:
+        others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
+        return _support_view(i, depths, cameras, rel_tol, others)
+
+    if num_threads > 1 and len(depths) > 1:
+        with ThreadPoolExecutor(num_threads) as pool:
+            results = list(pool.map(one, depths))
+    else:
+        results = [one(i) for i in depths]
+    out = {i: r[0] for i, r in zip(depths, results, strict=True)}
+    averaged = {i: r[1] for i, r in zip(depths, results, strict=True)}
+    return out, averaged
+
+
+def _support_view(
+    i: int,
+    depths: Mapping[int, DepthMap],
+    cameras: Mapping[int, Camera],
+    rel_tol: float,
+    others: Sequence[int],
+) -> tuple[NDArray[np.int16], DepthMap]:
+    """``support_counts`` of view i against the views ``others``."""
+    depth_i = depths[i]
+    h, w = depth_i.shape
+    support = np.zeros((h, w), np.int16)
+    averaged = depth_i.astype(np.float32).copy()
+    # Only the pixels with a depth (a few percent of the image for a foreground), as
+    # (N, 1) arrays.
+    rows, cols = np.nonzero(depth_i > 0)
+    if len(rows) > 0:
         u = cols.astype(np.float32)[:, None]
         v = rows.astype(np.float32)[:, None]
         z = depth_i[rows, cols].astype(np.float32)[:, None]
@@ -67,7 +90,6 @@ def support_counts(
         weight = np.ones(z.shape, np.float32)
         cam_i = cameras[i]
         Kinv = np.linalg.inv(cam_i.K)
-        others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
         for j in others:
             if j not in depths:
                 continue
@@ -104,9 +126,9 @@ def support_counts(
         avg = total / weight
         # The average stays within the agreement tolerance of the view's own depth.
         avg = np.clip(avg, z * (1 - rel_tol), z * (1 + rel_tol))
-        out[i][rows, cols] = count[:, 0]
-        averaged[i][rows, cols] = avg[:, 0]
-    return out, averaged
+        support[rows, cols] = count[:, 0]
+        averaged[rows, cols] = avg[:, 0]
+    return support, averaged
 
 
 #: Width of the map images that ``_sample`` hands to ``cv2.remap`` (which needs sides

@@ -27,8 +27,9 @@ scales with the ROI's area; ``DepthEstimate.work`` counts pixel x source NCC eva
 
 from __future__ import annotations
 
+import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,6 +40,7 @@ from numpy.typing import NDArray
 from edgerecon.dense import kernels
 from edgerecon.dense.config import DenseConfig
 from edgerecon.dense.cost import F32, as_f32
+from edgerecon.dense.threads import RowBands
 from edgerecon.geometry.camera import Camera
 
 logger = logging.getLogger(__name__)
@@ -342,6 +344,13 @@ def _stack_sources(pairs: Sequence[_Pair]) -> tuple[F32, NDArray[np.int64]]:
     return srcs, sizes
 
 
+def _run_rows(bands: RowBands | None, kernel: Callable[[int, int], None], height: int) -> None:
+    if bands is None:
+        kernel(0, height)
+    else:
+        bands.run(kernel, height)
+
+
 def _sweep(
     cam: Camera,
     stats: _RefStats,
@@ -351,6 +360,7 @@ def _sweep(
     up: NDArray[np.float64] | None,
     config: DenseConfig,
     src_ok: NDArray[np.bool_],
+    bands: RowBands | None = None,
 ) -> tuple[F32, F32, int, int]:
     """Plane sweep over all families: (inverse depth, score, work, number of planes).
     ``src_ok`` (S, h, w): where each source may score (``_epipolar_texture_ok``)."""
@@ -378,11 +388,13 @@ def _sweep(
         idx = np.zeros((h, w), np.int32)
         prev = np.full((h, w), -1.0, np.float32)
         nxt = np.full((h, w), -1.0, np.float32)
-        kernels.sweep(
+        rows = functools.partial(
+            kernels.sweep,
             stats.image, stats.mean, stats.var, stats.count, srcs, sizes, src_ok, stats.active, Hs,
             lams.astype(np.float64), fam.nray, fam.usable, w_lo, w_hi, stats.radius,
             config.ncc_top_k, best, idx, prev, nxt,
         )  # fmt: skip
+        _run_rows(bands, rows, h)
         work += len(lams) * h * w * len(pairs)
         lam_best = _subplane(best, idx, prev, nxt, lams)
         inv = (fam.nray * lam_best).astype(np.float32)
@@ -479,13 +491,25 @@ def _sources(rays: NDArray[np.float32], pairs: Sequence[_Pair], ok: NDArray[np.b
     return _Sources(a=a, b=b, srcs=srcs, sizes=sizes, ok=ok)
 
 
-def _evaluate(inv: F32, src: _Sources, stats: _RefStats, top_k: int, w_lo: F32, w_hi: F32) -> F32:
+def _evaluate(
+    inv: F32,
+    src: _Sources,
+    stats: _RefStats,
+    top_k: int,
+    w_lo: F32,
+    w_hi: F32,
+    bands: RowBands | None = None,
+) -> F32:
     out = np.empty(inv.shape, np.float32)
-    kernels.evaluate(
-        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok, stats.active,
-        src.a, src.b,
-        np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi, stats.radius, top_k, out,
-    )  # fmt: skip
+    inv = np.ascontiguousarray(inv, dtype=np.float32)
+
+    def rows(row0: int, row1: int) -> None:
+        kernels.evaluate(
+            stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok,
+            stats.active, src.a, src.b, inv, w_lo, w_hi, stats.radius, top_k, out, row0, row1,
+        )  # fmt: skip
+
+    _run_rows(bands, rows, inv.shape[0])
     return out
 
 
@@ -531,18 +555,19 @@ def _refine(
     w_hi: F32,
     config: DenseConfig,
     local_search: bool = True,
+    bands: RowBands | None = None,
 ) -> tuple[F32, F32, int]:
     work = 0
     n_src = len(src.b)
     npix = inv.size
     k = config.ncc_top_k
     if score is None:
-        score = _evaluate(inv, src, stats, k, w_lo, w_hi)
+        score = _evaluate(inv, src, stats, k, w_lo, w_hi, bands)
         work += npix * n_src
     for _ in range(config.propagation_iterations):
         for dx, dy in _PROPAGATION:
             cand = _shift(inv, dx, dy)
-            s = _evaluate(cand, src, stats, k, w_lo, w_hi)
+            s = _evaluate(cand, src, stats, k, w_lo, w_hi, bands)
             work += npix * n_src
             better = s > score
             inv = np.where(better, cand, inv)
@@ -555,7 +580,7 @@ def _refine(
             if k_off == 0:
                 scores[i] = score
                 continue
-            scores[i] = _evaluate(inv + k_off * step, src, stats, k, w_lo, w_hi)
+            scores[i] = _evaluate(inv + k_off * step, src, stats, k, w_lo, w_hi, bands)
             work += npix * n_src
         idx = np.argmax(scores, axis=0)
         s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
@@ -564,7 +589,7 @@ def _refine(
         offsets = _subplane(s0, idx, sm, sp, np.arange(-K, K + 1, dtype=np.float64))
         cand = (inv + offsets * step).astype(np.float32)
         # The sub-step position is a prediction: keep it only where it scores as well.
-        s_sub = _evaluate(cand, src, stats, k, w_lo, w_hi)
+        s_sub = _evaluate(cand, src, stats, k, w_lo, w_hi, bands)
         work += npix * n_src
         use_sub = s_sub >= s0 - 1e-3
         inv = np.where(use_sub, cand, inv + (idx - K).astype(np.float32) * step)
@@ -626,13 +651,14 @@ def estimate_depth(
     up: NDArray[np.float64] | None,
     config: DenseConfig,
     region: NDArray[np.bool_] | None = None,
+    bands: RowBands | None = None,
 ) -> DepthEstimate:
     """Depth of the pixels of ``roi`` (working resolution) of ``ref``.
 
     ``near``/``far`` are (H, W) per-pixel depth bounds of the whole working image (0 = pixel
     excluded). ``up`` is the scene's up direction (world frame) for the "ground" family.
     ``region`` (H, W) restricts the work to these pixels (and their windows) inside the ROI
-    (default: the pixels with bounds).
+    (default: the pixels with bounds). ``bands`` lends idle threads to the kernels.
     """
     cam0 = ref.cameras[0]
     empty = DepthEstimate(
@@ -684,15 +710,17 @@ def estimate_depth(
         src = _sources(_rays(crop), pairs, src_ok)
         lo, hi = w_lo * np.float32(0.999), w_hi * np.float32(1.001)
         if inv is None:
-            inv, score, wk, planes = _sweep(crop, stats, pairs, near_l, far_l, up, config, src_ok)
+            inv, score, wk, planes = _sweep(
+                crop, stats, pairs, near_l, far_l, up, config, src_ok, bands
+            )
             work += wk
             # Propagation at the coarsest level cleans the winner-take-all noise; the local
             # search waits for the next (finer) level unless this is the last one.
-            inv, score, wk = _refine(inv, score, src, stats, lo, hi, config, level == 0)
+            inv, score, wk = _refine(inv, score, src, stats, lo, hi, config, level == 0, bands)
         else:
             assert prev is not None
             inv = _upsample(inv, prev[0], prev[1], r, cam_l)
-            inv, score, wk = _refine(inv, None, src, stats, lo, hi, config)
+            inv, score, wk = _refine(inv, None, src, stats, lo, hi, config, bands=bands)
         work += wk
         prev = (r, cam_l)
     assert inv is not None and score is not None and stats is not None

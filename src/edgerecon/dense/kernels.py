@@ -165,8 +165,12 @@ def _scores(
     r: int,
     top_k: int,
     out: F32,
+    row0: int,
+    row1: int,
 ) -> None:
-    """Aggregated NCC of one hypothesis per pixel, streamed row by row.
+    """Aggregated NCC of one hypothesis per pixel, streamed row by row, for the output rows
+    ``row0 <= y < row1`` (a band reads the rows within ``r`` of it and writes only its own,
+    so that bands can run in parallel and give the same result as one call).
 
     ``mode`` 0: source s sees pixel (x, y) at ``H[s] (x, y, 1)`` (a plane's homography);
     ``mode`` 1: at ``(a[s, :2] + inv b[s, :2]) / (a[s, 2] + inv b[s, 2])`` (per-pixel
@@ -189,13 +193,14 @@ def _scores(
     acc = np.zeros((S, 4, w), np.float64)
     row_ncc = np.empty((S, w), np.float32)
     best = np.empty(S, np.float32)
-    for y in range(-r, h):
+    first_in = max(0, row0 - r)  # first row that enters a window
+    for y in range(first_in - r, row1):
         # Row yi = y + r enters the window of output row y; row y - r - 1 leaves it.
         yi = y + r
         slot = yi % n_ring
         yo = yi - n_ring
         for s in range(S):
-            if yo >= 0:
+            if yo >= first_in:
                 for x in range(lo[yo], hi[yo]):
                     if not active[yo, x]:
                         continue
@@ -233,7 +238,7 @@ def _scores(
                     acc[s, 1, x] += v * v
                     acc[s, 2, x] += ref[yi, x] * v
                     acc[s, 3, x] += bv
-        if y < 0:
+        if y < row0:
             continue
         x0 = lo[y]
         x1 = hi[y]
@@ -319,8 +324,11 @@ def sweep(
     best_idx: NDArray[np.int32],
     prev: F32,
     nxt: F32,
+    row0: int,
+    row1: int,
 ) -> None:
-    """Plane sweep of one plane family, winner-take-all with neighbours for sub-plane fits.
+    """Plane sweep of one plane family, winner-take-all with neighbours for sub-plane fits,
+    on the rows ``row0 <= y < row1`` (see ``_scores``).
 
     ``homographies[p, s]`` maps crop pixels to source s for plane p (lambda ``lams[p]``);
     ``srcs[s, :sizes[s, 1], :sizes[s, 0]]`` are the source images. A plane's score at a
@@ -338,9 +346,9 @@ def sweep(
         lam = lams[p]
         _scores(
             ref, mean, var, count, srcs, sizes, src_ok, active, 0, homographies[p], dummy_a, dummy_b,
-            dummy_inv, r, top_k, score,
+            dummy_inv, r, top_k, score, row0, row1,
         )  # fmt: skip
-        for y in range(h):
+        for y in range(row0, row1):
             for x in range(w):
                 sc = score[y, x]
                 inv = lam * nray[y, x]
@@ -374,17 +382,21 @@ def evaluate(
     r: int,
     top_k: int,
     out: F32,
+    row0: int,
+    row1: int,
 ) -> None:
-    """Aggregated NCC of the per-pixel inverse-depth hypotheses ``inv``.
+    """Aggregated NCC of the per-pixel inverse-depth hypotheses ``inv`` on the rows
+    ``row0 <= y < row1`` (see ``_scores``).
 
     Source s sees pixel (x, y) at ``(a[s, :2] + inv b[s, :2]) / (a[s, 2] + inv b[s, 2])``.
     Scores are -1 where ``inv`` is outside ``(w_lo, w_hi)``."""
-    h, w = ref.shape
+    w = ref.shape[1]
     dummy_H = np.zeros((1, 3, 3), np.float64)
     _scores(
-        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k, out
-    )
-    for y in range(h):
+        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k, out,
+        row0, row1,
+    )  # fmt: skip
+    for y in range(row0, row1):
         for x in range(w):
             iv = inv[y, x]
             if not (iv > w_lo[y, x] and iv < w_hi[y, x]):

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap, Image
 
@@ -217,6 +218,7 @@ def complete_with_plane(
     colors_known: NDArray[np.bool_] | None = None,
     region: PlaneRegion | None = None,
     stereo_on_plane: Mapping[int, int] | None = None,
+    num_threads: int = 1,
 ) -> dict[int, tuple[DepthMap, NDArray[np.int16]]]:
     """Per view, (depth map of the accepted plane pixels, number of confirming views).
 
@@ -225,10 +227,12 @@ def complete_with_plane(
     where every view agrees it is white. ``region`` (``support_region``) bounds the completed
     points in the plane. A view whose stereo pixels on the plane (``stereo_on_plane``)
     outnumber its candidates is left alone: its floor is textured and already matched, and
-    its blank pixels that meet the plane are other things (walls, furniture, occluders)."""
+    its blank pixels that meet the plane are other things (walls, furniture, occluders).
+    Views run on ``num_threads`` threads."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
-    out: dict[int, tuple[DepthMap, NDArray[np.int16]]] = {}
-    for i, cam_i in cameras.items():
+
+    def one(i: int) -> tuple[DepthMap, NDArray[np.int16]]:
+        cam_i = cameras[i]
         zp = plane_depth(cam_i, plane)
         # Near-black pixels carry no colour evidence (unlit background, sensor noise).
         lit = blurred[i].max(axis=2) >= MIN_BRIGHTNESS
@@ -239,9 +243,8 @@ def complete_with_plane(
         rows, cols = np.nonzero(cand)
         result = np.zeros(zp.shape, np.float32)
         support = np.zeros(zp.shape, np.int16)
-        out[i] = (result, support)
         if len(rows) == 0:
-            continue
+            return result, support
         z = zp[rows, cols].astype(np.float64)
         Kinv = np.linalg.inv(cam_i.K)
         Xc = np.stack(
@@ -257,9 +260,9 @@ def complete_with_plane(
             inside = region.inside(X)
             rows, cols, z, X = rows[inside], cols[inside], z[inside], X[inside]
             if len(rows) == 0:
-                continue
+                return result, support
         if stereo_on_plane is not None and stereo_on_plane.get(i, 0) >= len(rows):
-            continue
+            return result, support
         col_i = blurred[i][rows, cols]
         agree = np.zeros(len(z), np.int16)
         deny = np.zeros(len(z), np.int16)
@@ -289,4 +292,7 @@ def complete_with_plane(
         ok = ~contra & (agree >= min_views) & (agree > deny)
         result[rows[ok], cols[ok]] = z[ok]
         support[rows[ok], cols[ok]] = agree[ok]
-    return out
+        return result, support
+
+    ids = list(cameras)
+    return dict(zip(ids, thread_map(one, ids, num_threads), strict=True))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -29,8 +28,8 @@ from edgerecon.dense.planes import (
     support_region,
 )
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
+from edgerecon.dense.threads import RowBands, run_jobs, thread_map
 from edgerecon.geometry.camera import Camera
-from edgerecon.progress import track
 from edgerecon.types import DataError, DepthMap, Image, Mask, PointCloud, StageTimings
 from edgerecon.views import View, resize_mask
 
@@ -279,28 +278,30 @@ def reconstruct_dense(
         }
 
     with timings.stage("depth"):
-        # Largest first: the threads finish together instead of one waiting for the last
-        # big job (results are matched to jobs, so the order does not matter otherwise).
-        jobs = sorted(((p, roi) for p in plans for roi in p["rois"]), key=lambda job: -job[1].area)
+        # Largest first (ROI area x sources): the threads finish together instead of one
+        # waiting for the last big job; the last jobs also get the idle threads' cores
+        # (``RowBands``). Results are matched to jobs, so the order does not matter otherwise.
+        jobs = sorted(
+            ((p, roi) for p in plans for roi in p["rois"]),
+            key=lambda job: -job[1].area * len(job[0]["sources"]),
+        )
+        with RowBands(config.num_threads) as bands:
 
-        def run(job: tuple[dict[str, Any], Roi]) -> DepthEstimate:
-            p, roi = job
-            return estimate_depth(
-                pyramids[p["index"]],
-                [pyramids[j] for j in p["sources"]],
-                roi,
-                p["near"],
-                p["far"],
-                up_vec,
-                config,
-                p["region"],
-            )
+            def run(job: tuple[dict[str, Any], Roi]) -> DepthEstimate:
+                p, roi = job
+                return estimate_depth(
+                    pyramids[p["index"]],
+                    [pyramids[j] for j in p["sources"]],
+                    roi,
+                    p["near"],
+                    p["far"],
+                    up_vec,
+                    config,
+                    p["region"],
+                    bands,
+                )
 
-        if config.num_threads > 1 and len(jobs) > 1:
-            with ThreadPoolExecutor(config.num_threads) as pool:
-                results = list(track(pool.map(run, jobs), "dense depth maps", total=len(jobs)))
-        else:
-            results = list(track(map(run, jobs), "dense depth maps", total=len(jobs)))
+            results = run_jobs(run, jobs, config.num_threads, bands, "dense depth maps")
         depths: dict[int, DepthMap] = {}
         scores: dict[int, NDArray[np.float32]] = {}
         work = 0
@@ -324,7 +325,9 @@ def reconstruct_dense(
 
     with timings.stage("consistency"):
         id_cams = {i: cams[i] for i in depths}
-        support, averaged = support_counts(depths, id_cams, config.consistency_rel_depth)
+        support, averaged = support_counts(
+            depths, id_cams, config.consistency_rel_depth, num_threads=config.num_threads
+        )
         kept: dict[int, DepthMap] = {}
         keep_masks: dict[int, NDArray[np.bool_]] = {}
         by_index = {p["index"]: p for p in plans}
@@ -336,8 +339,8 @@ def reconstruct_dense(
             kept[i] = np.where(keep, avg, 0.0).astype(np.float32)
 
     with timings.stage("fusion"):
-        parts: list[ViewPoints] = [
-            view_points(
+        parts: list[ViewPoints] = thread_map(
+            lambda i: view_points(
                 views[i].camera_id,
                 cams[i],
                 kept[i],
@@ -345,9 +348,10 @@ def reconstruct_dense(
                 keep_masks[i],
                 support[i],
                 scores[i],
-            )
-            for i in kept
-        ]
+            ),
+            kept,
+            config.num_threads,
+        )
         voxel = config.voxel_size
         if voxel is None:
             foot = _auto_voxel(kept, cams)
@@ -360,7 +364,8 @@ def reconstruct_dense(
                 parts, kept, cams, colors, masks, plans, up_vec, voxel, config
             )
             if plane is not None:
-                parts = [_drop_below(p, plane, 3.0 * voxel) for p in parts]
+                band = 3.0 * voxel
+                parts = thread_map(lambda p: _drop_below(p, plane, band), parts, config.num_threads)
             for i, (d, sup) in extra.items():
                 add = d > 0
                 if not add.any():
@@ -581,18 +586,18 @@ def _complete_ground(
     sizes = np.cumsum([0] + [len(p.points3D) for p in parts])
     on_plane_count = {i: int(on_plane[sizes[k] : sizes[k + 1]].sum()) for k, i in enumerate(kept)}
     by_index = {p["index"]: p for p in plans}
-    regions = {}
-    far = {}
-    for i in kept:
+
+    def region_of(i: int) -> NDArray[np.bool_]:
+        """The view's pixels to complete: in its bounds and mask, and textureless."""
         p = by_index[i]
         region = p["near"] > 0 if "near" in p else np.zeros(kept[i].shape, bool)
         if masks[i] is not None:
             region = region & masks[i]
-        grey = to_grey(colors[i])
-        _, var, _ = kernels.window_stats(grey, 3)
-        region &= var < config.ground_max_texture**2
-        regions[i] = region
-        far[i] = float(p["range"][1]) if p.get("range") else 0.0
+        _, var, _ = kernels.window_stats(to_grey(colors[i]), 3)
+        return np.asarray(region & (var < config.ground_max_texture**2), bool)
+
+    regions = dict(zip(kept, thread_map(region_of, kept, config.num_threads), strict=True))
+    far = {i: float(by_index[i]["range"][1]) if by_index[i].get("range") else 0.0 for i in kept}
     extra = complete_with_plane(
         plane,
         kept,
@@ -606,6 +611,7 @@ def _complete_ground(
         known,
         hull,
         on_plane_count,
+        num_threads=config.num_threads,
     )
     logger.info("dense: ground plane %s", plane)
     return plane, extra
