@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -51,6 +52,9 @@ _MIN_GRAZING_SIN = np.sin(np.radians(4.0))
 _FINE_SAMPLES = 2048
 #: Smallest crop side (pixels) worth a level of the pyramid.
 _MIN_LEVEL_SIDE = 24
+#: A last, non-octave pyramid level is added only if it is this much smaller than the
+#: previous one.
+_TOP_LEVEL_MIN_RATIO = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,16 +72,30 @@ class ViewPyramid:
         return len(self.cameras)
 
 
-def build_pyramid(camera_id: int, camera: Camera, grey: F32, levels: int) -> ViewPyramid:
-    """Pyramid of ``levels`` octaves below the working image ``grey`` of ``camera``."""
+def build_pyramid(
+    camera_id: int, camera: Camera, grey: F32, levels: int, top_side: int | None = None
+) -> ViewPyramid:
+    """Pyramid of up to ``levels`` levels below the working image ``grey`` of ``camera``:
+    octaves, and with ``top_side`` a last level whose longer side is ``top_side`` pixels
+    where the next octave would be smaller (the plane sweep runs there: its cost then
+    follows the image scale instead of jumping fourfold between two octaves)."""
     cams = [camera]
     greys = [grey]
+    side = max(camera.width, camera.height)
     for level in range(1, levels + 1):
-        cam = camera.scaled(0.5**level)
+        scale = 0.5**level
+        last = False
+        if top_side is not None and side * scale < top_side:
+            if side * scale * 2 <= top_side * _TOP_LEVEL_MIN_RATIO:
+                break  # the previous level is (nearly) the size asked for already
+            scale, last = top_side / side, True
+        cam = camera.scaled(scale)
         if min(cam.width, cam.height) < 8:
             break
         cams.append(cam)
         greys.append(as_f32(cv2.resize(grey, cam.size, interpolation=cv2.INTER_AREA)))
+        if last:
+            break
     return ViewPyramid(camera_id=camera_id, cameras=tuple(cams), greys=tuple(greys))
 
 
@@ -618,7 +636,7 @@ def _bounds_at(near: F32, far: F32, roi: Roi, cam0: Camera, cam: Camera) -> tupl
     """Per-pixel near/far of the crop ``roi`` of level camera ``cam`` (0 = none)."""
     if cam.size != cam0.size:
         # Conservative resampling: nearest-neighbour of min(near) / max(far) over 2x2 blocks.
-        k = max(1, round(cam0.width / cam.width))
+        k = max(1, math.ceil(cam0.width / cam.width - 1e-6))
         ker = np.ones((k, k), np.uint8)
         nz = np.where(near > 0, near, np.inf).astype(np.float32)
         near = as_f32(cv2.erode(nz, ker))
@@ -636,7 +654,7 @@ def _region_at(region: NDArray[np.bool_], roi: Roi, cam0: Camera, cam: Camera) -
     """The crop ``roi`` of level camera ``cam`` of a working-resolution ``region``: a level
     pixel belongs to it when any of the working pixels it covers does."""
     if cam.size != cam0.size:
-        k = max(1, round(cam0.width / cam.width))
+        k = max(1, math.ceil(cam0.width / cam.width - 1e-6))
         grown = cv2.dilate(region.astype(np.uint8), np.ones((k, k), np.uint8))
         region = cv2.resize(grown, cam.size, interpolation=cv2.INTER_NEAREST) > 0
     return np.asarray(region[roi.y0 : roi.y1, roi.x0 : roi.x1], bool)

@@ -273,7 +273,13 @@ def reconstruct_dense(
             )
         needed = {i for p in plans if p["rois"] for i in [p["index"], *p["sources"]]}
         pyramids: dict[int, ViewPyramid] = {
-            i: build_pyramid(views[i].camera_id, cams[i], to_grey(colors[i]), config.coarse_levels)
+            i: build_pyramid(
+                views[i].camera_id,
+                cams[i],
+                to_grey(colors[i]),
+                config.coarse_levels,
+                config.sweep_min_side_px,
+            )
             for i in sorted(needed)
         }
 
