@@ -69,7 +69,8 @@ def test_sources_beyond_the_minimum_must_add_coverage():
     cut = (gains[2] + gains[3]) / 2
     assert gains[2] > gains[3]
     assert select_sources(scores, 6, 2.0, 110.0, weights=weights, min_gain=cut) == every[:3]
-    assert select_sources(
-        scores, 6, 2.0, 110.0, weights=weights, min_gain=1.0, min_sources=2
-    ) == every[:2]
+    assert (
+        select_sources(scores, 6, 2.0, 110.0, weights=weights, min_gain=1.0, min_sources=2)
+        == every[:2]
+    )
     assert select_sources(scores, 2, 2.0, 110.0, weights=weights, min_gain=0.0) == every[:2]
