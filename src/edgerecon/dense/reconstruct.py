@@ -567,6 +567,10 @@ def _auto_voxel(depths: Mapping[int, DepthMap], cams: Sequence[Camera]) -> float
     return float(np.median(foot)) if foot else None
 
 
+#: Depth points the ground plane is fitted to (an even subsample of them when more).
+_GROUND_SAMPLE = 500_000
+
+
 def _complete_ground(
     parts: Sequence[ViewPoints],
     kept: Mapping[int, DepthMap],
@@ -580,14 +584,23 @@ def _complete_ground(
 ) -> tuple[Plane | None, dict[int, tuple[DepthMap, NDArray[np.int16]]]]:
     """Fit the ground plane to the stereo points and fill textureless floor pixels."""
     pts = np.concatenate([p.points3D for p in parts])
-    nrm = np.concatenate([p.normals for p in parts])
-    nv = np.concatenate([p.num_views for p in parts])
-    plane = fit_ground_plane(pts, nrm, nv, up, 3.0 * voxel, config.ground_min_support)
+    # The plane and its outline from an even subsample of the millions of depth points
+    # (support counts scaled alike): the same plane for a third of the stage's time.
+    step = max(1, len(pts) // _GROUND_SAMPLE)
+    sub = slice(None, None, step)
+    plane = fit_ground_plane(
+        pts[sub],
+        np.concatenate([p.normals for p in parts])[sub],
+        np.concatenate([p.num_views for p in parts])[sub],
+        up,
+        3.0 * voxel,
+        max(3, config.ground_min_support // step),
+    )
     if plane is None:
         return None, {}
     on_plane = np.abs(pts @ np.asarray(plane.normal) - plane.offset) <= 3.0 * voxel
     known = color_model(np.concatenate([p.colors for p in parts])[on_plane])
-    hull = support_region(plane, pts[on_plane])
+    hull = support_region(plane, pts[on_plane][sub])
     # Stereo points on the plane per view (parts are in the order of ``kept``).
     sizes = np.cumsum([0] + [len(p.points3D) for p in parts])
     on_plane_count = {i: int(on_plane[sizes[k] : sizes[k + 1]].sum()) for k, i in enumerate(kept)}
