@@ -23,10 +23,9 @@ class DenseConfig:
     sweep_min_side_px: int = 120
     """The sweep runs at the coarsest pyramid level whose longer side keeps at least this
     many pixels: an octave of the working image, or a last level resized to exactly this
-    side where the next octave would be smaller (1920x1080 at level 1: the octave 120x68;
-    1536x864: 120x68 instead of the octave 192x108). The sweep's cost then stays the same
-    over image scales instead of jumping fourfold between octaves (arc7 at r = 0.8 took
-    longer than at r = 1)."""
+    side where the next octave would be smaller and the previous one (not the working image
+    itself) is over 1.5x larger (1920x1080 at level 1: the octave 120x68; 1536x864: 120x68
+    instead of the octave 192x108, which made r = 0.8 slower than r = 1)."""
     max_source_views: int = 4
     """At most this many source views are matched against each reference view, chosen
     together for the share of the reference's surfaces they cover (see ``min_source_gain``)."""

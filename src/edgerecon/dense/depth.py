@@ -77,8 +77,9 @@ def build_pyramid(
 ) -> ViewPyramid:
     """Pyramid of up to ``levels`` levels below the working image ``grey`` of ``camera``:
     octaves, and with ``top_side`` a last level whose longer side is ``top_side`` pixels
-    where the next octave would be smaller (the plane sweep runs there: its cost then
-    follows the image scale instead of jumping fourfold between two octaves)."""
+    where the next octave would be smaller and the previous one is at least an octave below
+    the working image and 1.5x larger than ``top_side`` (the plane sweep runs there: its cost
+    then follows the image scale instead of jumping fourfold between two octaves)."""
     cams = [camera]
     greys = [grey]
     side = max(camera.width, camera.height)
@@ -86,8 +87,12 @@ def build_pyramid(
         scale = 0.5**level
         last = False
         if top_side is not None and side * scale < top_side:
-            if side * scale * 2 <= top_side * _TOP_LEVEL_MIN_RATIO:
-                break  # the previous level is (nearly) the size asked for already
+            if level == 1 or side * scale * 2 <= top_side * _TOP_LEVEL_MIN_RATIO:
+                # The previous level is (nearly) the size asked for already, or it is the
+                # working image itself: small images are swept exhaustively there, which
+                # beat a coarser sweep + refinement (demo scene at r = 0.6: golden F 0.514
+                # against 0.467; utrecht4cam at r = 0.6: the floor is found).
+                break
             scale, last = top_side / side, True
         cam = camera.scaled(scale)
         if min(cam.width, cam.height) < 8:
