@@ -217,3 +217,39 @@ def test_row_bands_lend_idle_threads():
         seen.clear()
         bands.run(kernel, 100)
         assert seen == [(0, 100, me)]
+
+
+def test_run_jobs_lends_the_threads_without_a_job_and_raises_after_all():
+    import threading
+
+    import pytest
+
+    from edgerecon.dense.threads import RowBands, run_jobs
+
+    seen: list[tuple[int, int, str]] = []
+
+    def kernel(row0: int, row1: int) -> None:
+        seen.append((row0, row1, threading.current_thread().name))
+
+    with RowBands(2) as bands:
+
+        def job(x: int) -> int:
+            bands.run(kernel, 100)
+            return 2 * x
+
+        # One job for two threads: the idle one takes half of its rows.
+        assert run_jobs(job, [3], 2, bands, "test") == [6]
+    assert sorted(s[:2] for s in seen) == [(0, 50), (50, 100)]
+    assert len({s[2] for s in seen}) == 2
+
+    done: list[int] = []
+
+    def failing(x: int) -> int:
+        if x == 2:
+            raise ValueError("job 2")
+        done.append(x)
+        return x
+
+    with RowBands(2) as bands, pytest.raises(ValueError, match="job 2"):
+        run_jobs(failing, [1, 2, 3, 4], 2, bands, "test")
+    assert sorted(done) == [1, 3, 4]  # the other jobs still ran

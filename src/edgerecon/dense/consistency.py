@@ -9,12 +9,12 @@ outliers (mismatches, occlusion artefacts) and are dropped before fusion.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap
 
@@ -56,11 +56,7 @@ def support_counts(
         others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
         return _support_view(i, depths, cameras, rel_tol, others)
 
-    if num_threads > 1 and len(depths) > 1:
-        with ThreadPoolExecutor(num_threads) as pool:
-            results = list(pool.map(one, depths))
-    else:
-        results = [one(i) for i in depths]
+    results = thread_map(one, depths, num_threads)
     out = {i: r[0] for i, r in zip(depths, results, strict=True)}
     averaged = {i: r[1] for i, r in zip(depths, results, strict=True)}
     return out, averaged

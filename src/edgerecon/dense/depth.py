@@ -524,14 +524,12 @@ def _evaluate(
     bands: RowBands | None = None,
 ) -> F32:
     out = np.empty(inv.shape, np.float32)
-    inv = np.ascontiguousarray(inv, dtype=np.float32)
-
-    def rows(row0: int, row1: int) -> None:
-        kernels.evaluate(
-            stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok,
-            stats.active, src.a, src.b, inv, w_lo, w_hi, stats.radius, top_k, out, row0, row1,
-        )  # fmt: skip
-
+    rows = functools.partial(
+        kernels.evaluate,
+        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok,
+        stats.active, src.a, src.b, np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi,
+        stats.radius, top_k, out,
+    )  # fmt: skip
     _run_rows(bands, rows, inv.shape[0])
     return out
 
@@ -637,12 +635,19 @@ def _upsample(inv: F32, roi_c: Roi, cam_c: Camera, roi_f: Roi, cam_f: Camera) ->
     )
 
 
+def _block(cam0: Camera, cam: Camera) -> NDArray[np.uint8]:
+    """Square structuring element of the working pixels one pixel of the level camera
+    ``cam`` covers (2^level for octaves, rounded up for a resized level)."""
+    k = max(1, math.ceil(cam0.width / cam.width - 1e-6))
+    return np.ones((k, k), np.uint8)
+
+
 def _bounds_at(near: F32, far: F32, roi: Roi, cam0: Camera, cam: Camera) -> tuple[F32, F32]:
     """Per-pixel near/far of the crop ``roi`` of level camera ``cam`` (0 = none)."""
     if cam.size != cam0.size:
-        # Conservative resampling: nearest-neighbour of min(near) / max(far) over 2x2 blocks.
-        k = max(1, math.ceil(cam0.width / cam.width - 1e-6))
-        ker = np.ones((k, k), np.uint8)
+        # Conservative resampling: nearest-neighbour of min(near) / max(far) over the blocks
+        # of working pixels each level pixel covers.
+        ker = _block(cam0, cam)
         nz = np.where(near > 0, near, np.inf).astype(np.float32)
         near = as_f32(cv2.erode(nz, ker))
         near = np.where(np.isfinite(near), near, 0).astype(np.float32)
@@ -659,8 +664,7 @@ def _region_at(region: NDArray[np.bool_], roi: Roi, cam0: Camera, cam: Camera) -
     """The crop ``roi`` of level camera ``cam`` of a working-resolution ``region``: a level
     pixel belongs to it when any of the working pixels it covers does."""
     if cam.size != cam0.size:
-        k = max(1, math.ceil(cam0.width / cam.width - 1e-6))
-        grown = cv2.dilate(region.astype(np.uint8), np.ones((k, k), np.uint8))
+        grown = cv2.dilate(region.astype(np.uint8), _block(cam0, cam))
         region = cv2.resize(grown, cam.size, interpolation=cv2.INTER_NEAREST) > 0
     return np.asarray(region[roi.y0 : roi.y1, roi.x0 : roi.x1], bool)
 

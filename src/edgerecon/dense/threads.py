@@ -82,8 +82,12 @@ def run_jobs(
     fn: Callable[[T], R], jobs: Sequence[T], num_threads: int, bands: RowBands, label: str
 ) -> list[R]:
     """``[fn(job) for job in jobs]`` on ``num_threads`` threads that take the jobs in order;
-    a thread that finds none left lends its core to the others (``bands.lend``). Progress
-    follows the finished jobs; the first error is raised once every job has ended."""
+    a thread that finds none left lends its core to the others (``bands.lend``), and so do
+    the threads that have no job from the start (one foreground ROI: its kernels run on
+    every core). Progress follows the finished jobs; the first error is raised once every
+    job has ended."""
+    for _ in range(max(num_threads - max(len(jobs), 1), 0)):
+        bands.lend()
     if num_threads <= 1 or len(jobs) <= 1:
         return list(track(map(fn, jobs), label, total=len(jobs)))
     results: list[Any] = [None] * len(jobs)
