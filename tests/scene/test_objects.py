@@ -98,3 +98,19 @@ def test_small_fragment_joins_the_nearest_object_but_not_a_far_one() -> None:
     seg = find_objects(m | foot | far)
     assert seg.num_objects == 2
     assert seg.labels[150, 151] == seg.labels[60, 110] != seg.labels[11, 381]
+
+
+def test_component_inside_another_ones_hole_does_not_crash() -> None:
+    """Regression (two-person capture): a blob seen through a ring-shaped silhouette (arms
+    around a hole) has no outer outline of its own; the run died in ``_component_gaps``."""
+    m = np.zeros((120, 160), bool)
+    m[20:100, 30:130] = True
+    m[35:85, 45:115] = False  # the hole
+    m[50:70, 70:90] = True  # another person's part, seen through it
+    m[10:14, 150:154] = True  # a third, far fragment so that grouping runs
+    seg = find_objects(m)
+    assert seg.num_objects >= 1
+    inner = seg.labels[60, 80]
+    ring = seg.labels[25, 40]
+    assert inner > 0 and ring > 0
+    assert (seg.labels > 0).sum() == m.sum()

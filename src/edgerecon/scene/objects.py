@@ -221,16 +221,24 @@ def _component_gaps(cc: NDArray[np.int32], num_comp: int) -> NDArray[np.float64]
     """(n, n) smallest pixel distance between the outlines of every pair of components."""
     from scipy.spatial import cKDTree
 
+    # RETR_LIST, not RETR_EXTERNAL: a component inside another one's hole (a person seen
+    # through the arms of another) has only an inner outline; without it that component had
+    # no points and the whole run died on an empty reduction.
     contours, _ = cv2.findContours(
-        (cc > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE
+        (cc > 0).astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE
     )
     pts = np.concatenate([c.reshape(-1, 2) for c in contours])
     owner = cc[pts[:, 1], pts[:, 0]] - 1
+    outline = [pts[owner == i] for i in range(num_comp)]
+    for i in range(num_comp):
+        if not len(outline[i]):  # never expected; any pixel of the component will do
+            ys, xs = np.nonzero(cc == i + 1)
+            outline[i] = np.stack([xs, ys], axis=1)[:1]
     gaps = np.zeros((num_comp, num_comp))
-    trees = [cKDTree(pts[owner == i]) for i in range(num_comp)]
+    trees = [cKDTree(o) for o in outline]
     for i in range(num_comp):
         for j in range(i + 1, num_comp):
-            d, _ = trees[i].query(pts[owner == j], k=1)
+            d, _ = trees[i].query(outline[j], k=1)
             gaps[i, j] = gaps[j, i] = float(d.min())
     return gaps
 
