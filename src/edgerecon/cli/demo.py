@@ -15,7 +15,13 @@ import time
 from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli.run import add_online_arguments, build_options, live_printer, print_summary
+from edgerecon.cli.run import (
+    add_online_arguments,
+    build_options,
+    live_printer,
+    parse_fixed,
+    print_summary,
+)
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import reconstruct, warm_up
 from edgerecon.quality import evaluate_clouds
@@ -103,12 +109,9 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.frames is None:
         args.frames = f"0:{dataset.num_frames}"
-    options = build_options(args, dataset, threshold)
-    fixed = None
-    if args.fixed is not None:
-        from edgerecon.cli.reconstruct import parse_cameras
-
-        fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
+    # The run folder is the demo's own work folder: a new demo replaces the last one.
+    options = build_options(args, dataset, threshold, overwrite=True)
+    fixed = parse_fixed(args, dataset)
     summary, metrics = run_online(
         dataset,
         rt,

@@ -10,7 +10,7 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_text, write_ply
-from edgerecon.pipeline import reconstruct, reconstruct_split, warm_up
+from edgerecon.pipeline import reconstruct, reconstruct_task, warm_up
 from edgerecon.runtime.engine import learn_scene_model
 from edgerecon.scene.foreground import RigForeground
 from edgerecon.scene.merge import write_merged
@@ -112,7 +112,8 @@ def _run_split(args: argparse.Namespace, dataset: Dataset, config: Reconstructio
             model.segment(source.read(t))
         frames = source.read(args.time)
     foreground = model.segment(frames)
-    result = reconstruct_split(frames, rig, foreground, config)
+    # Whole-frame SfM: the background is densified here from the points labelled background.
+    result = reconstruct_task(frames, rig, foreground, config, sparse_scope="scene")
     out = Path(args.out)
     write_merged(out, result.merged)
     write_ply(out / "sparse.ply", result.sparse.cloud)

@@ -9,6 +9,11 @@ background (dense MVS of the latest frames outside the foreground, or of the emp
 the dataset has a background clip) whenever the task thread is idle, and pushes each finished
 background to the front-end with a version number. The front-end never waits for it.
 
+Every background carries a :class:`BgVersion` (the epoch the front-end gave this back-end,
+and a counter). A stage that raises on a timestamp publishes a failed reply (the front-end
+falls back and records why) and the back-end goes on with the next one; ``ping`` reports how
+long the current task has been running, so an engine can restart a back-end stuck on one.
+
 The class is plain Python (usable without any cluster); the Ray engine wraps it in an actor.
 """
 
@@ -28,8 +33,14 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_background
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.messages import BackgroundUpdate, GoldenReply, MasksReply
-from edgerecon.scene.foreground import RigForeground
+from edgerecon.runtime.messages import (
+    BackgroundUpdate,
+    BgVersion,
+    GoldenReply,
+    MasksReply,
+    describe_exception,
+)
+from edgerecon.scene.foreground import ForegroundResult, RigForeground
 from edgerecon.scene.split import split_sparse
 from edgerecon.sparse import reconstruct_sparse
 from edgerecon.types import FrameSet, Mask
@@ -57,6 +68,7 @@ class BackEnd:
         *,
         push: PushFn | None = None,
         initial_background: FrameSet | None = None,
+        epoch: int = 1,
     ) -> None:
         self.rig = rig
         self.config = config
@@ -66,6 +78,8 @@ class BackEnd:
         self._model_lock = threading.Lock()
         self._pending: FrameSet | None = None
         self._busy = False
+        self._task_started = 0.0
+        self.epoch = epoch
         self._masks: OrderedDict[int, MasksReply] = OrderedDict()
         self._golden: OrderedDict[int, GoldenReply] = OrderedDict()
         self._latest: tuple[FrameSet, tuple[Mask | None, ...]] | None = None
@@ -125,8 +139,10 @@ class BackEnd:
             return {
                 "alive": self._crashed is None and all(t.is_alive() for t in self._threads),
                 "busy": self._busy or self._pending is not None,
+                "task_age_s": time.monotonic() - self._task_started if self._busy else 0.0,
+                "epoch": self.epoch,
                 "stalled": time.monotonic() < self._stall_until,
-                "bg_version": self._bg_version,
+                "bg_version": [self.epoch, self._bg_version],
                 "error": self._crashed,
                 **self.stats,
             }
@@ -171,13 +187,12 @@ class BackEnd:
                     return
                 frames, self._pending = self._pending, None
                 self._busy = True
+                self._task_started = time.monotonic()
             assert frames is not None  # the wait above ends only with a pending task
             try:
                 self._serve(frames)
             except BackendFault:
                 return
-            except Exception as exc:  # a bad frame must not kill the node
-                logger.exception("back-end: task %d failed: %s", frames.time_index, exc)
             finally:
                 with self._lock:
                     self._busy = False
@@ -194,20 +209,49 @@ class BackEnd:
                 self._lock.wait(min(wait, 0.5))
 
     def _serve(self, frames: FrameSet) -> None:
+        """Masks, then the golden reference, of one timestamp; a stage that raises publishes
+        a failed reply (a bad frame must not kill the node)."""
+        t = frames.time_index
         self._check_faults()
         t0 = time.perf_counter()
-        with self._model_lock:
-            fg = self._fg.segment(frames)
+        try:
+            with self._model_lock:
+                fg = self._fg.segment(frames)
+        except Exception as exc:
+            error = f"masks: {describe_exception(exc)}"
+            logger.error("back-end: time %d: %s", t, error)
+            self._publish(
+                self._masks, t, MasksReply(time_index=t, foreground=None, seconds=0.0, error=error)
+            )
+            self._publish(
+                self._golden,
+                t,
+                GoldenReply(time_index=t, fg_points3D=None, num_points=0, seconds=0.0, error=error),
+            )
+            return
         self._publish(
             self._masks,
-            frames.time_index,
-            MasksReply(
-                time_index=frames.time_index, foreground=fg, seconds=time.perf_counter() - t0
-            ),
+            t,
+            MasksReply(time_index=t, foreground=fg, seconds=time.perf_counter() - t0),
         )
-        with self._lock:
-            self._latest = (frames, fg.masks)
+        if all(im is not None for im in frames.images):
+            # Backgrounds are rebuilt from complete frame sets only (no camera left out).
+            with self._lock:
+                self._latest = (frames, fg.masks)
         self._check_faults()
+        try:
+            self._publish(self._golden, t, self._golden_reference(frames, fg))
+        except Exception as exc:
+            error = f"golden reference: {describe_exception(exc)}"
+            logger.error("back-end: time %d: %s", t, error)
+            self._publish(
+                self._golden,
+                t,
+                GoldenReply(time_index=t, fg_points3D=None, num_points=0, seconds=0.0, error=error),
+            )
+        self.stats["tasks"] += 1
+
+    def _golden_reference(self, frames: FrameSet, fg: ForegroundResult) -> GoldenReply:
         t1 = time.perf_counter()
         golden = ReconstructionConfig(sparse_config=self.config.sparse)
         views = prepare_task_views(frames, self.rig, golden)
@@ -222,17 +266,12 @@ class BackEnd:
             self.rig.cameras,
             fg.label_images(),
         )
-        self._publish(
-            self._golden,
-            frames.time_index,
-            GoldenReply(
-                time_index=frames.time_index,
-                fg_points3D=sparse.points3D[split.foreground],
-                num_points=sparse.num_points,
-                seconds=time.perf_counter() - t1,
-            ),
+        return GoldenReply(
+            time_index=frames.time_index,
+            fg_points3D=sparse.points3D[split.foreground],
+            num_points=sparse.num_points,
+            seconds=time.perf_counter() - t1,
         )
-        self.stats["tasks"] += 1
 
     # ------------------------------------------------------------------ background thread
     def _bg_loop(self) -> None:
@@ -285,12 +324,12 @@ class BackEnd:
             states = tuple(self._fg.states())
         with self._lock:
             self._bg_version += 1
-            version = self._bg_version
+            version = BgVersion(self.epoch, self._bg_version)
         seconds = time.perf_counter() - t0
         self.stats["backgrounds"] += 1
         self.stats["background_seconds"] += seconds
         logger.info(
-            "back-end: background v%d from time %d: %d points in %.1f s",
+            "back-end: background %s from time %d: %d points in %.1f s",
             version,
             frames.time_index,
             len(dense.cloud),
@@ -303,4 +342,4 @@ class BackEnd:
             try:
                 self._push(update)
             except Exception as exc:  # the front-end may be gone; keep serving
-                logger.warning("back-end: pushing background v%d failed: %s", version, exc)
+                logger.warning("back-end: pushing background %s failed: %s", version, exc)

@@ -9,12 +9,10 @@ import numpy as np
 
 from edgerecon.dense import DenseConfig
 from edgerecon.geometry.camera import Rig
-from edgerecon.pipeline import SplitPipelineConfig
+from edgerecon.pipeline import SPARSE_SCOPES, SplitPipelineConfig
+from edgerecon.quality.frames import FrameCheckConfig
 from edgerecon.scene.foreground import ForegroundConfig
 from edgerecon.sparse import SparseConfig
-
-#: Values of ``RuntimeConfig.sparse_scope``.
-SPARSE_SCOPES = ("foreground", "scene")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -34,6 +32,17 @@ class RuntimeConfig:
     golden_timeout_s: float | None = None
     """How long the front-end waits, after publishing a task's cloud, for the back-end's
     golden reference of the online estimate; None = the deadline, at least 2 s."""
+    task_timeout_s: float | None = None
+    """Watchdog of every task (front-end and back-end): a task still running after this many
+    seconds is abandoned and recorded as failed, and a back-end busy on one task that long
+    is restarted; None = max(``watchdog_factor`` x the deadline, ``watchdog_min_s``)."""
+    watchdog_factor: float = 10.0
+    """The default watchdog as a multiple of the deadline."""
+    watchdog_min_s: float = 30.0
+    """The default watchdog's floor, seconds (a golden task may take several deadlines)."""
+    frame_check: FrameCheckConfig = field(default_factory=FrameCheckConfig)
+    """Which frames are unusable (black, saturated, textureless): such cameras are left out
+    of the task, and a task left with fewer than 3 cameras gives an empty result."""
     backend_retry_s: float = 2.0
     """While the back-end is lost, how often the front-end checks whether it is back."""
     background_updates: bool = True
@@ -67,7 +76,7 @@ class RuntimeConfig:
     def __post_init__(self) -> None:
         if not (self.deadline_s > 0 and math.isfinite(self.deadline_s)):
             raise ValueError(f"RuntimeConfig.deadline_s must be > 0, got {self.deadline_s!r}")
-        for name in ("eval_threshold", "masks_timeout_s", "golden_timeout_s"):
+        for name in ("eval_threshold", "masks_timeout_s", "golden_timeout_s", "task_timeout_s"):
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"RuntimeConfig.{name} must be > 0 or None, got {v!r}")
@@ -79,6 +88,11 @@ class RuntimeConfig:
             raise ValueError(
                 f"RuntimeConfig.sparse_scope must be one of {SPARSE_SCOPES}, "
                 f"got {self.sparse_scope!r}"
+            )
+        if not (self.watchdog_factor >= 1 and self.watchdog_min_s > 0):
+            raise ValueError(
+                "RuntimeConfig.watchdog_factor must be >= 1 and watchdog_min_s > 0, got "
+                f"{self.watchdog_factor}, {self.watchdog_min_s}"
             )
         if self.warmup_frames < 1:
             raise ValueError(f"RuntimeConfig.warmup_frames must be >= 1, got {self.warmup_frames}")
@@ -96,6 +110,13 @@ class RuntimeConfig:
             if self.masks_timeout_s is not None
             else max(1.0, 0.5 * self.deadline_s)
         )
+
+    @property
+    def watchdog_s(self) -> float:
+        """Seconds after which a task is abandoned (see ``task_timeout_s``)."""
+        if self.task_timeout_s is not None:
+            return self.task_timeout_s
+        return max(self.watchdog_factor * self.deadline_s, self.watchdog_min_s)
 
     @property
     def golden_wait_s(self) -> float:

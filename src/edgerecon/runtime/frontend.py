@@ -1,11 +1,18 @@
 """The front-end role: each task's critical path, the online evaluation, the optimizer.
 
-Per task: SfM with the optimizer's configuration (r, pi(N')) while the back-end computes the
-masks; then the sparse split with the masks it receives (or computes itself when the back-end
-is lost), foreground MVS in the foreground regions only, and the merge with the newest
-background it holds. The critical path ends when the merged cloud is ready; then the front-end
-scores the task's foreground sparse cloud against the back-end's golden reference (the online
-quality estimate) and feeds (T, Q) to the controller.
+Per task the front-end runs the one composition of a task (:func:`pipeline.reconstruct_task`)
+with the optimizer's configuration (r, pi(N')), the masks the back-end computes (or, when they
+do not arrive in time, its own: :meth:`FrontEnd.obtain_foreground`) and the newest background
+it holds. The critical path ends when the merged cloud is ready; then the front-end scores the
+task's foreground sparse cloud against the back-end's golden reference (the online quality
+estimate) and feeds (T, Q) to the controller.
+
+The front-end owns the run's state that must survive a restart (:class:`FrontEndState`): the
+controller, where pi(N') came from, the background version it holds and the back-end epochs
+it handed out.
+
+Every task runs under a watchdog (:meth:`FrontEnd.run_task`): an exception in any stage, or a
+task still running after ``RuntimeConfig.watchdog_s``, gives a failed record, never a dead run.
 
 Plain Python, usable without a cluster; the Ray engine wraps it in an actor.
 """
@@ -15,8 +22,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -25,20 +32,20 @@ from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
-from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_foreground
+from edgerecon.pipeline import TaskCancelled, num_objects, reconstruct_task
 from edgerecon.quality.online import OnlineQualityConfig, online_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
+    BgVersion,
     GoldenReply,
     MasksReply,
     TaskMetrics,
     TaskPlan,
+    describe_exception,
 )
 from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundResult, RigForeground
-from edgerecon.scene.merge import merge_clouds
-from edgerecon.sparse import reconstruct_sparse
 from edgerecon.types import FrameSet, PointCloud, StageTimings
 
 logger = logging.getLogger(__name__)
@@ -53,11 +60,67 @@ _MIN_SELECTION_POINTS = 200
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class TaskOutput:
-    """What a task publishes: its merged cloud and its metrics."""
+    """What a task publishes: its metrics and, unless it failed, its clouds."""
 
     metrics: TaskMetrics
-    merged: PointCloud
-    foreground: PointCloud
+    merged: PointCloud | None
+    foreground: PointCloud | None
+    background: PointCloud | None = None
+    """The background the front-end holds, when it changed since the last task that
+    published one (the session saves it for ``--resume``)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrontEndState:
+    """The front-end's part of the run state (JSON-able; saved after every task)."""
+
+    controller: dict[str, Any]
+    pi_source: dict[str, Any] | None = None
+    """Where pi(N') came from: ``{"task", "time_index", "rows"}`` of the golden task whose
+    visibility it was computed from (None: not computed yet, or a fixed configuration)."""
+    bg_version: BgVersion = field(default_factory=BgVersion)
+    backend_epoch: int = 0
+    """The last back-end epoch handed out."""
+    backgrounds_received: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "controller": self.controller,
+            "pi_source": self.pi_source,
+            "bg_version": self.bg_version.to_list(),
+            "backend_epoch": self.backend_epoch,
+            "backgrounds_received": self.backgrounds_received,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> FrontEndState:
+        return cls(
+            controller=dict(d["controller"]),
+            pi_source=d.get("pi_source"),
+            bg_version=BgVersion.from_list(d.get("bg_version", 0)),
+            backend_epoch=int(d.get("backend_epoch", 0)),
+            backgrounds_received=int(d.get("backgrounds_received", 0)),
+        )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class BackendStart:
+    """What a (re)starting back-end gets from the front-end (:meth:`FrontEnd.register_backend`)."""
+
+    epoch: int
+    model_states: tuple[BackgroundState, ...] | None
+    """The newest background-model snapshot the front-end holds (None: the initial one)."""
+    first: bool
+    """The first back-end of this front-end (it may start from the empty-scene clip)."""
+
+
+@dataclass
+class TaskGuard:
+    """The watchdog's handle on a running task."""
+
+    cancel: threading.Event = field(default_factory=threading.Event)
+    committed: bool = False
+    """The task fed the controller: it is going to finish."""
 
 
 class FixedController:
@@ -79,8 +142,16 @@ class FixedController:
     def set_camera_mapping(self, mapping: Any, restart: bool = False) -> None:
         del mapping, restart
 
+    def set_deadline(self, deadline_s: float) -> None:
+        del deadline_s
+
     def to_dict(self) -> dict[str, Any]:
         return {"format": "edgerecon-fixed", "scale": self.scale, "camera_ids": list(self.ids)}
+
+
+def too_few_cameras(frames: FrameSet) -> bool:
+    """Whether ``frames`` has fewer usable cameras than a task needs."""
+    return len(frames.available) < MIN_CAMERAS
 
 
 class FrontEnd:
@@ -93,23 +164,57 @@ class FrontEnd:
         controller: BisectionController | FixedController,
         *,
         model_states: Sequence[BackgroundState] | None = None,
+        restored: FrontEndState | None = None,
+        background: PointCloud | None = None,
     ) -> None:
         self.rig = rig
         self.config = config
         self.controller = controller
         self._local_fg: RigForeground | None = None
         self._lock = threading.Lock()
-        self._background = PointCloud.empty()
-        self._bg_version = 0
+        self._commit = threading.Lock()
+        self._background = PointCloud.empty() if background is None else background
+        self._bg_version = BgVersion()
+        self._bg_published = BgVersion()
         self._bg_states: tuple[BackgroundState, ...] | None = (
             None if model_states is None else tuple(model_states)
         )
-        self._mapping_ready = isinstance(controller, FixedController)
+        self._backend_epoch = 0
+        self._backends_registered = 0
+        self.pi_source: dict[str, Any] | None = None
         self.backgrounds_received = 0
+        if restored is not None:
+            self.pi_source = restored.pi_source
+            self._backend_epoch = restored.backend_epoch
+            self.backgrounds_received = restored.backgrounds_received
+            if background is not None:
+                self._bg_version = self._bg_published = restored.bg_version
         self.eval_threshold = config.eval_threshold_for(rig)
 
+    # ------------------------------------------------------------------ run state
+    def state(self) -> FrontEndState:
+        with self._lock:
+            return FrontEndState(
+                controller=self.controller.to_dict(),
+                pi_source=self.pi_source,
+                bg_version=self._bg_version,
+                backend_epoch=self._backend_epoch,
+                backgrounds_received=self.backgrounds_received,
+            )
+
+    def register_backend(self) -> BackendStart:
+        """A back-end (re)starts: its epoch (the next one) and the models to start from."""
+        with self._lock:
+            self._backend_epoch += 1
+            self._backends_registered += 1
+            return BackendStart(
+                epoch=self._backend_epoch,
+                model_states=self._bg_states,
+                first=self._backends_registered == 1,
+            )
+
     # ------------------------------------------------------------------ background pushes
-    def push_background(self, update: BackgroundUpdate) -> int:
+    def push_background(self, update: BackgroundUpdate) -> BgVersion:
         """Take a newer background (older or duplicate versions are ignored). Returns the
         version now held."""
         with self._lock:
@@ -119,15 +224,28 @@ class FrontEnd:
                 if update.model_states is not None:
                     self._bg_states = update.model_states
                 self.backgrounds_received += 1
+            else:
+                logger.info(
+                    "front-end: ignoring background %s (holding %s)",
+                    update.version,
+                    self._bg_version,
+                )
             return self._bg_version
 
     @property
-    def bg_version(self) -> int:
+    def bg_version(self) -> BgVersion:
         return self._bg_version
 
-    def background(self) -> tuple[PointCloud, int]:
+    def background(self) -> tuple[PointCloud, BgVersion]:
         with self._lock:
             return self._background, self._bg_version
+
+    def _background_to_publish(self) -> PointCloud | None:
+        with self._lock:
+            if self._bg_version == self._bg_published:
+                return None
+            self._bg_published = self._bg_version
+            return self._background
 
     # ------------------------------------------------------------------ planning
     def next_plan(self, time_index: int) -> TaskPlan:
@@ -137,7 +255,81 @@ class FrontEnd:
             time_index=time_index, scale=float(cfg.scale), camera_ids=ids, phase=str(cfg.phase)
         )
 
+    # ------------------------------------------------------------------ masks: wait or local
+    def obtain_foreground(
+        self, frames: FrameSet, masks: MasksProvider, timings: StageTimings
+    ) -> tuple[ForegroundResult, str]:
+        """The task's foreground and, when the back-end did not serve it, why (the task is
+        then degraded). The whole mask-wait / local-fallback policy lives here: wait up to
+        ``masks_wait_s`` for the back-end's masks, else segment with the newest model
+        snapshot this front-end holds."""
+        with timings.stage("wait_masks"):
+            reply = masks(self.config.masks_wait_s)
+        if reply is not None and reply.foreground is not None:
+            # Back to normal: the next outage starts from the back-end's newest snapshot.
+            self._local_fg = None
+            return reply.foreground, ""
+        reason = "no masks from the back-end" if reply is None else f"back-end: {reply.error}"
+        with timings.stage("local_masks"):
+            if self._local_fg is None:
+                if self._bg_states is None:
+                    raise RuntimeError(f"{reason}, and no background model snapshot")
+                self._local_fg = RigForeground.from_states(
+                    self.rig, self._bg_states, self.config.foreground
+                )
+            return self._local_fg.segment(frames), reason
+
     # ------------------------------------------------------------------ the task
+    def run_task(
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        masks: MasksProvider,
+        golden: GoldenProvider,
+        *,
+        task: int = 0,
+        defects: Mapping[str, str] | None = None,
+    ) -> TaskOutput:
+        """:meth:`process` under the watchdog: never raises (a failed task is a record)."""
+        guard = TaskGuard()
+        box: dict[str, Any] = {}
+
+        def work() -> None:
+            try:
+                box["out"] = self.process(
+                    frames, plan, masks, golden, task=task, defects=defects, guard=guard
+                )
+            except BaseException as exc:  # recorded below, whatever it is
+                box["exc"] = exc
+
+        limit = self.config.watchdog_s
+        worker = threading.Thread(target=work, name=f"task-{task}", daemon=True)
+        worker.start()
+        worker.join(limit)
+        with self._commit:
+            if worker.is_alive() and not guard.committed:
+                guard.cancel.set()  # it stops at its next stage boundary, publishing nothing
+                # The configuration took that long: the controller learns it.
+                self.controller.observe(limit, None)
+                error = f"watchdog: still running after {limit:.1f} s (abandoned)"
+                logger.error("task %d (time %d): %s", task, frames.time_index, error)
+                return self._failed(frames, task, error)
+        worker.join()  # committed: only the metrics are left to build
+        if "exc" in box:
+            exc = box["exc"]
+            error = describe_exception(exc)
+            logger.error("task %d (time %d) failed: %s", task, frames.time_index, error)
+            logger.debug("traceback", exc_info=exc)
+            return self._failed(frames, task, error)
+        out: TaskOutput = box["out"]
+        return out
+
+    def _failed(self, frames: FrameSet, task: int, error: str) -> TaskOutput:
+        m = TaskMetrics.failed(
+            task=task, time_index=frames.time_index, error=error, deadline_s=self.config.deadline_s
+        )
+        return TaskOutput(metrics=m, merged=None, foreground=None)
+
     def process(
         self,
         frames: FrameSet,
@@ -146,69 +338,72 @@ class FrontEnd:
         golden: GoldenProvider,
         *,
         task: int = 0,
+        defects: Mapping[str, str] | None = None,
+        guard: TaskGuard | None = None,
     ) -> TaskOutput:
-        """Run one task (critical path, then online evaluation and the optimizer step)."""
-        timings = StageTimings()
+        """Run one task (critical path, then online evaluation and the optimizer step).
+        ``defects``: cameras the session left out (unusable frames), name -> defect."""
+        defects = dict(defects or {})
+        if defects and too_few_cameras(frames):
+            return self._empty(frames, plan, task, defects)
         start = time.perf_counter()
-        cfg = ReconstructionConfig(
-            scale=plan.scale, camera_ids=plan.camera_ids, sparse_config=self.config.sparse
-        )
-        scene_sfm = self.config.sparse_scope == "scene"
-        if scene_sfm:  # the paper's order: SfM of the whole frames while masks are computed
-            with timings.stage("sfm"):
-                views = prepare_task_views(frames, self.rig, cfg)
-                sparse = reconstruct_sparse(views, self.config.sparse)
-        degraded, reason = False, ""
-        with timings.stage("wait_masks"):
-            reply = masks(self.config.masks_wait_s)
-        if reply is None:
-            degraded, reason = True, "no masks from the back-end"
-            with timings.stage("local_masks"):
-                fg = self._local_foreground(frames)
-        else:
-            fg = reply.foreground
-            # Back to normal: the next outage starts from the back-end's newest snapshot.
-            self._local_fg = None
-        if not scene_sfm:  # SfM of the foreground only
-            with timings.stage("sfm"):
-                views = prepare_task_views(frames, self.rig, cfg)
-                sparse = reconstruct_sparse(
-                    foreground_views(
-                        views, self.rig, fg.masks, self.config.split.fg_mask_dilation_px
-                    ),
-                    self.config.sparse,
-                )
-        fg_rec = reconstruct_foreground(
-            views, self.rig, sparse, fg, self.config.dense, self.config.split
-        )
-        for name, seconds in fg_rec.timings.seconds.items():
-            timings.add(name, seconds)
         background, bg_version = self.background()
-        with timings.stage("merge"):
-            merged = merge_clouds(
-                fg_rec.cloud,
-                background,
-                bg_version=bg_version,
-                scene_scale=self.rig.scene_scale(),
-                hull=fg.hull,
-            )
+        reason = ""
+
+        def foreground(timings: StageTimings) -> ForegroundResult:
+            nonlocal reason
+            fg, reason = self.obtain_foreground(frames, masks, timings)
+            return fg
+
+        result = reconstruct_task(
+            frames,
+            self.rig,
+            foreground,
+            ReconstructionConfig(
+                scale=plan.scale,
+                camera_ids=plan.camera_ids,
+                sparse_config=self.config.sparse,
+                dense_config=self.config.dense,
+            ),
+            background=background,
+            bg_version=bg_version.counter,
+            split_config=self.config.split,
+            sparse_scope=self.config.sparse_scope,
+            cancel=None if guard is None else guard.cancel,
+        )
         critical = time.perf_counter() - start
+        timings = result.timings
+        fg_rec = result.foreground
 
         # ---- after the critical path: online evaluation and the optimizer step
+        degraded = bool(reason)
         quality: float | None = None
         if not degraded:
-            ref = golden(self.config.golden_wait_s)
-            if ref is None:
-                reason = "no golden reference from the back-end"
+            with timings.stage("wait_golden"):  # after the critical path (not in T)
+                ref = golden(self.config.golden_wait_s)
+            if ref is None or ref.fg_points3D is None:
+                degraded = True
+                reason = (
+                    f"no golden reference within {self.config.golden_wait_s:.1f} s"
+                    if ref is None
+                    else f"back-end golden reference: {ref.error}"
+                )
             else:
                 quality = online_quality(
                     fg_rec.fg_sparse.points3D,
                     ref.fg_points3D,
                     OnlineQualityConfig(threshold=self.eval_threshold),
                 ).value
-        if plan.phase == "golden" and not self._mapping_ready:
-            self._set_mapping(sparse.visibility_matrix(len(self.rig)), fg_rec.cloud)
-        self.controller.observe(critical, quality)
+        with self._commit:
+            if guard is not None and guard.cancel.is_set():
+                raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")
+            if plan.phase == "golden" and not isinstance(self.controller, FixedController):
+                # Every golden task refreshes pi(N') (a golden re-search included).
+                vis = result.sparse.visibility_matrix(len(self.rig))
+                self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
+            self.controller.observe(critical, quality)
+            if guard is not None:
+                guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
         metrics = TaskMetrics(
             task=task,
@@ -216,39 +411,66 @@ class FrontEnd:
             status="ok",
             phase=plan.phase,
             scale=plan.scale,
-            num_cameras=len(views),
-            camera_ids=[v.camera_id for v in views],
+            num_cameras=len(result.camera_ids),
+            camera_ids=list(result.camera_ids),
             critical_path_s=round(critical, 6),
             stages=timings.to_dict(),
             deadline_s=self.config.deadline_s,
             deadline_met=critical <= self.config.deadline_s,
             online_fscore=quality,
-            bg_version=bg_version,
+            bg_version=bg_version.counter,
+            bg_epoch=bg_version.epoch,
             degraded=degraded,
             degraded_reason=reason,
-            num_sparse=sparse.num_points,
+            frame_defects=defects,
+            num_sparse=result.sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
             num_fg_points=len(fg_rec.cloud),
-            num_merged_points=len(merged),
-            num_objects=int(labels.max()) if labels.size and labels.max() > 0 else 0,
+            num_merged_points=len(result.merged),
+            num_objects=num_objects(labels),
             search_steps=int(getattr(self.controller, "total_search_steps", 0)),
             wall_time=time.time(),
         )
-        return TaskOutput(metrics=metrics, merged=merged, foreground=fg_rec.cloud)
+        return TaskOutput(
+            metrics=metrics,
+            merged=result.merged,
+            foreground=fg_rec.cloud,
+            background=self._background_to_publish(),
+        )
 
-    def _local_foreground(self, frames: FrameSet) -> ForegroundResult:
-        """Masks computed on the front-end (degraded mode), with the newest snapshot of the
-        background models it holds (the initial one, or one pushed with a background)."""
-        if self._local_fg is None:
-            if self._bg_states is None:
-                raise RuntimeError("no masks from the back-end and no background model snapshot")
-            self._local_fg = RigForeground.from_states(
-                self.rig, self._bg_states, self.config.foreground
-            )
-        return self._local_fg.segment(frames)
+    def _empty(
+        self, frames: FrameSet, plan: TaskPlan, task: int, defects: dict[str, str]
+    ) -> TaskOutput:
+        """A task whose frames are unusable: no foreground, the background alone."""
+        background, bg_version = self.background()
+        metrics = TaskMetrics(
+            task=task,
+            time_index=frames.time_index,
+            status="ok",
+            phase=plan.phase,
+            scale=plan.scale,
+            num_cameras=len(frames.available),
+            camera_ids=frames.available,
+            deadline_s=self.config.deadline_s,
+            deadline_met=True,
+            bg_version=bg_version.counter,
+            bg_epoch=bg_version.epoch,
+            frame_defects=defects,
+            num_merged_points=len(background),
+            search_steps=int(getattr(self.controller, "total_search_steps", 0)),
+            wall_time=time.time(),
+        )
+        return TaskOutput(
+            metrics=metrics,
+            merged=background,
+            foreground=PointCloud.empty(),
+            background=self._background_to_publish(),
+        )
 
-    def _set_mapping(self, visibility: np.ndarray, fg_cloud: PointCloud) -> None:
-        """pi(N') from the golden task: its sparse visibility, topped up with the dense
+    def _set_mapping(
+        self, visibility: np.ndarray, fg_cloud: PointCloud, task: int, time_index: int
+    ) -> None:
+        """pi(N') from a golden task: its sparse visibility, topped up with the dense
         foreground's visibility when the sparse cloud is thin (wide-baseline rigs)."""
         vis = visibility
         if len(vis) < _MIN_SELECTION_POINTS and len(fg_cloud):
@@ -261,5 +483,10 @@ class FrontEnd:
             sizes=range(len(self.rig), MIN_CAMERAS - 1, -1),
         )
         self.controller.set_camera_mapping(mapping)
-        self._mapping_ready = True
-        logger.info("front-end: camera mapping pi(N') from %d visibility rows", len(vis))
+        self.pi_source = {"task": task, "time_index": time_index, "rows": len(vis)}
+        logger.info(
+            "front-end: camera mapping pi(N') from task %d (time %d): %d visibility rows",
+            task,
+            time_index,
+            len(vis),
+        )
