@@ -1,0 +1,200 @@
+"""A task can fail; a run cannot (issue 11 item 5): unusable frames, a stage that raises on the
+front-end or the back-end, a stage that hangs, and the two-object crash, each with background
+updates on."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+import edgerecon.pipeline
+import edgerecon.scene.objects
+from edgerecon.io.dataset import open_dataset
+from edgerecon.quality.frames import FrameCheckConfig, frame_defect
+from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
+from edgerecon.runtime.engine import learn_scene_model
+from edgerecon.scene.foreground import RigForeground
+
+
+@pytest.fixture(scope="module")
+def tiny(tiny_dataset):
+    ds = open_dataset(tiny_dataset)
+    return ds, learn_scene_model(ds)
+
+
+def _config(**kw):
+    kw.setdefault("deadline_s", 20.0)
+    kw.setdefault("masks_timeout_s", 10.0)
+    kw.setdefault("golden_timeout_s", 20.0)
+    kw.setdefault("background_scale", 0.5)  # background updates stay on
+    return RuntimeConfig(**kw)
+
+
+def test_frame_defects_known_answers():
+    rng = np.random.default_rng(0)
+    textured = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    dark_noise = rng.integers(0, 6, (240, 320, 3), dtype=np.uint8)  # lights out, sensor noise
+    grey = np.clip(128 + rng.normal(0, 1.0, (240, 320, 3)), 0, 255).astype(np.uint8)
+    assert frame_defect(textured) is None
+    assert frame_defect(np.zeros((240, 320, 3), np.uint8)) == "black"
+    assert frame_defect(dark_noise) == "black"
+    assert frame_defect(np.full((240, 320, 3), 255, np.uint8)) == "saturated"
+    assert frame_defect(grey) == "textureless"
+    assert frame_defect(grey, FrameCheckConfig(textureless_max_std=0.5)) is None
+    with pytest.raises(ValueError, match="black_max_level"):
+        FrameCheckConfig(black_max_level=250)
+
+
+def test_black_frames_give_empty_tasks_fast_with_one_warning(
+    tiny, tiny_dataset, tmp_path_factory, tmp_path, caplog
+):
+    # Lights out at times 3-4 (every camera) and two cameras blinded at time 5. The lit
+    # background model took every black pixel for foreground: the visual hull filled the
+    # room and each such task cost many times a normal one (minutes per task at full HD).
+    _, scene = tiny
+    src = tmp_path_factory.mktemp("dark") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    for cam in range(5):
+        for t in (3, 4):
+            path = src / "frames" / f"cam{cam}" / f"{t:06d}.png"
+            cv2.imwrite(str(path), np.zeros((240, 320, 3), np.uint8))
+    for cam in (0, 1):
+        cv2.imwrite(
+            str(src / "frames" / f"cam{cam}" / "000005.png"), np.zeros((240, 320, 3), np.uint8)
+        )
+    ds = open_dataset(src)
+    caplog.set_level(logging.WARNING)
+    summary, metrics = run_online(
+        ds, _config(), SessionOptions(frames=FrameRange(start=0, stop=7)), tmp_path, scene=scene
+    )
+    assert [m.status for m in metrics] == ["ok"] * 7
+    for m in metrics[3:5]:
+        assert m.frame_defects == {f"cam{k}": "black" for k in range(5)}
+        assert m.num_fg_points == 0 and m.num_cameras == 0 and not m.submitted
+        assert m.num_merged_points >= 0
+    # Fast: an empty task costs the frame check, not a reconstruction.
+    assert metrics[4].wall_time - metrics[3].wall_time < 0.5 * (
+        metrics[3].wall_time - metrics[1].wall_time
+    )
+    assert metrics[5].frame_defects == {"cam0": "black", "cam1": "black"}
+    assert metrics[5].num_cameras == 3 and metrics[5].num_fg_points > 0
+    assert metrics[6].frame_defects == {} and metrics[6].num_cameras == 5
+    assert summary.empty == 2 and summary.failed == 0
+    unusable = [r for r in caplog.records if "unusable frames" in r.getMessage()]
+    # One warning when the lights go out, one when two cameras stay blinded, then recovery.
+    assert len(unusable) == 2
+    assert any("usable again" in r.getMessage() for r in caplog.records)
+
+
+def test_a_stage_that_raises_is_a_failed_record(tiny, tmp_path, monkeypatch):
+    ds, scene = tiny
+    real = edgerecon.pipeline.reconstruct_foreground
+    calls = {"n": 0}
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the third task's foreground MVS
+            raise RuntimeError("boom in the foreground MVS")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", flaky)
+    summary, metrics = run_online(
+        ds, _config(), SessionOptions(frames=FrameRange(start=0, stop=4)), tmp_path, scene=scene
+    )
+    assert [m.status for m in metrics] == ["ok", "ok", "failed", "ok"]
+    assert "RuntimeError: boom in the foreground MVS" in metrics[2].error
+    assert "reconstruct_task" in metrics[2].error  # where it was raised
+    assert summary.failed == 1 and not (tmp_path / "tasks" / "000002").exists()
+
+
+def test_a_backend_stage_that_raises_falls_back_then_fails_the_task(tiny, tmp_path, monkeypatch):
+    ds, scene = tiny
+    real = RigForeground.segment
+
+    def segment(self, frames, **kw):
+        if frames.time_index == 1:
+            raise ValueError("zero-size array to reduction operation minimum which has no identity")
+        return real(self, frames, **kw)
+
+    monkeypatch.setattr(RigForeground, "segment", segment)
+    _, metrics = run_online(
+        ds, _config(), SessionOptions(frames=FrameRange(start=0, stop=3)), tmp_path, scene=scene
+    )
+    # The back-end's masks raised (a failed reply, not a silent timeout); the front-end's
+    # own masks raised too: the task is a failed record, the back-end serves the next one.
+    assert [m.status for m in metrics] == ["ok", "failed", "ok"]
+    assert "zero-size array" in metrics[1].error
+    assert not metrics[2].degraded
+
+
+def test_a_stage_that_hangs_is_abandoned_by_the_watchdog(tiny, tmp_path, monkeypatch):
+    ds, scene = tiny
+    release = threading.Event()
+    real = edgerecon.pipeline.reconstruct_foreground
+    calls = {"n": 0}
+
+    def hang(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            release.wait(120)  # a stage that never returns (until the test ends)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", hang)
+    try:
+        _, metrics = run_online(
+            ds,
+            _config(task_timeout_s=4.0),
+            SessionOptions(frames=FrameRange(start=0, stop=4)),
+            tmp_path,
+            scene=scene,
+            fixed=(0.8, None),
+        )
+    finally:
+        release.set()
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "ok"]
+    assert metrics[1].error.startswith("watchdog: still running after 4.0 s")
+    assert metrics[2].wall_time - metrics[1].wall_time < 30
+    assert RuntimeConfig(deadline_s=2.0).watchdog_s == 30.0
+    assert RuntimeConfig(deadline_s=5.0).watchdog_s == 50.0
+
+
+def test_two_object_crash_is_a_failed_record_also_after_resume(tiny, tmp_path, monkeypatch):
+    # The two-person capture crashed the whole run in scene/objects.py _component_gaps, and
+    # again after --resume. Whatever raises there now fails only the task.
+    ds, scene = tiny
+    real = edgerecon.scene.objects._component_gaps
+    broken = {"times": {1, 3}}
+    current = {"t": -1}
+
+    def gaps(cc, num_comp):
+        if current["t"] in broken["times"]:
+            return np.zeros((0,)).min()  # the original 'zero-size array' ValueError
+        return real(cc, num_comp)
+
+    real_segment = RigForeground.segment
+
+    def segment(self, frames, **kw):
+        current["t"] = frames.time_index
+        return real_segment(self, frames, **kw)
+
+    monkeypatch.setattr(edgerecon.scene.objects, "_component_gaps", gaps)
+    monkeypatch.setattr(RigForeground, "segment", segment)
+    _, first = run_online(
+        ds, _config(), SessionOptions(frames=FrameRange(start=0, stop=3)), tmp_path, scene=scene
+    )
+    assert [m.status for m in first] == ["ok", "failed", "ok"]
+    assert "zero-size array" in first[1].error and "scene/objects.py" in first[1].error
+    summary, metrics = run_online(
+        ds,
+        _config(),
+        SessionOptions(frames=FrameRange(start=0, stop=5), resume=True),
+        tmp_path,
+        scene=scene,
+    )
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "failed", "ok"]
+    assert summary.tasks == 5 and summary.failed == 2
