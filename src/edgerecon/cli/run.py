@@ -229,7 +229,7 @@ def build_options(
         write_clouds=not args.no_clouds,
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,
         resume=args.resume,
-        overwrite=(args.overwrite or overwrite) and not args.resume,
+        overwrite=args.overwrite or (overwrite and not args.resume),
         fault=parse_fault(args.inject_fault),
     )
 

@@ -18,6 +18,7 @@ process dies; the front-end notices through :class:`BackendLink` and uses it aga
 from __future__ import annotations
 
 import logging
+import socket
 from collections.abc import Mapping
 from typing import Any
 
@@ -321,6 +322,20 @@ class RayEngine:
             ray.shutdown()
 
 
+def _check_reachable(address: str, hint: str) -> None:
+    """A HOST:PORT nobody listens on fails in a second here, not after Ray's minute of
+    retries."""
+    if address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not port.isdigit():
+        raise EdgereconError(f"--address must be HOST:PORT or auto, got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=3.0).close()
+    except OSError as exc:
+        raise EdgereconError(f"no Ray cluster at --address {address}: {hint} ({exc})") from None
+
+
 def connect(address: str | None, num_cpus: int | None = None) -> Any:
     """Connect to the Ray cluster at ``address``, or start a private one on 127.0.0.1 that
     offers both roles; returns the ray module when this call started or joined a cluster
@@ -332,14 +347,16 @@ def connect(address: str | None, num_cpus: int | None = None) -> Any:
     if ray.is_initialized():
         return None
     if address:
+        hint = (
+            "start one first (ray start --head --node-ip-address=IP "
+            "--resources='{\"frontend\": 1}', see the README), or leave out --address for a "
+            "private local instance"
+        )
+        _check_reachable(address, hint)
         try:
             ray.init(address=address, log_to_driver=True)
         except ConnectionError as exc:
-            raise EdgereconError(
-                f"no Ray cluster at --address {address}: start one first (ray start --head "
-                "--node-ip-address=IP --resources='{\"frontend\": 1}', see the README), or "
-                f"leave out --address for a private local instance ({exc})"
-            ) from None
+            raise EdgereconError(f"no Ray cluster at --address {address}: {hint} ({exc})") from None
     else:
         # A private local instance: both roles on this machine, loopback only.
         ray.init(
