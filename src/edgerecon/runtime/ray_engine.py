@@ -343,16 +343,17 @@ def connect(address: str | None, num_cpus: int | None = None) -> Any:
     :class:`EdgereconError` saying how to start one."""
     if _is_loopback(address):
         keep_on_loopback()
+    hint = (
+        "start one first (ray start --head --node-ip-address=IP "
+        "--resources='{\"frontend\": 1}', see the README), or leave out --address for a "
+        "private local instance"
+    )
+    if address:
+        _check_reachable(address, hint)
     ray = _ray()
     if ray.is_initialized():
         return None
     if address:
-        hint = (
-            "start one first (ray start --head --node-ip-address=IP "
-            "--resources='{\"frontend\": 1}', see the README), or leave out --address for a "
-            "private local instance"
-        )
-        _check_reachable(address, hint)
         try:
             ray.init(address=address, log_to_driver=True)
         except ConnectionError as exc:
