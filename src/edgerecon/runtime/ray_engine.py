@@ -33,6 +33,7 @@ from edgerecon.runtime.engine import (
 )
 from edgerecon.runtime.frontend import FixedController, FrontEndState, TaskOutput
 from edgerecon.runtime.messages import TaskPlan
+from edgerecon.runtime.ray_reaper import start_reaper
 from edgerecon.types import EdgereconError, FrameSet, PointCloud
 
 logger = logging.getLogger(__name__)
@@ -248,8 +249,9 @@ class RayEngine:
         background: PointCloud | None = None,
     ) -> None:
         self.config = config
-        ray = connect(address, num_cpus)
-        self._started_ray = ray is not None
+        self._started_ray = connect(address, num_cpus) is not None
+        # A private instance dies with this process, kill -9 included (see ray_reaper).
+        self._reaper = start_reaper() if self._started_ray and not address else None
         ray = _ray()
         resources = ray.cluster_resources()
         for role in ("frontend", "backend"):
@@ -320,6 +322,9 @@ class RayEngine:
                 pass
         if self._started_ray:
             ray.shutdown()
+        if self._reaper is not None:
+            self._reaper.kill()
+            self._reaper.wait()
 
 
 def _check_reachable(address: str, hint: str) -> None:
