@@ -80,7 +80,7 @@ def test_sfm_of_the_foreground_or_of_the_whole_scene(tiny, tmp_path):
 def test_backend_crash_midrun_degrades_and_recovers(tiny, tmp_path):
     ds, scene = tiny
     config = _config(backend_retry_s=0.2, background_scale=0.5)  # background updates on
-    opts = SessionOptions(frames=FrameRange(start=0, stop=6), fault=(2, "crash", 0.0))
+    opts = SessionOptions(frames=FrameRange(start=0, stop=6), faults=((2, "crash", 0.0),))
     summary, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
     assert [m.status for m in metrics] == ["ok"] * 6  # nothing lost
     assert not any(m.degraded for m in metrics[:2])
@@ -97,7 +97,7 @@ def test_backend_crash_midrun_degrades_and_recovers(tiny, tmp_path):
 def test_backend_stall_tasks_run_degraded(tiny, tmp_path):
     ds, scene = tiny
     config = _config(masks_timeout_s=2.0, backend_retry_s=0.2, background_scale=0.5)
-    opts = SessionOptions(frames=FrameRange(start=0, stop=5), fault=(2, "stall", 8.0))
+    opts = SessionOptions(frames=FrameRange(start=0, stop=5), faults=((2, "stall", 8.0),))
     _, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
     assert metrics[2].degraded
     assert metrics[2].stages["wait_masks"] == pytest.approx(2.0, abs=0.5)

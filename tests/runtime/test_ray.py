@@ -109,7 +109,7 @@ def test_no_cluster_at_the_address_is_a_clear_error():
 def test_killing_the_backend_process_midrun(cluster, tiny, tmp_path):
     ds, scene = tiny
     config = _config(backend_retry_s=0.5)
-    opts = SessionOptions(frames=FrameRange(start=0, stop=5), fault=(2, "kill", 0.0))
+    opts = SessionOptions(frames=FrameRange(start=0, stop=5), faults=((2, "kill", 0.0),))
     summary, metrics = run_online(
         ds,
         config,

@@ -99,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
     rt = RuntimeConfig(
         deadline_s=deadline,
         background_updates=not args.no_background_updates,
+        background_scale=args.background_scale,
         sparse_scope=args.sparse_scope,
     )
     if not args.json:

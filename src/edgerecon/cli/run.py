@@ -76,6 +76,13 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         help="the back-end never rebuilds the background",
     )
     p.add_argument(
+        "--background-scale",
+        type=float,
+        default=1.0,
+        metavar="R",
+        help="image scale of the back-end's background rebuilds, in (0, 1] (default 1)",
+    )
+    p.add_argument(
         "--sparse-scope",
         choices=SPARSE_SCOPES,
         default="foreground",
@@ -96,10 +103,11 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--inject-fault",
+        action="append",
         default=None,
         metavar="TASK:KIND[:SECONDS]",
-        help="drill: before task TASK, make the back-end stall (KIND=stall), crash "
-        "(crash) or, with Ray, kill its process (kill)",
+        help="drill (repeatable): before task TASK, make the back-end stall for SECONDS "
+        "(KIND=stall, default 30 s), crash (crash) or, with Ray, kill its process (kill)",
     )
 
 
@@ -122,9 +130,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_fault(text: str | None) -> tuple[int, str, float] | None:
-    if not text:
-        return None
+def parse_faults(texts: list[str] | None) -> tuple[tuple[int, str, float], ...]:
+    return tuple(parse_fault(t) for t in texts or ())
+
+
+def parse_fault(text: str) -> tuple[int, str, float]:
     parts = text.split(":")
     usage = f"--inject-fault must be TASK:{'|'.join(FAULT_KINDS)}[:SECONDS], got {text!r}"
     if len(parts) not in (2, 3) or parts[1] not in FAULT_KINDS:
@@ -230,7 +240,7 @@ def build_options(
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,
         resume=args.resume,
         overwrite=args.overwrite or (overwrite and not args.resume),
-        fault=parse_fault(args.inject_fault),
+        faults=parse_faults(args.inject_fault),
     )
 
 
@@ -260,6 +270,8 @@ def resume_command(args: argparse.Namespace) -> str:
     ):
         if value is not None:
             words += [flag, str(value)]
+    if args.background_scale != 1.0:
+        words += ["--background-scale", f"{args.background_scale:g}"]
     words += ["--no-background-updates"] if args.no_background_updates else []
     words += ["--no-clouds"] if args.no_clouds else []
     return shlex.join([*words, "--resume"])
@@ -290,6 +302,7 @@ def run(args: argparse.Namespace) -> int:
     config = RuntimeConfig(
         deadline_s=args.deadline,
         background_updates=not args.no_background_updates,
+        background_scale=args.background_scale,
         sparse_scope=args.sparse_scope,
     )
     fixed = parse_fixed(args, dataset)

@@ -87,7 +87,7 @@ def check_options(
             f"--frames {fr.start}:{'' if fr.stop is None else fr.stop}:{fr.step} selects no "
             f"timestamp of {dataset.name} (frames 0..{dataset.num_frames - 1})"
         )
-    if options.fault is not None and options.fault[1] == "kill" and engine != "ray":
+    if any(kind == "kill" for _, kind, _ in options.faults) and engine != "ray":
         raise ValueError(
             "--inject-fault TASK:kill kills the back-end actor's process: it needs "
             "--engine ray (use stall or crash with the embedded engine)"

@@ -105,16 +105,16 @@ class SessionOptions:
     """Continue the run in the output folder (same dataset, same frame start and step)."""
     overwrite: bool = False
     """Replace the run files of a non-empty output folder (refused otherwise)."""
-    fault: tuple[int, str, float] | None = None
-    """Drill: (task number, fault kind, seconds) injected into the back-end before that task."""
+    faults: tuple[tuple[int, str, float], ...] = ()
+    """Drills: (task number, fault kind, seconds) injected into the back-end before that
+    task."""
 
     def __post_init__(self) -> None:
         if self.policy not in ("all", "newest"):
             raise ValueError(f"policy must be 'all' or 'newest', got {self.policy!r}")
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
-        if self.fault is not None:
-            task, kind, seconds = self.fault
+        for task, kind, seconds in self.faults:
             if task < 0 or kind not in FAULT_KINDS or not seconds >= 0:
                 raise ValueError(
                     f"--inject-fault: TASK >= 0, KIND in {FAULT_KINDS}, SECONDS >= 0; got "
@@ -256,10 +256,10 @@ class Session:
         return summary
 
     def _task(self, source: FrameSource, t: int, task: int) -> None:
-        if self.options.fault is not None and self.options.fault[0] == task:
-            _, kind, seconds = self.options.fault
-            logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
-            self.engine.inject_backend_fault(kind, seconds)
+        for when, kind, seconds in self.options.faults:
+            if when == task:
+                logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
+                self.engine.inject_backend_fault(kind, seconds)
         out = self._run_one(source, t, task)
         m = out.metrics
         if m.status == "ok":
