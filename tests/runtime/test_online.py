@@ -8,21 +8,8 @@ import pytest
 
 from edgerecon.io.dataset import open_dataset
 from edgerecon.io.ply import read_ply
-from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
-from edgerecon.runtime.engine import learn_scene_model
-
-
-@pytest.fixture(scope="module")
-def tiny(tiny_dataset):
-    ds = open_dataset(tiny_dataset)
-    return ds, learn_scene_model(ds)
-
-
-def _config(**kw):
-    kw.setdefault("deadline_s", 20.0)
-    kw.setdefault("masks_timeout_s", 10.0)
-    kw.setdefault("golden_timeout_s", 20.0)
-    return RuntimeConfig(**kw)
+from edgerecon.runtime import FrameRange, SessionOptions, run_online
+from tests.runtime.conftest import runtime_config
 
 
 def _lines(path):
@@ -32,7 +19,7 @@ def _lines(path):
 def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     ds, scene = tiny
     opts = SessionOptions(frames=FrameRange(start=0, stop=4), ground_truth_threshold=0.08)
-    summary, metrics = run_online(ds, _config(), opts, tmp_path, scene=scene)
+    summary, metrics = run_online(ds, runtime_config(), opts, tmp_path, scene=scene)
     assert [m.time_index for m in metrics] == [0, 1, 2, 3]
     assert all(m.status == "ok" and not m.degraded for m in metrics)
     assert metrics[0].phase == "golden" and metrics[0].scale == 1.0
@@ -65,7 +52,7 @@ def test_sfm_of_the_foreground_or_of_the_whole_scene(tiny, tmp_path):
     opts = SessionOptions(frames=FrameRange(start=2, stop=3))
     runs = {}
     for scope in ("foreground", "scene"):
-        config = _config(sparse_scope=scope, background_updates=False)
+        config = runtime_config(sparse_scope=scope, background_updates=False)
         runs[scope] = run_online(ds, config, opts, tmp_path / scope, scene=scene)[1][0]
     fg, whole = runs["foreground"], runs["scene"]
     # The paper's order reconstructs the whole scene and splits it; ours only the foreground
@@ -74,12 +61,12 @@ def test_sfm_of_the_foreground_or_of_the_whole_scene(tiny, tmp_path):
     assert fg.num_sparse_fg >= 0.5 * fg.num_sparse
     assert fg.num_fg_points > 0 and whole.num_fg_points > 0
     with pytest.raises(ValueError, match="sparse_scope"):
-        _config(sparse_scope="everything")
+        runtime_config(sparse_scope="everything")
 
 
 def test_backend_crash_midrun_degrades_and_recovers(tiny, tmp_path):
     ds, scene = tiny
-    config = _config(backend_retry_s=0.2, background_scale=0.5)  # background updates on
+    config = runtime_config(backend_retry_s=0.2, background_scale=0.5)  # background updates on
     opts = SessionOptions(frames=FrameRange(start=0, stop=6), faults=((2, "crash", 0.0),))
     summary, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
     assert [m.status for m in metrics] == ["ok"] * 6  # nothing lost
@@ -96,7 +83,7 @@ def test_backend_crash_midrun_degrades_and_recovers(tiny, tmp_path):
 
 def test_backend_stall_tasks_run_degraded(tiny, tmp_path):
     ds, scene = tiny
-    config = _config(masks_timeout_s=2.0, backend_retry_s=0.2, background_scale=0.5)
+    config = runtime_config(masks_timeout_s=2.0, backend_retry_s=0.2, background_scale=0.5)
     opts = SessionOptions(frames=FrameRange(start=0, stop=5), faults=((2, "stall", 8.0),))
     _, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
     assert metrics[2].degraded
@@ -115,7 +102,7 @@ def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_p
     ds = open_dataset(src)
     _, metrics = run_online(
         ds,
-        _config(background_updates=False),
+        runtime_config(background_updates=False),
         SessionOptions(frames=FrameRange(start=1, stop=4)),
         tmp_path / "a",
     )
@@ -126,7 +113,7 @@ def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_p
     (src / "frames" / "cam4" / "000003.png").write_bytes(b"")
     _, metrics = run_online(
         ds,
-        _config(background_updates=False),
+        runtime_config(background_updates=False),
         SessionOptions(frames=FrameRange(start=2, stop=5)),
         tmp_path / "b",
     )

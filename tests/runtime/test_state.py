@@ -10,31 +10,17 @@ import time
 import numpy as np
 import pytest
 
-from edgerecon.io.dataset import open_dataset
 from edgerecon.io.ply import read_ply
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
-from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
-from edgerecon.runtime.engine import EmbeddedEngine, learn_scene_model
+from edgerecon.runtime import FrameRange, SessionOptions, run_online
+from edgerecon.runtime.engine import EmbeddedEngine
 from edgerecon.runtime.frontend import FixedController, FrontEnd
 from edgerecon.runtime.messages import BackgroundUpdate, BgVersion, MasksReply
 from edgerecon.runtime.online import make_controller
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
 from edgerecon.scene.foreground import RigForeground
 from edgerecon.types import EdgereconError, PointCloud
-
-
-@pytest.fixture(scope="module")
-def tiny(tiny_dataset):
-    ds = open_dataset(tiny_dataset)
-    return ds, learn_scene_model(ds)
-
-
-def _config(**kw):
-    kw.setdefault("deadline_s", 20.0)
-    kw.setdefault("masks_timeout_s", 10.0)
-    kw.setdefault("golden_timeout_s", 20.0)
-    kw.setdefault("background_scale", 0.5)  # background updates stay on, at half scale
-    return RuntimeConfig(**kw)
+from tests.runtime.conftest import run_frames, runtime_config
 
 
 def _cloud(n):
@@ -66,7 +52,7 @@ def _rig():
 def test_frontend_takes_a_restarted_backends_backgrounds():
     # Before: every back-end counted from 1, so after a restart the front-end (holding v5)
     # dropped the new back-end's v1..v5 silently.
-    fe = FrontEnd(_rig(), _config(), FixedController(1.0, (0, 1, 2, 3)))
+    fe = FrontEnd(_rig(), runtime_config(), FixedController(1.0, (0, 1, 2, 3)))
     first = fe.register_backend()
     assert first.epoch == 1 and first.first
     for k in range(1, 6):
@@ -82,7 +68,11 @@ def test_frontend_takes_a_restarted_backends_backgrounds():
     assert state.backend_epoch == 2 and state.backgrounds_received == 6
     # Restored (resume): the next back-end continues the epochs, the background is kept.
     again = FrontEnd(
-        _rig(), _config(), FixedController(1.0, (0, 1, 2, 3)), restored=state, background=_cloud(50)
+        _rig(),
+        runtime_config(),
+        FixedController(1.0, (0, 1, 2, 3)),
+        restored=state,
+        background=_cloud(50),
     )
     assert again.bg_version == BgVersion(2, 1) and again.register_backend().epoch == 3
 
@@ -90,7 +80,7 @@ def test_frontend_takes_a_restarted_backends_backgrounds():
 def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
     ds, scene = tiny
     engine = EmbeddedEngine(
-        ds, _config(backend_retry_s=0.1), FixedController(0.6, (0, 1, 2, 3, 4)), scene
+        ds, runtime_config(backend_retry_s=0.1), FixedController(0.6, (0, 1, 2, 3, 4)), scene
     )
     try:
         fe = engine.frontend
@@ -113,7 +103,7 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
 
 def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp_path):
     ds, scene = tiny
-    config = _config()
+    config = runtime_config()
     fixed = (0.8, None)
 
     # Slow frame arrival after some tasks gives the back-end idle time to rebuild.
@@ -122,24 +112,9 @@ def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp
             time.sleep(4.0)
 
     whole = tmp_path / "whole"
-    _, uninterrupted = run_online(
-        ds,
-        config,
-        SessionOptions(frames=FrameRange(start=0, stop=7)),
-        whole,
-        scene=scene,
-        fixed=fixed,
-    )
+    _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)
     part = tmp_path / "part"
-    _, first = run_online(
-        ds,
-        config,
-        SessionOptions(frames=FrameRange(start=0, stop=3)),
-        part,
-        scene=scene,
-        fixed=fixed,
-        on_task=slow,
-    )
+    _, first = run_frames(tiny, part, 0, 3, config, fixed=fixed, on_task=slow)
     state = RunState.load(part)
     assert state.tasks_done == 3 and state.frontend.bg_version.epoch == 1
     # The saved background is the background itself, not a merged cloud with holes cut
@@ -190,9 +165,9 @@ def test_resume_applies_a_new_deadline_and_restarts_the_search():
     ctrl.observe(1.0, 1.0)
     saved = ctrl.to_dict()
     ds = type("D", (), {"rig": _rig()})()
-    same = make_controller(ds, _config(deadline_s=2.0), saved_state=saved)
+    same = make_controller(ds, runtime_config(deadline_s=2.0), saved_state=saved)
     assert isinstance(same, BisectionController) and same.events == []
-    new = make_controller(ds, _config(deadline_s=0.5), saved_state=saved)
+    new = make_controller(ds, runtime_config(deadline_s=0.5), saved_state=saved)
     assert isinstance(new, BisectionController)
     assert new.config.deadline_s == 0.5 and new.events[-1]["reason"] == "deadline"
 
@@ -258,7 +233,10 @@ def test_unwritable_out_is_refused_before_any_work(tiny, tmp_path):
     t0 = time.perf_counter()
     with pytest.raises(EdgereconError, match="cannot write there"):
         run_online(
-            ds, _config(), SessionOptions(frames=FrameRange(start=0, stop=2)), blocker / "out"
+            ds,
+            runtime_config(),
+            SessionOptions(frames=FrameRange(start=0, stop=2)),
+            blocker / "out",
         )
     assert time.perf_counter() - t0 < 2.0
 
@@ -266,7 +244,7 @@ def test_unwritable_out_is_refused_before_any_work(tiny, tmp_path):
 def test_golden_task_refreshes_camera_mapping_and_late_golden_is_degraded(tiny):
     ds, scene = tiny
     ctrl = BisectionController(ControllerConfig(deadline_s=100.0), None, len(ds.rig))
-    config = _config(golden_timeout_s=0.3)
+    config = runtime_config(golden_timeout_s=0.3)
     fe = FrontEnd(ds.rig, config, ctrl, model_states=scene.states)
     model = RigForeground.from_states(ds.rig, scene.states)
     with ds.open_frames() as src:

@@ -209,6 +209,27 @@ class BackendLink:
         self._next_check = time.monotonic() + self.retry_s
 
 
+def start_frontend(
+    dataset: Dataset,
+    config: RuntimeConfig,
+    controller: BisectionController | FixedController,
+    scene: SceneModel,
+    restored: FrontEndState | None,
+    background: PointCloud | None,
+) -> FrontEnd:
+    """The front-end role in this process, its kernels loaded off the clock (the first task
+    must not pay for it), restored from a run state when resuming."""
+    warm_up()
+    return FrontEnd(
+        dataset.rig,
+        config,
+        controller,
+        model_states=scene.states,
+        restored=restored,
+        background=background,
+    )
+
+
 def run_frontend_task(
     frontend: FrontEnd,
     link: BackendLink,
@@ -271,15 +292,7 @@ class EmbeddedEngine:
         self.dataset = dataset
         self.config = config
         self.scene = scene
-        warm_up()  # off the clock: the first task must not pay for loading the kernels
-        self.frontend = FrontEnd(
-            dataset.rig,
-            config,
-            controller,
-            model_states=scene.states,
-            restored=restored,
-            background=background,
-        )
+        self.frontend = start_frontend(dataset, config, controller, scene, restored, background)
         self.backend = self._new_backend()
         self.link = BackendLink(self._ping, config.backend_retry_s)
         self.backend_restarts = 0

@@ -30,6 +30,7 @@ from edgerecon.runtime.engine import (
     SceneModel,
     restart_reason,
     run_frontend_task,
+    start_frontend,
 )
 from edgerecon.runtime.frontend import FixedController, FrontEndState, TaskOutput
 from edgerecon.runtime.messages import TaskPlan
@@ -165,18 +166,7 @@ class _FrontendActor:
         restored: Any,
         background: Any,
     ) -> None:
-        from edgerecon.pipeline import warm_up
-        from edgerecon.runtime.frontend import FrontEnd
-
-        warm_up()  # in this process, before the first task is timed
-        self.frontend = FrontEnd(
-            dataset.rig,
-            config,
-            controller,
-            model_states=scene.states,
-            restored=restored,
-            background=background,
-        )
+        self.frontend = start_frontend(dataset, config, controller, scene, restored, background)
         self.config = config
         self.backend: Any = None
         self.link = BackendLink(self._ping, config.backend_retry_s)
