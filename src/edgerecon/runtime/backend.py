@@ -113,9 +113,6 @@ class BackEnd:
         for th in self._threads:
             th.join(timeout)
 
-    def set_push(self, push: PushFn | None) -> None:
-        self._push = push
-
     # ------------------------------------------------------------------ requests
     def submit(self, frames: FrameSet) -> None:
         """Queue a task; a task still waiting is replaced (only the newest matters)."""
