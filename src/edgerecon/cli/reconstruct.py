@@ -11,8 +11,7 @@ from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_text, write_ply
 from edgerecon.pipeline import reconstruct, reconstruct_task, warm_up
-from edgerecon.runtime.engine import learn_scene_model
-from edgerecon.scene.foreground import RigForeground
+from edgerecon.runtime.engine import foreground_at, learn_scene_model
 from edgerecon.scene.merge import write_merged
 
 
@@ -105,13 +104,7 @@ __all__ = ["add_task_arguments", "parse_cameras", "register", "run"]
 def _run_split(args: argparse.Namespace, dataset: Dataset, config: ReconstructionConfig) -> int:
     rig = dataset.rig
     scene = learn_scene_model(dataset)
-    model = RigForeground.from_states(rig, scene.states)
-    with dataset.open_frames() as source:
-        # Let the model see a few frames before T (it adapts, as it would online).
-        for t in range(max(0, args.time - 5), args.time):
-            model.segment(source.read(t))
-        frames = source.read(args.time)
-    foreground = model.segment(frames)
+    frames, foreground = foreground_at(dataset, args.time, scene)
     # Whole-frame SfM: the background is densified here from the points labelled background.
     result = reconstruct_task(frames, rig, foreground, config, sparse_scope="scene")
     out = Path(args.out)

@@ -35,7 +35,7 @@ from edgerecon.runtime.frontend import (
 )
 from edgerecon.runtime.messages import GoldenReply, MasksReply, TaskPlan
 from edgerecon.scene.background import BackgroundState
-from edgerecon.scene.foreground import ForegroundConfig, RigForeground
+from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
 from edgerecon.types import FrameSet, PointCloud
 
 logger = logging.getLogger(__name__)
@@ -83,6 +83,26 @@ def learn_scene_model(
         learned_from=what,
         seconds=time.perf_counter() - t0,
     )
+
+
+def foreground_at(
+    dataset: Dataset,
+    t: int,
+    scene: SceneModel | None = None,
+    *,
+    adapt_frames: int = 5,
+    config: ForegroundConfig | None = None,
+) -> tuple[FrameSet, ForegroundResult]:
+    """The frames of time ``t`` and their foreground, for the offline commands and the
+    benchmarks: the scene model (learned here when not given) first adapts on the
+    ``adapt_frames`` frames before ``t``, as it would have online."""
+    scene = scene or learn_scene_model(dataset, config)
+    model = RigForeground.from_states(dataset.rig, scene.states, config)
+    with dataset.open_frames() as source:
+        for k in range(max(0, t - adapt_frames), t):
+            model.segment(source.read(k))
+        frames = source.read(t)
+    return frames, model.segment(frames)
 
 
 def replay_scene_model(
