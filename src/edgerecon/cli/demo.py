@@ -16,6 +16,8 @@ from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.cli.run import (
+    EXIT_OK,
+    EXIT_TASKS_FAILED,
     add_online_arguments,
     build_options,
     live_printer,
@@ -140,9 +142,10 @@ def run(args: argparse.Namespace) -> int:
         "total_s": round(time.perf_counter() - t0, 2),
     }
     (out / "demo.json").write_text(json.dumps(result, indent=2) + "\n")
+    code = EXIT_TASKS_FAILED if summary.failed else EXIT_OK
     if args.json:
         emit_json(result)
-        return 0
+        return code
     print_summary(f"demo: {dataset.name}, deadline {deadline:.2f} s", summary)
     print_table(
         "original vs optimized pipeline (per task)",
@@ -156,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
         f"merged clouds in {out / 'run' / 'tasks'}; metrics in "
         f"{out / 'run' / 'metrics.jsonl'}; total {result['total_s']:.0f} s"
     )
-    return 0
+    return code
 
 
 def _scene_matches(scene_dir: Path, config: dict[str, object]) -> bool:
