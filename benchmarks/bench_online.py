@@ -93,7 +93,7 @@ def run_deadline(
 ) -> dict[str, Any]:
     ds = open_dataset(root)
     config = RuntimeConfig(deadline_s=deadline, sparse_scope=sparse_scope)
-    options = SessionOptions(frames=frames, ground_truth_threshold=threshold)
+    options = SessionOptions(frames=frames, ground_truth_threshold=threshold, overwrite=True)
     summary, metrics = run_online(ds, config, options, out)
     vs_golden = []
     for m in metrics:
