@@ -101,15 +101,27 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
         engine.close()
 
 
-def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp_path):
+def test_resume_restores_state_background_and_equals_uninterrupted_run(
+    tiny, tmp_path, monkeypatch
+):
     ds, scene = tiny
     config = runtime_config()
     fixed = (0.8, None)
+    taken = []
+    real_push = FrontEnd.push_background
 
-    # Slow frame arrival after some tasks gives the back-end idle time to rebuild.
+    def push(self, update):
+        taken.append(update.version)
+        return real_push(self, update)
+
+    monkeypatch.setattr(FrontEnd, "push_background", push)
+
+    # Frames arrive slowly after tasks 0 and 4: the back-end (of epoch 1, then of epoch 2
+    # after the resume) has time to push a background.
     def slow(m):
         if m.task in (0, 4):
-            time.sleep(4.0)
+            epoch = 1 if m.task == 0 else 2
+            assert _wait(lambda: any(v.epoch == epoch for v in taken), timeout=180)
 
     whole = tmp_path / "whole"
     _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)

@@ -123,6 +123,17 @@ class TaskGuard:
     """The task fed the controller: it is going to finish."""
 
 
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Job:
+    """One task's inputs on the front-end."""
+
+    frames: FrameSet
+    plan: TaskPlan
+    masks: MasksProvider
+    golden: GoldenProvider
+    task: int
+
+
 class FixedController:
     """A controller that always returns one configuration (for baselines, e.g. the golden
     pipeline every task, and for comparing engines task by task)."""
@@ -290,15 +301,16 @@ class FrontEnd:
         task: int = 0,
         defects: Mapping[str, str] | None = None,
     ) -> TaskOutput:
-        """:meth:`process` under the watchdog: never raises (a failed task is a record)."""
+        """Run one task (critical path, then online evaluation and the optimizer step) under
+        the watchdog: never raises (a failed task is a record). ``defects``: cameras the
+        session left out (unusable frames), name -> defect."""
         guard = TaskGuard()
         box: dict[str, Any] = {}
+        job = _Job(frames=frames, plan=plan, masks=masks, golden=golden, task=task)
 
         def work() -> None:
             try:
-                box["out"] = self.process(
-                    frames, plan, masks, golden, task=task, defects=defects, guard=guard
-                )
+                box["out"] = self._process(job, dict(defects or {}), guard)
             except BaseException as exc:  # recorded below, whatever it is
                 box["exc"] = exc
 
@@ -330,22 +342,10 @@ class FrontEnd:
         )
         return TaskOutput(metrics=m, merged=None, foreground=None)
 
-    def process(
-        self,
-        frames: FrameSet,
-        plan: TaskPlan,
-        masks: MasksProvider,
-        golden: GoldenProvider,
-        *,
-        task: int = 0,
-        defects: Mapping[str, str] | None = None,
-        guard: TaskGuard | None = None,
-    ) -> TaskOutput:
-        """Run one task (critical path, then online evaluation and the optimizer step).
-        ``defects``: cameras the session left out (unusable frames), name -> defect."""
-        defects = dict(defects or {})
+    def _process(self, job: _Job, defects: dict[str, str], guard: TaskGuard) -> TaskOutput:
+        frames, plan, masks, golden, task = job.frames, job.plan, job.masks, job.golden, job.task
         if defects and too_few_cameras(frames):
-            return self._empty(frames, plan, task, defects)
+            return self._empty(job, defects)
         start = time.perf_counter()
         background, bg_version = self.background()
         reason = ""
@@ -369,7 +369,7 @@ class FrontEnd:
             bg_version=bg_version.counter,
             split_config=self.config.split,
             sparse_scope=self.config.sparse_scope,
-            cancel=None if guard is None else guard.cancel,
+            cancel=guard.cancel,
         )
         critical = time.perf_counter() - start
         timings = result.timings
@@ -395,75 +395,75 @@ class FrontEnd:
                     OnlineQualityConfig(threshold=self.eval_threshold),
                 ).value
         with self._commit:
-            if guard is not None and guard.cancel.is_set():
+            if guard.cancel.is_set():
                 raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")
             if plan.phase == "golden" and not isinstance(self.controller, FixedController):
                 # Every golden task refreshes pi(N') (a golden re-search included).
                 vis = result.sparse.visibility_matrix(len(self.rig))
                 self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
             self.controller.observe(critical, quality)
-            if guard is not None:
-                guard.committed = True  # a late watchdog takes this result
+            guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
-        metrics = TaskMetrics(
-            task=task,
-            time_index=frames.time_index,
-            status="ok",
-            phase=plan.phase,
-            scale=plan.scale,
-            num_cameras=len(result.camera_ids),
+        return self._output(
+            job,
+            bg_version,
+            result.merged,
+            fg_rec.cloud,
             camera_ids=list(result.camera_ids),
             critical_path_s=round(critical, 6),
             stages=timings.to_dict(),
-            deadline_s=self.config.deadline_s,
             deadline_met=critical <= self.config.deadline_s,
             online_fscore=quality,
-            bg_version=bg_version.counter,
-            bg_epoch=bg_version.epoch,
             degraded=degraded,
             degraded_reason=reason,
             frame_defects=defects,
             num_sparse=result.sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
-            num_fg_points=len(fg_rec.cloud),
-            num_merged_points=len(result.merged),
             num_objects=num_objects(labels),
-            search_steps=int(getattr(self.controller, "total_search_steps", 0)),
-            wall_time=time.time(),
-        )
-        return TaskOutput(
-            metrics=metrics,
-            merged=result.merged,
-            foreground=fg_rec.cloud,
-            background=self._background_to_publish(),
         )
 
-    def _empty(
-        self, frames: FrameSet, plan: TaskPlan, task: int, defects: dict[str, str]
-    ) -> TaskOutput:
+    def _empty(self, job: _Job, defects: dict[str, str]) -> TaskOutput:
         """A task whose frames are unusable: no foreground, the background alone."""
         background, bg_version = self.background()
-        metrics = TaskMetrics(
-            task=task,
-            time_index=frames.time_index,
-            status="ok",
-            phase=plan.phase,
-            scale=plan.scale,
-            num_cameras=len(frames.available),
-            camera_ids=frames.available,
-            deadline_s=self.config.deadline_s,
+        return self._output(
+            job,
+            bg_version,
+            background,
+            PointCloud.empty(),
+            camera_ids=job.frames.available,
             deadline_met=True,
+            frame_defects=defects,
+        )
+
+    def _output(
+        self,
+        job: _Job,
+        bg_version: BgVersion,
+        merged: PointCloud,
+        foreground: PointCloud,
+        **fields: Any,
+    ) -> TaskOutput:
+        """An ok task's output; ``fields`` are the metrics that differ between tasks."""
+        metrics = TaskMetrics(
+            task=job.task,
+            time_index=job.frames.time_index,
+            status="ok",
+            phase=job.plan.phase,
+            scale=job.plan.scale,
+            num_cameras=len(fields["camera_ids"]),
+            deadline_s=self.config.deadline_s,
             bg_version=bg_version.counter,
             bg_epoch=bg_version.epoch,
-            frame_defects=defects,
-            num_merged_points=len(background),
+            num_fg_points=len(foreground),
+            num_merged_points=len(merged),
             search_steps=int(getattr(self.controller, "total_search_steps", 0)),
             wall_time=time.time(),
+            **fields,
         )
         return TaskOutput(
             metrics=metrics,
-            merged=background,
-            foreground=PointCloud.empty(),
+            merged=merged,
+            foreground=foreground,
             background=self._background_to_publish(),
         )
 
