@@ -74,38 +74,32 @@ def test_black_frames_give_empty_tasks_fast_with_one_warning(
 
 
 def test_a_stage_that_raises_is_a_failed_record(tiny, tmp_path, monkeypatch):
-    real = edgerecon.pipeline.reconstruct_foreground
+    # Time 1: the masks raise, on the back-end (a failed reply, not a silent timeout) and
+    # then on the front-end's own fallback. Time 3: the front-end's foreground MVS raises.
+    real_mvs = edgerecon.pipeline.reconstruct_foreground
+    real_segment = RigForeground.segment
     calls = {"n": 0}
 
-    def flaky(*args, **kwargs):
+    def mvs(*args, **kwargs):
         calls["n"] += 1
-        if calls["n"] == 3:  # the third task's foreground MVS
+        if calls["n"] == 3:  # the third task that gets that far: time 3
             raise RuntimeError("boom in the foreground MVS")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", flaky)
-    summary, metrics = run_frames(tiny, tmp_path, 0, 4)
-    assert [m.status for m in metrics] == ["ok", "ok", "failed", "ok"]
-    assert "RuntimeError: boom in the foreground MVS" in metrics[2].error
-    assert "reconstruct_task" in metrics[2].error  # where it was raised
-    assert summary.failed == 1 and not (tmp_path / "tasks" / "000002").exists()
-
-
-def test_a_backend_stage_that_raises_falls_back_then_fails_the_task(tiny, tmp_path, monkeypatch):
-    real = RigForeground.segment
+        return real_mvs(*args, **kwargs)
 
     def segment(self, frames, **kw):
         if frames.time_index == 1:
             raise ValueError("zero-size array to reduction operation minimum which has no identity")
-        return real(self, frames, **kw)
+        return real_segment(self, frames, **kw)
 
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", mvs)
     monkeypatch.setattr(RigForeground, "segment", segment)
-    _, metrics = run_frames(tiny, tmp_path, 0, 3)
-    # The back-end's masks raised (a failed reply, not a silent timeout); the front-end's
-    # own masks raised too: the task is a failed record, the back-end serves the next one.
-    assert [m.status for m in metrics] == ["ok", "failed", "ok"]
+    summary, metrics = run_frames(tiny, tmp_path, 0, 5)
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "failed", "ok"]
     assert "zero-size array" in metrics[1].error
-    assert not metrics[2].degraded
+    assert "RuntimeError: boom in the foreground MVS" in metrics[3].error
+    assert "reconstruct_task" in metrics[3].error  # where it was raised
+    assert not metrics[2].degraded and not metrics[4].degraded, "the back-end serves on"
+    assert summary.failed == 2 and not (tmp_path / "tasks" / "000003").exists()
 
 
 def test_a_stage_that_hangs_is_abandoned_by_the_watchdog(tiny, tmp_path, monkeypatch):
