@@ -6,13 +6,19 @@ resources, so that on real hardware
     device A:              edgerecon run --engine ray --address auto ...
 
 is all it takes. Without ``--address`` the engine starts a private single-node Ray instance
-bound to 127.0.0.1 that offers both resources (same code path, one machine).
+bound to 127.0.0.1 that offers both resources (same code path, one machine); its processes
+die with the driver, kill -9 included (:mod:`edgerecon.runtime.ray_reaper`). An address where
+no cluster answers is an :class:`EdgereconError` within seconds (:func:`connect`).
 
 Frames travel through the object store once per task: the driver puts them, the front-end
 and the back-end read the same object. Actors reserve no CPU (``num_cpus=0``: a pinned actor
 that holds a CPU for its lifetime starves later tasks on small nodes) and are threaded so the
-back-end can push backgrounds while the front-end is busy. The back-end actor restarts when its
-process dies; the front-end notices through :class:`BackendLink` and uses it again.
+back-end can push backgrounds while the front-end is busy. The actors are thin shells: all
+logic lives in the roles and in :func:`~edgerecon.runtime.engine.run_frontend_task`, shared
+with the embedded engine. The back-end actor restarts when its process dies (and is killed
+for a restart when its task thread died or is stuck past the watchdog); a (re)started actor
+gets its epoch and the newest model snapshot from the front-end, which notices through
+:class:`BackendLink` and uses it again.
 """
 
 from __future__ import annotations
