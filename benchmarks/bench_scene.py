@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from edgerecon.quality import evaluate_clouds
+from edgerecon.quality.masks import at_resolution
 from edgerecon.scene import (
     BackgroundConfig,
     ForegroundConfig,
@@ -136,7 +137,8 @@ def run_preset(
         seconds["objects"] += res.timings.seconds.get("objects", 0.0)
         for c, cam in enumerate(rig):
             gt = frame.masks[c] > 0
-            for key, pred in (("model", res.model_masks[c]), ("final", res.masks[c])):
+            for key, low in (("model", res.model_masks[c]), ("final", res.masks[c])):
+                pred = at_resolution(low, gt.shape)  # working resolution -> the frame's
                 inter[key] += int(np.count_nonzero(pred & gt))
                 union[key] += int(np.count_nonzero(pred | gt))
             for name, subs in baselines.items():
@@ -200,17 +202,16 @@ def run_preset(
 
 
 def run_utrecht(t: int, config: ForegroundConfig, dense: str | None) -> dict[str, Any]:
-    from edgerecon.cli.masks import learn_foreground
     from edgerecon.io.dataset import open_dataset
+    from edgerecon.scene.stream import dataset_scene_at
 
     ds = open_dataset(SHARED / "utrecht4cam")
     t0 = time.perf_counter()
-    fg, _ = learn_foreground(ds, config)
+    tracker = dataset_scene_at(ds, t, config)
     learn_s = time.perf_counter() - t0
     with ds.open_frames() as src:
-        fg.warm_up(src.iter_frames(max(0, t - 10), t))
         frames = src.read(t)
-    res = fg.segment(frames)
+    res = tracker.segment(frames)
     out: dict[str, Any] = {
         "time": t,
         "learn_s": learn_s,
@@ -241,7 +242,9 @@ def silhouette_consistency(points3D: np.ndarray, rig: Any, masks: Any, tol_px: i
     for cam, m in zip(rig, masks, strict=True):
         if m is None:
             continue
-        grown = cv2.dilate(m.astype(np.uint8), k).astype(bool)
+        grown = at_resolution(
+            cv2.dilate(m.astype(np.uint8), k).astype(bool), (cam.height, cam.width)
+        )
         uv, depth = cam.project(points3D)
         inside = (depth > 0) & cam.in_image(uv)
         u = np.rint(uv[inside, 0]).astype(int).clip(0, cam.width - 1)

@@ -11,9 +11,8 @@ from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_text, write_ply
 from edgerecon.pipeline import reconstruct, reconstruct_split, warm_up
-from edgerecon.runtime.engine import learn_scene_model
-from edgerecon.scene.foreground import RigForeground
 from edgerecon.scene.merge import write_merged
+from edgerecon.scene.stream import dataset_scene_at
 
 
 def add_task_arguments(p: argparse.ArgumentParser) -> None:
@@ -104,14 +103,11 @@ __all__ = ["add_task_arguments", "parse_cameras", "register", "run"]
 
 def _run_split(args: argparse.Namespace, dataset: Dataset, config: ReconstructionConfig) -> int:
     rig = dataset.rig
-    scene = learn_scene_model(dataset)
-    model = RigForeground.from_states(rig, scene.states)
+    # The background models as the online system has them at T (edgerecon.scene.stream).
+    tracker = dataset_scene_at(dataset, args.time, progress=not args.json)
     with dataset.open_frames() as source:
-        # Let the model see a few frames before T (it adapts, as it would online).
-        for t in range(max(0, args.time - 5), args.time):
-            model.segment(source.read(t))
         frames = source.read(args.time)
-    foreground = model.segment(frames)
+    foreground = tracker.segment(frames)
     result = reconstruct_split(frames, rig, foreground, config)
     out = Path(args.out)
     write_merged(out, result.merged)
@@ -120,7 +116,8 @@ def _run_split(args: argparse.Namespace, dataset: Dataset, config: Reconstructio
         "dataset": str(dataset.root),
         "unit": rig.unit,
         "cameras": [rig[i].name for i in result.camera_ids],
-        "background_model": scene.learned_from,
+        "background_model": tracker.learned_from,
+        "background_updates": tracker.updates,
         "foreground_area": foreground.areas(),
         **result.summary(),
     }

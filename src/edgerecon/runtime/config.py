@@ -45,9 +45,6 @@ class RuntimeConfig:
     background_nice: int = 10
     """OS niceness of the background-rebuild thread (Linux), so that masks and golden
     references for the current task are served first."""
-    warmup_frames: int = 30
-    """Frames of the stream that train the background model when the dataset has no
-    background clip."""
     sparse: SparseConfig = field(default_factory=SparseConfig)
     """Sparse stage of both roles."""
     sparse_scope: str = "foreground"
@@ -80,8 +77,6 @@ class RuntimeConfig:
                 f"RuntimeConfig.sparse_scope must be one of {SPARSE_SCOPES}, "
                 f"got {self.sparse_scope!r}"
             )
-        if self.warmup_frames < 1:
-            raise ValueError(f"RuntimeConfig.warmup_frames must be >= 1, got {self.warmup_frames}")
 
     def eval_threshold_for(self, rig: Rig) -> float:
         """The online (and offline) F-score threshold d for ``rig``, in its units."""

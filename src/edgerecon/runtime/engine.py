@@ -27,6 +27,7 @@ from edgerecon.runtime.frontend import FixedController, FrontEnd, TaskOutput
 from edgerecon.runtime.messages import BackgroundUpdate, GoldenReply, MasksReply, TaskPlan
 from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundConfig, RigForeground
+from edgerecon.scene.stream import bootstrap_scene
 from edgerecon.types import FrameSet
 
 logger = logging.getLogger(__name__)
@@ -47,31 +48,27 @@ class SceneModel:
 def learn_scene_model(
     dataset: Dataset,
     foreground: ForegroundConfig | None = None,
-    warmup_frames: int = 30,
+    start: int = 0,
 ) -> SceneModel:
-    """Learn the per-camera background models from the dataset's background clip, or from the
-    first ``warmup_frames`` frames of the stream (the per-pixel median ignores actors that
-    move)."""
+    """The background models as they are at time index ``start`` (the first task): the
+    bootstrap of :mod:`edgerecon.scene.stream` (background clip, or frames spread over the
+    stream's first seconds), then the scheduled updates before ``start``."""
     t0 = time.perf_counter()
-    source = dataset.open_background()
-    if source is not None:
-        with source:
-            framesets = list(source.iter_frames())
-        fg = RigForeground.learn_from_framesets(dataset.rig, framesets, foreground)
-        first = framesets[len(framesets) // 2]
-        initial = FrameSet(time_index=-1, images=first.images)
-        what = "background clip"
-    else:
-        with dataset.open_frames() as frames:
-            stop = min(frames.num_frames, warmup_frames)
-            framesets = list(frames.iter_frames(0, stop))
-        fg = RigForeground.learn_from_framesets(dataset.rig, framesets, foreground)
-        initial = None
-        what = f"first {len(framesets)} frames"
+    clip = dataset.open_background()
+    try:
+        with dataset.open_frames() as source:
+            tracker = bootstrap_scene(dataset.rig, source, dataset.fps, foreground, clip=clip)
+            tracker.catch_up(source, start)
+            initial = None
+            if clip is not None:
+                initial = FrameSet(time_index=-1, images=clip.read(clip.num_frames // 2).images)
+    finally:
+        if clip is not None:
+            clip.close()
     return SceneModel(
-        states=tuple(fg.states()),
+        states=tuple(tracker.foreground.states()),
         initial_background=initial,
-        learned_from=what,
+        learned_from=tracker.learned_from,
         seconds=time.perf_counter() - t0,
     )
 

@@ -65,7 +65,9 @@ def run_online(
     controller = make_controller(
         dataset, config, fixed=fixed, controller_config=controller_config, saved_state=saved
     )
-    scene = scene or learn_scene_model(dataset, config.foreground, config.warmup_frames)
+    if scene is None:
+        first = options.frames.indices(dataset.num_frames)[:1]
+        scene = learn_scene_model(dataset, config.foreground, first[0] if first else 0)
     if on_ready is not None:
         on_ready(scene)
     if engine == "embedded":
