@@ -7,6 +7,8 @@ utrecht4cam).
     python benchmarks/bench_scene.py --baselines                       # + OpenCV MOG2 / KNN
     python benchmarks/bench_scene.py --utrecht --time 200              # real data only
     python benchmarks/bench_scene.py --json scene.json
+    python benchmarks/bench_scene.py --online hd4 --tasks 0:240:6      # online, no empty clip
+    python benchmarks/bench_scene.py --online work/hd4p --json hd4p.json
 
 Per preset and seed the background models learn from the scene's background-only clip, then
 segment ``--frames`` timestamps. Reported:
@@ -26,6 +28,17 @@ segment ``--frames`` timestamps. Reported:
   the hull's per-pixel [near, far] range (what the dense stage would search).
 * ms/cam: milliseconds per camera-frame of background subtraction, and per frame of the hull
   and the objects.
+
+``--online DATASET_OR_PRESET`` runs the scene stage as the online system does (no empty-scene
+clip needed): the background models are learned by the runtime's own ``learn_scene_model``
+(the dataset's clip, or else its first ``warmup_frames`` frames), then every task of
+``--tasks A:B:STEP`` is segmented in order (the models update as they go) and scored against
+the ground-truth object masks of all cameras: per time, the foreground IoU and per actor the
+IoU of the predicted object matched to it (Hungarian on IoU, per image; 0 when no object
+matches) and its recall (share of its pixels called foreground, whatever the object). The
+summary gives mean / min over the tasks, over the stretches gt/scene.json records (an actor
+standing still, one away, the dimming), and the seconds of the scene stage per task. A preset
+name is written once under ``--work`` (at ``--size`` if given) and reused.
 """
 
 from __future__ import annotations
@@ -250,6 +263,179 @@ def silhouette_consistency(points3D: np.ndarray, rig: Any, masks: Any, tol_px: i
     return float(ok.mean()) if len(ok) else float("nan")
 
 
+def online_dataset(spec: str, args: argparse.Namespace) -> Path:
+    """The dataset folder ``spec``, or the preset ``spec`` written (once) under ``--work``."""
+    from edgerecon.synth import PRESETS, preset_config, write_dataset
+
+    path = Path(spec)
+    if (path / "dataset.json").is_file():
+        return path
+    if spec not in PRESETS:
+        raise SystemExit(f"--online: {spec!r} is neither a dataset folder nor a preset")
+    overrides: dict[str, Any] = {"seed": args.seeds[0]}
+    if args.size:
+        w, h = (int(x) for x in args.size.lower().split("x"))
+        overrides.update(width=w, height=h)
+    config = preset_config(spec, **overrides)
+    out = Path(args.work) / f"{spec}-{config.rig.width}x{config.rig.height}-seed{args.seeds[0]}"
+    if not (out / "dataset.json").is_file():
+        print(f"writing {spec} to {out} (once)", flush=True)
+        write_dataset(config, out, overwrite=True)
+    return out
+
+
+def _stretch_frames(gt: Any, kind: str) -> set[int]:
+    return {t for s in gt.stretches[kind] for t in range(s["start"], s["stop"])}
+
+
+def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.quality.masks import score_mask_set
+    from edgerecon.runtime.config import RuntimeConfig
+    from edgerecon.runtime.engine import learn_scene_model
+    from edgerecon.runtime.session import FrameRange
+    from edgerecon.synth import GroundTruth
+
+    path = online_dataset(spec, args)
+    ds = open_dataset(path)
+    gt = GroundTruth.open(path)
+    rig = ds.rig
+    warmup = args.warmup
+    if warmup is None:
+        warmup = next(
+            f.default for f in dataclasses.fields(RuntimeConfig) if f.name == "warmup_frames"
+        )
+    model = learn_scene_model(ds, config, warmup)
+    fg = RigForeground.from_states(rig, model.states, config)
+    tasks = FrameRange.parse(args.tasks).indices(ds.num_frames) if args.tasks else None
+    if tasks is None:
+        step = max(1, ds.num_frames // 40)
+        tasks = list(range(0, ds.num_frames, step))[:40]
+    ids = gt.actor_ids
+    rows: list[dict[str, Any]] = []
+    with ds.open_frames() as source:
+        for t in tasks:
+            frames = source.read(t)
+            t0 = time.perf_counter()
+            res = fg.segment(frames)
+            seconds = time.perf_counter() - t0
+            truth = [gt.object_mask(c, t) for c in range(len(rig))]
+            preds = []
+            for c, lab in enumerate(res.label_images()):
+                h, w = truth[c].shape
+                if lab is None:
+                    lab = np.zeros((h, w), np.int32)
+                elif lab.shape != (h, w):
+                    # Scored at the ground truth's resolution (nearest keeps the ids).
+                    lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
+                preds.append(lab)
+            score = score_mask_set(preds, truth)
+            recall: dict[int, float] = {}
+            for k in ids:
+                area = sum(int(np.count_nonzero(m == k)) for m in truth)
+                if area:
+                    hit = sum(
+                        int(np.count_nonzero((m == k) & (p > 0)))
+                        for m, p in zip(truth, preds, strict=True)
+                    )
+                    recall[k] = hit / area
+            rows.append(
+                {
+                    "time": t,
+                    "light": gt.illumination(t),
+                    "foreground_iou": score.foreground_iou,
+                    "precision": score.precision,
+                    "recall": score.recall,
+                    "object_iou": {k: score.object_iou[k] for k in ids if k in score.object_iou},
+                    "object_recall": recall,
+                    "seconds": seconds,
+                }
+            )
+    selections: list[tuple[str, set[int]]] = [("all tasks", set(tasks))]
+    for kind in ("still", "away", "dimming"):
+        for item in gt.stretches[kind]:
+            who = f" actor {item['actor']}" if "actor" in item else ""
+            frames_in = set(range(item["start"], item["stop"]))
+            selections.append((f"{kind}{who} {item['start']}..{item['stop'] - 1}", frames_in))
+    summary = []
+    for name, frames_in in selections:
+        sel = [r for r in rows if r["time"] in frames_in]
+        if not sel:
+            continue
+        entry: dict[str, Any] = {
+            "stretch": name,
+            "tasks": len(sel),
+            "foreground_iou_mean": float(np.mean([r["foreground_iou"] for r in sel])),
+            "seconds_mean": float(np.mean([r["seconds"] for r in sel])),
+        }
+        for k in ids:
+            ious = [r["object_iou"][k] for r in sel if k in r["object_iou"]]
+            recs = [r["object_recall"][k] for r in sel if k in r["object_recall"]]
+            entry[f"iou_{k}_mean"] = float(np.mean(ious)) if ious else None
+            entry[f"iou_{k}_min"] = float(np.min(ious)) if ious else None
+            entry[f"recall_{k}_mean"] = float(np.mean(recs)) if recs else None
+        summary.append(entry)
+    cam = rig[0]
+    return {
+        "dataset": str(path),
+        "name": ds.name,
+        "size": f"{cam.width}x{cam.height}",
+        "cameras": len(rig),
+        "learned_from": model.learned_from,
+        "learn_s": model.seconds,
+        "tasks": tasks,
+        "stretches": gt.stretches,
+        "rows": rows,
+        "summary": summary,
+    }
+
+
+def print_online(r: dict[str, Any]) -> None:
+    ids = sorted(
+        {int(k) for row in r["rows"] for k in row["object_iou"]}
+        | {int(k) for row in r["rows"] for k in row["object_recall"]}
+    )
+
+    def f(v: float | None) -> str:
+        return "    -" if v is None else f"{v:5.3f}"
+
+    print(
+        f"{r['name']} {r['cameras']} x {r['size']}, background learned from {r['learned_from']} "
+        f"in {r['learn_s']:.1f} s"
+    )
+    print(
+        f"{'t':>4} {'light':>5} {'fg IoU':>6} "
+        + " ".join(f"{'IoU ' + str(k):>6}" for k in ids)
+        + " "
+        + " ".join(f"{'rec ' + str(k):>6}" for k in ids)
+        + f" {'s/task':>6}"
+    )
+    for row in r["rows"]:
+        print(
+            f"{row['time']:4d} {row['light']:5.2f} {row['foreground_iou']:6.3f} "
+            + " ".join(f" {f(row['object_iou'].get(k))}" for k in ids)
+            + " "
+            + " ".join(f" {f(row['object_recall'].get(k))}" for k in ids)
+            + f" {row['seconds']:6.2f}",
+            flush=True,
+        )
+    print(
+        f"\n{'stretch':28} {'tasks':>5} {'fg IoU':>6} "
+        + " ".join(f"{'IoU ' + str(k) + ' mean/min':>15}" for k in ids)
+        + " "
+        + " ".join(f"{'rec ' + str(k):>6}" for k in ids)
+        + f" {'s/task':>6}"
+    )
+    for e in r["summary"]:
+        print(
+            f"{e['stretch']:28} {e['tasks']:5d} {e['foreground_iou_mean']:6.3f} "
+            + " ".join(f"    {f(e[f'iou_{k}_mean'])}/{f(e[f'iou_{k}_min'])}" for k in ids)
+            + " "
+            + " ".join(f" {f(e[f'recall_{k}_mean'])}" for k in ids)
+            + f" {e['seconds_mean']:6.2f}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -272,6 +458,14 @@ def main() -> None:
     ap.add_argument("--utrecht", action="store_true", help="utrecht4cam only")
     ap.add_argument("--time", type=int, default=200, help="utrecht4cam frame")
     ap.add_argument("--dense", default=None, help="utrecht4cam dense PLY for the silhouette figure")
+    ap.add_argument(
+        "--online", default=None, help="dataset folder or preset: the online scene stage vs truth"
+    )
+    ap.add_argument("--tasks", default=None, help="--online: timestamps A:B:STEP (default 40)")
+    ap.add_argument("--warmup", type=int, default=None, help="--online: learning frames")
+    ap.add_argument(
+        "--work", default="/tmp/edgerecon-bench", help="--online: where presets are written"
+    )
     ap.add_argument("--json", default=None, help="write the results to this file")
     args = ap.parse_args()
 
@@ -289,6 +483,10 @@ def main() -> None:
     if args.utrecht:
         r = run_utrecht(args.time, config, args.dense)
         print(json.dumps(r, indent=2))
+        results.append(r)
+    elif args.online:
+        r = run_online(args.online, config, args)
+        print_online(r)
         results.append(r)
     else:
         header = (
