@@ -268,9 +268,17 @@ class Actor:
             object.__setattr__(self, "_dist_cache", cached)
         return cached
 
+    def _held(self, t: float) -> float | None:
+        """The start of the still interval that contains ``t`` (ends included), or None."""
+        for a, b in self.still:
+            if a <= t <= b:
+                return a
+        return None
+
     def position(self, t: float) -> F64:
         """(2,) floor position at frame time ``t``, metres."""
-        return np.asarray(self._spline()(self._clip(t)), dtype=np.float64)
+        held = self._held(t)
+        return np.asarray(self._spline()(self._clip(t if held is None else held)), np.float64)
 
     def heading(self, t: float) -> float:
         """Walking direction (radians about z) at frame time ``t``."""
@@ -314,6 +322,8 @@ class Actor:
 
     def speed(self, t: float) -> float:
         """Floor speed in metres per frame."""
+        if self._held(t) is not None:
+            return 0.0
         return float(np.linalg.norm(self._spline()(self._clip(t), 1)))
 
     def walked(self, t: float) -> float:

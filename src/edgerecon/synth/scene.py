@@ -14,6 +14,10 @@ Presets (``preset_config(name, **overrides)``):
 * ``arc7``: 7 cameras at 1920x1080, ~1720 px focal length, 15 degrees apart on an arc, looking
   at the scene centre, with Dance1-like barrel distortion (the paper's studio rig).
 * ``demo``: 5 cameras at 640x480, 40 timestamps, 2 actors (the README's main job).
+* ``hd4`` / ``hd4p``: people in a room as real phone/webcam rigs film them: 4 cameras 90
+  degrees apart at 1920x1080 (``hd4p``: 1080x1920, phones held upright), no background clip,
+  250 frames at 25 fps of scripted actors (``ROOM_SCRIPTS``: one stands still for 6 s, one
+  leaves and comes back, one sits talking) and a dimming light (``ROOM_LIGHTS``).
 """
 
 from __future__ import annotations
