@@ -53,6 +53,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from _report import report_header
 from edgerecon.quality import evaluate_clouds
 from edgerecon.scene import (
     BackgroundConfig,
@@ -284,8 +285,15 @@ def online_dataset(spec: str, args: argparse.Namespace) -> Path:
     return out
 
 
-def _stretch_frames(gt: Any, kind: str) -> set[int]:
-    return {t for s in gt.stretches[kind] for t in range(s["start"], s["stop"])}
+def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
+    """A predicted mask or label image at the ground truth's resolution (nearest keeps the
+    ids; a missing camera predicts nothing)."""
+    if pred is None:
+        return np.zeros(truth.shape, np.int32)
+    if pred.shape != truth.shape:
+        src = pred.astype(np.uint8) if pred.dtype == bool else pred
+        pred = cv2.resize(src, truth.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    return pred
 
 
 def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
@@ -305,8 +313,8 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
         warmup = next(
             f.default for f in dataclasses.fields(RuntimeConfig) if f.name == "warmup_frames"
         )
-    model = learn_scene_model(ds, config, warmup)
-    fg = RigForeground.from_states(rig, model.states, config)
+    scene_model = learn_scene_model(ds, config, warmup)
+    fg = RigForeground.from_states(rig, scene_model.states, config)
     tasks = FrameRange.parse(args.tasks).indices(ds.num_frames) if args.tasks else None
     if tasks is None:
         step = max(1, ds.num_frames // 40)
@@ -320,16 +328,10 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
             res = fg.segment(frames)
             seconds = time.perf_counter() - t0
             truth = [gt.object_mask(c, t) for c in range(len(rig))]
-            preds = []
-            for c, lab in enumerate(res.label_images()):
-                h, w = truth[c].shape
-                if lab is None:
-                    lab = np.zeros((h, w), np.int32)
-                elif lab.shape != (h, w):
-                    # Scored at the ground truth's resolution (nearest keeps the ids).
-                    lab = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
-                preds.append(lab)
+            preds = [_like(lab, m) for lab, m in zip(res.label_images(), truth, strict=True)]
             score = score_mask_set(preds, truth)
+            before_hull = [_like(p, m) for p, m in zip(res.model_masks, truth, strict=True)]
+            model_iou = score_mask_set(before_hull, truth).foreground_iou
             recall: dict[int, float] = {}
             for k in ids:
                 area = sum(int(np.count_nonzero(m == k)) for m in truth)
@@ -344,6 +346,7 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
                     "time": t,
                     "light": gt.illumination(t),
                     "foreground_iou": score.foreground_iou,
+                    "model_iou": model_iou,
                     "precision": score.precision,
                     "recall": score.recall,
                     "object_iou": {k: score.object_iou[k] for k in ids if k in score.object_iou},
@@ -366,6 +369,7 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
             "stretch": name,
             "tasks": len(sel),
             "foreground_iou_mean": float(np.mean([r["foreground_iou"] for r in sel])),
+            "model_iou_mean": float(np.mean([r["model_iou"] for r in sel])),
             "seconds_mean": float(np.mean([r["seconds"] for r in sel])),
         }
         for k in ids:
@@ -377,12 +381,13 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
         summary.append(entry)
     cam = rig[0]
     return {
+        **report_header(),
         "dataset": str(path),
         "name": ds.name,
         "size": f"{cam.width}x{cam.height}",
         "cameras": len(rig),
-        "learned_from": model.learned_from,
-        "learn_s": model.seconds,
+        "learned_from": scene_model.learned_from,
+        "learn_s": scene_model.seconds,
         "tasks": tasks,
         "stretches": gt.stretches,
         "rows": rows,
@@ -404,7 +409,7 @@ def print_online(r: dict[str, Any]) -> None:
         f"in {r['learn_s']:.1f} s"
     )
     print(
-        f"{'t':>4} {'light':>5} {'fg IoU':>6} "
+        f"{'t':>4} {'light':>5} {'fg IoU':>6} {'model':>5} "
         + " ".join(f"{'IoU ' + str(k):>6}" for k in ids)
         + " "
         + " ".join(f"{'rec ' + str(k):>6}" for k in ids)
@@ -413,6 +418,7 @@ def print_online(r: dict[str, Any]) -> None:
     for row in r["rows"]:
         print(
             f"{row['time']:4d} {row['light']:5.2f} {row['foreground_iou']:6.3f} "
+            f"{row['model_iou']:5.3f} "
             + " ".join(f" {f(row['object_iou'].get(k))}" for k in ids)
             + " "
             + " ".join(f" {f(row['object_recall'].get(k))}" for k in ids)
@@ -420,7 +426,7 @@ def print_online(r: dict[str, Any]) -> None:
             flush=True,
         )
     print(
-        f"\n{'stretch':28} {'tasks':>5} {'fg IoU':>6} "
+        f"\n{'stretch':28} {'tasks':>5} {'fg IoU':>6} {'model':>5} "
         + " ".join(f"{'IoU ' + str(k) + ' mean/min':>15}" for k in ids)
         + " "
         + " ".join(f"{'rec ' + str(k):>6}" for k in ids)
@@ -429,6 +435,7 @@ def print_online(r: dict[str, Any]) -> None:
     for e in r["summary"]:
         print(
             f"{e['stretch']:28} {e['tasks']:5d} {e['foreground_iou_mean']:6.3f} "
+            f"{e['model_iou_mean']:5.3f} "
             + " ".join(f"    {f(e[f'iou_{k}_mean'])}/{f(e[f'iou_{k}_min'])}" for k in ids)
             + " "
             + " ".join(f" {f(e[f'recall_{k}_mean'])}" for k in ids)
