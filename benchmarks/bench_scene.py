@@ -53,7 +53,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from _report import report_header
+from _report import print_rows, report_header
 from edgerecon.quality import evaluate_clouds
 from edgerecon.scene import (
     BackgroundConfig,
@@ -396,51 +396,43 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
 
 
 def print_online(r: dict[str, Any]) -> None:
-    ids = sorted(
-        {int(k) for row in r["rows"] for k in row["object_iou"]}
-        | {int(k) for row in r["rows"] for k in row["object_recall"]}
-    )
-
-    def f(v: float | None) -> str:
-        return "    -" if v is None else f"{v:5.3f}"
-
+    ids = sorted({int(k) for row in r["rows"] for k in (*row["object_iou"], *row["object_recall"])})
     print(
         f"{r['name']} {r['cameras']} x {r['size']}, background learned from {r['learned_from']} "
-        f"in {r['learn_s']:.1f} s"
+        f"in {r['learn_s']:.1f} s (load {r['load_avg']:.1f})"
     )
-    print(
-        f"{'t':>4} {'light':>5} {'fg IoU':>6} {'model':>5} "
-        + " ".join(f"{'IoU ' + str(k):>6}" for k in ids)
-        + " "
-        + " ".join(f"{'rec ' + str(k):>6}" for k in ids)
-        + f" {'s/task':>6}"
+    per_object = [f"IoU {k}" for k in ids] + [f"rec {k}" for k in ids]
+    rows = [
+        {
+            "t": row["time"],
+            "light": row["light"],
+            "fg IoU": row["foreground_iou"],
+            "model": row["model_iou"],
+            **{f"IoU {k}": row["object_iou"].get(k) for k in ids},
+            **{f"rec {k}": row["object_recall"].get(k) for k in ids},
+            "s/task": row["seconds"],
+        }
+        for row in r["rows"]
+    ]
+    print_rows("per task", ["t", "light", "fg IoU", "model", *per_object, "s/task"], rows)
+    stats = [f"IoU {k} {m}" for k in ids for m in ("mean", "min")] + [f"rec {k}" for k in ids]
+    rows = [
+        {
+            "stretch": e["stretch"],
+            "tasks": e["tasks"],
+            "fg IoU": e["foreground_iou_mean"],
+            "model": e["model_iou_mean"],
+            **{f"IoU {k} {m}": e[f"iou_{k}_{m}"] for k in ids for m in ("mean", "min")},
+            **{f"rec {k}": e[f"recall_{k}_mean"] for k in ids},
+            "s/task": e["seconds_mean"],
+        }
+        for e in r["summary"]
+    ]
+    print_rows(
+        "summary (means over tasks)",
+        ["stretch", "tasks", "fg IoU", "model", *stats, "s/task"],
+        rows,
     )
-    for row in r["rows"]:
-        print(
-            f"{row['time']:4d} {row['light']:5.2f} {row['foreground_iou']:6.3f} "
-            f"{row['model_iou']:5.3f} "
-            + " ".join(f" {f(row['object_iou'].get(k))}" for k in ids)
-            + " "
-            + " ".join(f" {f(row['object_recall'].get(k))}" for k in ids)
-            + f" {row['seconds']:6.2f}",
-            flush=True,
-        )
-    print(
-        f"\n{'stretch':28} {'tasks':>5} {'fg IoU':>6} {'model':>5} "
-        + " ".join(f"{'IoU ' + str(k) + ' mean/min':>15}" for k in ids)
-        + " "
-        + " ".join(f"{'rec ' + str(k):>6}" for k in ids)
-        + f" {'s/task':>6}"
-    )
-    for e in r["summary"]:
-        print(
-            f"{e['stretch']:28} {e['tasks']:5d} {e['foreground_iou_mean']:6.3f} "
-            f"{e['model_iou_mean']:5.3f} "
-            + " ".join(f"    {f(e[f'iou_{k}_mean'])}/{f(e[f'iou_{k}_min'])}" for k in ids)
-            + " "
-            + " ".join(f" {f(e[f'recall_{k}_mean'])}" for k in ids)
-            + f" {e['seconds_mean']:6.2f}"
-        )
 
 
 def main() -> None:
