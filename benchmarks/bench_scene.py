@@ -30,9 +30,10 @@ segment ``--frames`` timestamps. Reported:
   and the objects.
 
 ``--online DATASET_OR_PRESET`` runs the scene stage as the online system does (no empty-scene
-clip needed): the background models are learned by the runtime's own ``learn_scene_model``
-(the dataset's clip, or else its first ``warmup_frames`` frames), then every task of
-``--tasks A:B:STEP`` is segmented in order (the models update as they go) and scored against
+clip needed): the background models follow the one stream definition of
+``edgerecon.scene.stream`` (bootstrap from the clip or the stream's first second, then the
+scheduled updates before each task), then every task of ``--tasks A:B:STEP`` is segmented in
+order and scored against
 the ground-truth object masks of all cameras: per time, the foreground IoU and per actor the
 IoU of the predicted object matched to it (Hungarian on IoU, per image; 0 when no object
 matches) and its recall (share of its pixels called foreground, whatever the object). The
@@ -302,22 +303,19 @@ def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
 def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
     from edgerecon.io.dataset import open_dataset
     from edgerecon.quality.masks import score_mask_set
-    from edgerecon.runtime.config import RuntimeConfig
-    from edgerecon.runtime.engine import learn_scene_model
     from edgerecon.runtime.session import FrameRange
+    from edgerecon.scene.stream import bootstrap_scene
     from edgerecon.synth import GroundTruth
 
     path = online_dataset(spec, args)
     ds = open_dataset(path)
     gt = GroundTruth.open(path)
     rig = ds.rig
-    warmup = args.warmup
-    if warmup is None:
-        warmup = next(
-            f.default for f in dataclasses.fields(RuntimeConfig) if f.name == "warmup_frames"
-        )
-    scene_model = learn_scene_model(ds, config, warmup)
-    fg = RigForeground.from_states(rig, scene_model.states, config)
+    t_learn = time.perf_counter()
+    clip = ds.open_background()
+    with ds.open_frames() as source:
+        tracker = bootstrap_scene(rig, source, ds.fps, config, clip=clip)
+    learn_s = time.perf_counter() - t_learn
     tasks = FrameRange.parse(args.tasks).indices(ds.num_frames) if args.tasks else None
     if tasks is None:
         step = max(1, ds.num_frames // 40)
@@ -326,9 +324,11 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
     rows: list[dict[str, Any]] = []
     with ds.open_frames() as source:
         for t in tasks:
+            # The scheduled background updates before t (as the online system applies them).
+            update_s = tracker.catch_up(source, t)
             frames = source.read(t)
             t0 = time.perf_counter()
-            res = fg.segment(frames)
+            res = tracker.segment(frames)
             seconds = time.perf_counter() - t0
             truth = [gt.object_mask(c, t) for c in range(len(rig))]
             preds = [_like(lab, m) for lab, m in zip(res.label_images(), truth, strict=True)]
@@ -355,6 +355,7 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
                     "object_iou": {k: score.object_iou[k] for k in ids if k in score.object_iou},
                     "object_recall": recall,
                     "seconds": seconds,
+                    "update_seconds": update_s,
                 }
             )
     selections: list[tuple[str, set[int]]] = [("all tasks", set(tasks))]
@@ -389,8 +390,10 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
         "name": ds.name,
         "size": f"{cam.width}x{cam.height}",
         "cameras": len(rig),
-        "learned_from": scene_model.learned_from,
-        "learn_s": scene_model.seconds,
+        "learned_from": tracker.learned_from,
+        "learn_s": learn_s,
+        "updates": tracker.updates,
+        "ghosts_repaired": tracker.ghosts,
         "tasks": tasks,
         "stretches": gt.stretches,
         "rows": rows,
@@ -464,7 +467,6 @@ def main() -> None:
         "--online", default=None, help="dataset folder or preset: the online scene stage vs truth"
     )
     ap.add_argument("--tasks", default=None, help="--online: timestamps A:B:STEP (default 40)")
-    ap.add_argument("--warmup", type=int, default=None, help="--online: learning frames")
     ap.add_argument(
         "--work", default="/tmp/edgerecon-bench", help="--online: where presets are written"
     )

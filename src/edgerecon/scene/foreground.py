@@ -56,10 +56,13 @@ class ForegroundConfig:
     update_interval_s: float = 0.5
     """Stream time between two updates of the background models: every frame whose time
     index is a multiple of ``round(fps x update_interval_s)`` teaches them (seconds)."""
-    bootstrap_span_s: float = 8.0
+    bootstrap_span_s: float = 1.0
     """Without a background clip, the models start from the per-pixel median of frames spread
-    over the first this many seconds of the stream (actors who move within it are left out)."""
-    bootstrap_frames: int = 16
+    over the first this many seconds of the stream. Short on purpose: whatever is present
+    then is learned, and the ghost repair learns the background it uncovers as soon as it
+    moves; a long span would also learn an actor who stands still for most of it and then
+    hold nothing (measured on the hd4 preset: see docs/BENCHMARKS.md)."""
+    bootstrap_frames: int = 8
     """How many frames (evenly spread over ``bootstrap_span_s``) enter that median."""
 
     def __post_init__(self) -> None:
