@@ -16,7 +16,13 @@ golden configuration's foreground sparse points, at the online threshold d):
 * ``coverage``  — share of the golden foreground sparse points within d of the task's dense
   foreground (what of the golden surfaces the task recovered);
 * ``dense_F``   — F-score of the task's dense foreground against the golden sparse points,
-  precision taken at 3 d (a sparse reference is too thin to judge dense precision at d).
+  precision taken at 3 d (a sparse reference is too thin to judge dense precision at d);
+* ``sil_recall`` / ``sil_F`` — no golden reference at all: the task's dense foreground
+  projected into every camera's foreground mask (all cameras, also those the task left out):
+  share of mask pixels within a pixel of a point (recall), share of points in the masks
+  (precision);
+* ``density``   — dense foreground points per foreground mask pixel, relative to the golden
+  task's (capped at 1).
 
 Prints the samples and, per estimate, Pearson / Spearman correlation with the offline score.
 
@@ -52,18 +58,54 @@ from edgerecon.scene.stream import dataset_scene_at
 from edgerecon.sparse import SparseReconstruction, reconstruct_sparse
 from edgerecon.types import FrameSet, PointCloud
 
-ESTIMATES = ("sparse_F", "coverage", "dense_F")
+ESTIMATES = ("sparse_F", "coverage", "dense_F", "sil_recall", "sil_F", "density")
+
+
+def silhouette_scores(points: np.ndarray, fg: ForegroundResult) -> tuple[float, float]:
+    """(recall, precision) of a foreground cloud against the foreground masks of every camera
+    (working resolution): share of mask pixels within a pixel of a projected point, and share
+    of the points inside the image that land in the (1 px grown) mask."""
+    import cv2
+
+    hit = tot = inside = n_in = 0
+    k3 = np.ones((3, 3), np.uint8)
+    for cam, mask in zip(fg.cameras, fg.masks, strict=True):
+        if mask is None or not mask.any():
+            continue
+        uv, depth = cam.project(points)
+        ok = (depth > 0) & cam.in_image(uv)
+        u = np.clip(np.rint(uv[ok, 0]).astype(int), 0, cam.width - 1)
+        v = np.clip(np.rint(uv[ok, 1]).astype(int), 0, cam.height - 1)
+        splat = np.zeros(mask.shape, np.uint8)
+        splat[v, u] = 1
+        splat = cv2.dilate(splat, k3).astype(bool)
+        grown = cv2.dilate(mask.view(np.uint8), k3).astype(bool)
+        hit += int(np.count_nonzero(splat & mask))
+        tot += int(np.count_nonzero(mask))
+        inside += int(np.count_nonzero(grown[v, u]))
+        n_in += len(u)
+    return (hit / tot if tot else 0.0), (inside / n_in if n_in else 0.0)
 
 
 def estimates(
-    fg_sparse: np.ndarray, fg_dense: np.ndarray, golden_sparse: np.ndarray, d: float
+    fg_sparse: np.ndarray,
+    fg_dense: np.ndarray,
+    golden_sparse: np.ndarray,
+    d: float,
+    fg: ForegroundResult,
+    golden_density: float,
 ) -> dict[str, float]:
     """The candidate online estimates of one task (see the module docstring)."""
     from scipy.spatial import cKDTree
 
     out: dict[str, float] = {}
+    rec, prec = silhouette_scores(fg_dense, fg) if len(fg_dense) else (0.0, 0.0)
+    out["sil_recall"] = rec
+    out["sil_F"] = 2 * rec * prec / (rec + prec) if rec + prec else 0.0
+    area = sum(int(np.count_nonzero(m)) for m in fg.masks if m is not None)
+    out["density"] = min(1.0, len(fg_dense) / area / golden_density) if area else 0.0
     if len(golden_sparse) == 0:
-        return dict.fromkeys(ESTIMATES, np.nan)
+        return {**out, "sparse_F": np.nan, "coverage": np.nan, "dense_F": np.nan}
     out["sparse_F"] = (
         evaluate_clouds(fg_sparse, golden_sparse, d)[0].fscore if len(fg_sparse) else 0.0
     )
@@ -121,6 +163,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         all_ids = tuple(range(len(rig)))
         golden_sparse, golden = foreground_task(frames, rig, fg, rc, 1.0, all_ids)
+        area = sum(int(np.count_nonzero(m)) for m in fg.masks if m is not None)
+        golden_density = len(golden.cloud) / max(area, 1)
         ref_sparse = golden.fg_sparse.points3D
         if gt is not None:
             reference: PointCloud | np.ndarray = gt.reference_cloud(t, "foreground", min_views=2)
@@ -143,7 +187,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 rec = golden
             else:
                 _, rec = foreground_task(frames, rig, fg, rc, scale, ids)
-            est = estimates(rec.fg_sparse.points3D, rec.cloud.points3D, ref_sparse, d_online)
+            est = estimates(
+                rec.fg_sparse.points3D,
+                rec.cloud.points3D,
+                ref_sparse,
+                d_online,
+                fg,
+                golden_density,
+            )
             off = [
                 evaluate_clouds(rec.cloud.points3D, ref_pts, dd)[0].fscore
                 if len(rec.cloud) and len(ref_pts)
