@@ -51,7 +51,7 @@ from edgerecon.pipeline import (
     warm_up,
 )
 from edgerecon.quality.metrics import evaluate_clouds
-from edgerecon.quality.online import online_offline_correlation
+from edgerecon.quality.online import online_offline_correlation, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig, median_camera_distance
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.stream import dataset_scene_at
@@ -59,32 +59,6 @@ from edgerecon.sparse import SparseReconstruction, reconstruct_sparse
 from edgerecon.types import FrameSet, PointCloud
 
 ESTIMATES = ("sparse_F", "coverage", "dense_F", "sil_recall", "sil_F", "density")
-
-
-def silhouette_scores(points: np.ndarray, fg: ForegroundResult) -> tuple[float, float]:
-    """(recall, precision) of a foreground cloud against the foreground masks of every camera
-    (working resolution): share of mask pixels within a pixel of a projected point, and share
-    of the points inside the image that land in the (1 px grown) mask."""
-    import cv2
-
-    hit = tot = inside = n_in = 0
-    k3 = np.ones((3, 3), np.uint8)
-    for cam, mask in zip(fg.cameras, fg.masks, strict=True):
-        if mask is None or not mask.any():
-            continue
-        uv, depth = cam.project(points)
-        ok = (depth > 0) & cam.in_image(uv)
-        u = np.clip(np.rint(uv[ok, 0]).astype(int), 0, cam.width - 1)
-        v = np.clip(np.rint(uv[ok, 1]).astype(int), 0, cam.height - 1)
-        splat = np.zeros(mask.shape, np.uint8)
-        splat[v, u] = 1
-        splat = cv2.dilate(splat, k3).astype(bool)
-        grown = cv2.dilate(mask.view(np.uint8), k3).astype(bool)
-        hit += int(np.count_nonzero(splat & mask))
-        tot += int(np.count_nonzero(mask))
-        inside += int(np.count_nonzero(grown[v, u]))
-        n_in += len(u)
-    return (hit / tot if tot else 0.0), (inside / n_in if n_in else 0.0)
 
 
 def estimates(
@@ -99,9 +73,9 @@ def estimates(
     from scipy.spatial import cKDTree
 
     out: dict[str, float] = {}
-    rec, prec = silhouette_scores(fg_dense, fg) if len(fg_dense) else (0.0, 0.0)
-    out["sil_recall"] = rec
-    out["sil_F"] = 2 * rec * prec / (rec + prec) if rec + prec else 0.0
+    sil = silhouette_quality(fg_dense, fg.cameras, fg.masks)
+    out["sil_recall"] = sil.recall if sil.recall is not None else np.nan
+    out["sil_F"] = sil.fscore if sil.fscore is not None else np.nan
     area = sum(int(np.count_nonzero(m)) for m in fg.masks if m is not None)
     out["density"] = min(1.0, len(fg_dense) / area / golden_density) if area else 0.0
     if len(golden_sparse) == 0:

@@ -258,10 +258,12 @@ def downscale(frame: Image, size: tuple[int, int]) -> Image:
     while k >= 2 and (w % k or h % k):
         k -= 1
     if k >= 2:
-        frame = cv2.resize(frame, (w // k, h // k), interpolation=cv2.INTER_AREA)
+        reduced = np.asarray(
+            cv2.resize(frame, (w // k, h // k), interpolation=cv2.INTER_AREA), np.uint8
+        )
         if (w // k, h // k) == size:
-            return np.asarray(frame, np.uint8)
-        return np.asarray(cv2.resize(frame, size, interpolation=cv2.INTER_LINEAR), np.uint8)
+            return reduced
+        return np.asarray(cv2.resize(reduced, size, interpolation=cv2.INTER_LINEAR), np.uint8)
     return np.asarray(cv2.resize(frame, size, interpolation=cv2.INTER_AREA), np.uint8)
 
 
