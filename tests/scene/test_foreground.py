@@ -127,3 +127,23 @@ def test_missing_camera_frame_and_bad_input(scene, segmented) -> None:  # type: 
         fg.set_occluders([None])
     with pytest.raises(ValueError, match="ForegroundConfig.hull"):
         ForegroundConfig(hull=None)  # type: ignore[arg-type]
+
+
+def test_reduced_frames_give_the_same_masks(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    """Frames reduced to the working size (what travels between nodes) segment and teach the
+    models exactly as the full frames do."""
+    sc, _, frames = scene
+    fg, _ = segmented
+    a = RigForeground.from_states(sc.rig, fg.states(), fg.config)
+    b = RigForeground.from_states(sc.rig, fg.states(), fg.config)
+    fs = FrameSet(time_index=0, images=frames[0].images)
+    small = a.reduce(fs)
+    assert all(
+        im.shape[1::-1] == m.working_size for im, m in zip(small.images, a.models, strict=True)
+    )
+    for ma, mb in zip(a.segment(fs).masks, b.segment(small).masks, strict=True):
+        np.testing.assert_array_equal(ma, mb)
+    a.update(fs)
+    b.update(small)
+    for sa, sb in zip(a.states(), b.states(), strict=True):
+        np.testing.assert_array_equal(sa.mean, sb.mean)

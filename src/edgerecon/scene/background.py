@@ -423,7 +423,7 @@ class BackgroundModel:
     def _check_frame(self, frame: Image) -> None:
         if frame.ndim != 3 or frame.shape[2] != 3:
             raise DataError(f"camera {self.camera!r}: frames must be BGR (H, W, 3)")
-        if (frame.shape[1], frame.shape[0]) != self.frame_size:
+        if (frame.shape[1], frame.shape[0]) not in (self.frame_size, self.working_size):
             raise DataError(
                 f"camera {self.camera!r}: frame is {frame.shape[1]}x{frame.shape[0]} but the "
                 f"background model was learned at {self.frame_size[0]}x{self.frame_size[1]}"
@@ -538,7 +538,8 @@ class BackgroundModel:
         return changed & ~shadow, shadow, gain
 
     def working_image(self, frame: Image) -> NDArray[np.float32]:
-        """``frame`` (full resolution, checked) as the float32 working-resolution image."""
+        """``frame`` (full resolution, or already reduced to the working size: e.g. by
+        ``downscale`` before it travelled to another node) as the float32 working image."""
         self._check_frame(frame)
         return _to_working(frame, self.working_size)
 

@@ -16,6 +16,7 @@ teaches them one frame (see :mod:`edgerecon.scene.stream` for which frames of a 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -31,6 +32,7 @@ from edgerecon.scene.background import (
     BackgroundState,
     Segmentation,
     UpdateStats,
+    downscale,
 )
 from edgerecon.scene.hull import HullConfig, VisualHull, hull_consistent_masks, visual_hull
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
@@ -188,6 +190,18 @@ class RigForeground:
         return tuple(
             cam.resized(*model.working_size)
             for cam, model in zip(self.rig, self.models, strict=True)
+        )
+
+    def reduce(self, frames: FrameSet) -> FrameSet:
+        """``frames`` at the models' working resolution: all that ``segment`` and ``update``
+        need of them, a fraction of the bytes when frames travel to another node."""
+        self._check(frames)
+        return dataclasses.replace(
+            frames,
+            images=tuple(
+                None if im is None else downscale(im, model.working_size)
+                for model, im in zip(self.models, frames.images, strict=True)
+            ),
         )
 
     def _check(self, frames: FrameSet) -> None:
