@@ -90,7 +90,7 @@ def test_split_pipeline_with_empty_foreground(tiny):
     with ds.open_background() as bg:
         framesets = list(bg.iter_frames())
     model = RigForeground.learn_from_framesets(ds.rig, framesets)
-    empty = model.segment(framesets[0], update=False)  # the empty scene: nothing moves
+    empty = model.segment(framesets[0])  # the empty scene: nothing moves
     assert not any(m.any() for m in empty.masks if m is not None)
     result = reconstruct_task(framesets[0], ds.rig, empty, sparse_scope="scene")
     assert result.foreground.is_empty and result.foreground.dense is None

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
-from edgerecon.geometry.camera import Rig
+from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.hull import hull_depth_range
 from edgerecon.scene.merge import merge_clouds
@@ -38,7 +38,7 @@ from edgerecon.types import (
     PointCloud,
     StageTimings,
 )
-from edgerecon.views import View, prepare_views, with_masks
+from edgerecon.views import View, mask_scale, prepare_views, with_masks
 
 logger = logging.getLogger(__name__)
 
@@ -184,7 +184,10 @@ class ForegroundReconstruction:
         return len(self.cloud) == 0
 
 
-def _dilate(mask: Mask, radius: int) -> Mask:
+def _dilate(mask: Mask, radius_px: int, camera: Camera) -> Mask:
+    """``mask`` of ``camera`` (any resolution, see ``mask_scale``) grown by ``radius_px``
+    pixels of the camera's frames."""
+    radius = round(radius_px * mask_scale(mask, camera)) if radius_px > 0 else 0
     if radius <= 0 or not mask.any():
         return mask
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
@@ -219,7 +222,7 @@ def foreground_views(
     """``views`` masked to the foreground ``masks`` (full resolution, per rig camera) grown by
     ``dilation_px``; a camera without a mask gets an empty one (nothing of it is foreground)."""
     grown = [
-        np.zeros((c.height, c.width), bool) if m is None else _dilate(m, dilation_px)
+        np.zeros((c.height, c.width), bool) if m is None else _dilate(m, dilation_px, c)
         for c, m in zip(rig, masks, strict=True)
     ]
     return with_masks(views, rig, grown)
@@ -259,7 +262,8 @@ def reconstruct_foreground(
         )
     with timings.stage("fg_prepare"):
         masks = [
-            None if m is None else _dilate(m, config.fg_mask_dilation_px) for m in foreground.masks
+            None if m is None else _dilate(m, config.fg_mask_dilation_px, c)
+            for c, m in zip(rig, foreground.masks, strict=True)
         ]
         # A camera without a mask (no frame for the back-end) contributes nothing.
         masks = [
@@ -309,7 +313,8 @@ def reconstruct_background(
     config = config or SplitPipelineConfig()
     if foreground_masks is not None:
         masks = [
-            None if m is None else ~_dilate(m, config.bg_mask_dilation_px) for m in foreground_masks
+            None if m is None else ~_dilate(m, config.bg_mask_dilation_px, c)
+            for c, m in zip(rig, foreground_masks, strict=True)
         ]
         views = with_masks(views, rig, masks)
     dense = reconstruct_dense(views, dense_config, sparse, up=rig.up)

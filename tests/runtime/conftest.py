@@ -19,7 +19,6 @@ def tiny(tiny_dataset):
 
 def runtime_config(**kw):
     kw.setdefault("deadline_s", 20.0)
-    kw.setdefault("masks_timeout_s", 10.0)
     kw.setdefault("golden_timeout_s", 20.0)
     kw.setdefault("background_scale", 0.5)
     return RuntimeConfig(**kw)

@@ -74,8 +74,8 @@ def test_black_frames_give_empty_tasks_fast_with_one_warning(
 
 
 def test_a_stage_that_raises_is_a_failed_record(tiny, tmp_path, monkeypatch):
-    # Time 1: the masks raise, on the back-end (a failed reply, not a silent timeout) and
-    # then on the front-end's own fallback. Time 3: the front-end's foreground MVS raises.
+    # Time 1: the scene stage raises (the front-end computes the masks). Time 3: the
+    # front-end's foreground MVS raises.
     real_mvs = edgerecon.pipeline.reconstruct_foreground
     real_segment = RigForeground.segment
     calls = {"n": 0}
@@ -98,7 +98,8 @@ def test_a_stage_that_raises_is_a_failed_record(tiny, tmp_path, monkeypatch):
     assert "zero-size array" in metrics[1].error
     assert "RuntimeError: boom in the foreground MVS" in metrics[3].error
     assert "reconstruct_task" in metrics[3].error  # where it was raised
-    assert not metrics[2].degraded and not metrics[4].degraded, "the back-end serves on"
+    assert not metrics[2].degraded and not metrics[4].degraded, "the run goes on whole"
+    assert metrics[2].submitted and metrics[4].submitted, "the back-end serves on"
     assert summary.failed == 2 and not (tmp_path / "tasks" / "000003").exists()
 
 

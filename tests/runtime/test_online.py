@@ -24,15 +24,15 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     assert all(m.status == "ok" and not m.degraded for m in metrics)
     assert metrics[0].phase == "golden" and metrics[0].scale == 1.0
     assert metrics[0].num_cameras == len(ds.rig)
-    # The golden task is its own reference: online F = 1, unless its foreground has too few
-    # sparse points for an informative estimate (then None).
-    if metrics[0].num_sparse_fg >= 10:
-        assert metrics[0].online_fscore == pytest.approx(1.0)
-    else:
-        assert metrics[0].online_fscore is None
+    # The online estimate (the dense foreground against every camera's masks) is informative
+    # on every task.
+    assert all(m.online_fscore is not None and 0.2 < m.online_fscore <= 1.0 for m in metrics)
     assert all(m.offline_fscore is not None and m.offline_fscore > 0.1 for m in metrics)
     assert all(m.num_fg_points > 0 and m.critical_path_s > 0 for m in metrics)
-    assert {"sfm", "wait_masks", "split", "merge"} <= set(metrics[0].stages)
+    assert all(m.submitted for m in metrics)
+    assert {"scene", "sfm", "split", "merge", "online_quality"} <= set(metrics[0].stages)
+    # The scene stage (masks at the working resolution) costs a small share of the task.
+    assert metrics[0].stages["scene"] < 0.35 * metrics[0].critical_path_s
     lines = _lines(tmp_path / "metrics.jsonl")
     assert [x["time_index"] for x in lines] == [0, 1, 2, 3]
     for m in metrics:
@@ -64,31 +64,50 @@ def test_sfm_of_the_foreground_or_of_the_whole_scene(tiny, tmp_path):
         runtime_config(sparse_scope="everything")
 
 
-def test_backend_crash_midrun_degrades_and_recovers(tiny, tmp_path):
+def test_backend_crash_midrun_recovers_and_backgrounds_advance(tiny, tmp_path):
     ds, scene = tiny
     config = runtime_config(backend_retry_s=0.2, background_scale=0.5)  # background updates on
     opts = SessionOptions(frames=FrameRange(start=0, stop=6), faults=((2, "crash", 0.0),))
     summary, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
     assert [m.status for m in metrics] == ["ok"] * 6  # nothing lost
-    assert not any(m.degraded for m in metrics[:2])
-    assert metrics[2].degraded and "no masks" in metrics[2].degraded_reason
-    assert metrics[2].online_fscore is None and metrics[2].num_fg_points > 0
-    assert not metrics[-1].degraded, "the restarted back-end serves again"
-    assert summary.degraded == sum(m.degraded for m in metrics) >= 1
+    # The masks are the front-end's own: a lost back-end degrades nothing of the task.
+    assert not any(m.degraded for m in metrics)
+    assert all(m.online_fscore is not None and m.num_fg_points > 0 for m in metrics)
     assert summary.backend_restarts == 1
     assert len(list((tmp_path / "tasks").iterdir())) == 6
     versions = [m.background_version for m in metrics]
     assert versions == sorted(versions), "the background version never goes back"
+    assert metrics[-1].submitted, "the restarted back-end serves again"
 
 
-def test_backend_stall_tasks_run_degraded(tiny, tmp_path):
+def test_backend_crash_with_the_golden_estimate_degrades_and_recovers(tiny, tmp_path):
     ds, scene = tiny
-    config = runtime_config(masks_timeout_s=2.0, backend_retry_s=0.2, background_scale=0.5)
-    opts = SessionOptions(frames=FrameRange(start=0, stop=5), faults=((2, "stall", 8.0),))
-    _, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
-    assert metrics[2].degraded
-    assert metrics[2].stages["wait_masks"] == pytest.approx(2.0, abs=0.5)
-    assert all(m.status == "ok" for m in metrics)
+    config = runtime_config(backend_retry_s=0.2, online_quality="golden")
+    opts = SessionOptions(frames=FrameRange(start=0, stop=6), faults=((2, "crash", 0.0),))
+    summary, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
+    assert [m.status for m in metrics] == ["ok"] * 6
+    assert not any(m.degraded for m in metrics[:2])
+    assert metrics[2].degraded and "back-end" in metrics[2].degraded_reason
+    assert metrics[2].online_fscore is None and metrics[2].num_fg_points > 0
+    assert not metrics[-1].degraded, "the restarted back-end serves again"
+    assert summary.degraded == sum(m.degraded for m in metrics) >= 1
+    assert summary.backend_restarts == 1
+
+
+def test_backend_stall_costs_the_critical_path_nothing(tiny, tmp_path):
+    ds, scene = tiny
+    runs = {}
+    for quality in ("silhouette", "golden"):
+        config = runtime_config(golden_timeout_s=2.0, backend_retry_s=0.2, online_quality=quality)
+        opts = SessionOptions(frames=FrameRange(start=0, stop=5), faults=((2, "stall", 8.0),))
+        runs[quality] = run_online(ds, config, opts, tmp_path / quality, scene=scene)[1]
+    silhouette, golden = runs["silhouette"], runs["golden"]
+    assert all(m.status == "ok" and not m.degraded for m in silhouette)
+    assert all("wait_golden" not in m.stages for m in silhouette)
+    # The paper's estimate waits (after the critical path) for a reference that never comes.
+    assert golden[2].degraded and golden[2].stages["wait_golden"] == pytest.approx(2.0, abs=0.6)
+    assert golden[2].critical_path_s < sum(golden[2].stages.values())
+    assert all(m.status == "ok" for m in golden)
 
 
 def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_path):

@@ -42,9 +42,7 @@ def tiny(tiny_dataset):
 
 
 def _config(**kw):
-    return RuntimeConfig(
-        deadline_s=20.0, masks_timeout_s=15.0, golden_timeout_s=30.0, background_updates=False, **kw
-    )
+    return RuntimeConfig(deadline_s=20.0, golden_timeout_s=30.0, background_updates=False, **kw)
 
 
 def test_roles_run_on_their_nodes_and_match_embedded(cluster, tiny, tmp_path):
@@ -121,8 +119,8 @@ def test_killing_the_backend_process_midrun(cluster, tiny, tmp_path):
         scene=scene,
     )
     assert [m.status for m in metrics] == ["ok"] * 5
-    assert not metrics[0].degraded and not metrics[1].degraded
-    assert metrics[2].degraded
-    assert summary.degraded >= 1
-    assert not metrics[-1].degraded, "the restarted actor serves again"
+    # The masks are the front-end's: the tasks stay whole while the back-end is gone.
+    assert summary.degraded == 0
+    assert all(m.num_fg_points > 0 and m.online_fscore is not None for m in metrics)
+    assert metrics[-1].submitted, "the restarted actor serves again"
     assert len(list((tmp_path / "tasks").iterdir())) == 5

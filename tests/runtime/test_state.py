@@ -15,10 +15,9 @@ from edgerecon.optimize.controller import BisectionController, ControllerConfig
 from edgerecon.runtime import FrameRange, SessionOptions, run_online
 from edgerecon.runtime.engine import EmbeddedEngine
 from edgerecon.runtime.frontend import FixedController, FrontEnd
-from edgerecon.runtime.messages import BackgroundUpdate, BgVersion, MasksReply
+from edgerecon.runtime.messages import BackgroundUpdate, BgVersion
 from edgerecon.runtime.online import make_controller
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
-from edgerecon.scene.foreground import RigForeground
 from edgerecon.types import EdgereconError, PointCloud
 from tests.runtime.conftest import run_frames, runtime_config
 
@@ -101,9 +100,7 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
         engine.close()
 
 
-def test_resume_restores_state_background_and_equals_uninterrupted_run(
-    tiny, tmp_path, monkeypatch
-):
+def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp_path, monkeypatch):
     ds, scene = tiny
     config = runtime_config()
     fixed = (0.8, None)
@@ -125,6 +122,7 @@ def test_resume_restores_state_background_and_equals_uninterrupted_run(
 
     whole = tmp_path / "whole"
     _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)
+    taken.clear()  # the next run's pushes only
     part = tmp_path / "part"
     _, first = run_frames(tiny, part, 0, 3, config, fixed=fixed, on_task=slow)
     state = RunState.load(part)
@@ -256,20 +254,21 @@ def test_unwritable_out_is_refused_before_any_work(tiny, tmp_path):
 def test_golden_task_refreshes_camera_mapping_and_late_golden_is_degraded(tiny):
     ds, scene = tiny
     ctrl = BisectionController(ControllerConfig(deadline_s=100.0), None, len(ds.rig))
-    config = runtime_config(golden_timeout_s=0.3)
-    fe = FrontEnd(ds.rig, config, ctrl, model_states=scene.states)
-    model = RigForeground.from_states(ds.rig, scene.states)
+    config = runtime_config(golden_timeout_s=0.3, online_quality="golden")
+    fe = FrontEnd(ds.rig, config, ctrl, scene.tracker(ds.rig))
     with ds.open_frames() as src:
         framesets = [src.read(t) for t in range(3)]
+    handed: list = []
 
     def run(task, frames):
-        fg = model.segment(frames)
-        reply = MasksReply(time_index=frames.time_index, foreground=fg, seconds=0.0)
         plan = fe.next_plan(frames.time_index)
-        return plan, fe.run_task(frames, plan, lambda _t: reply, lambda t: time.sleep(t), task=task)
+        return plan, fe.run_task(frames, plan, handed.append, lambda t: time.sleep(t), task=task)
 
     plan, out = run(0, framesets[0])
     assert plan.phase == "golden" and fe.pi_source["task"] == 0
+    # The back-end was handed the frames with the front-end's own masks, asked for a reference.
+    assert handed[0].frames.time_index == 0 and handed[0].golden
+    assert handed[0].foreground.masks[0] is not None and not handed[0].foreground.segmentations
     m = out.metrics
     # The golden reference came late: counted as degraded, and the wait is in the stages.
     assert m.degraded and "no golden reference" in m.degraded_reason

@@ -5,25 +5,26 @@ Both drive the same :class:`FrontEnd` / :class:`BackEnd` classes through the sam
 :class:`BackendLink` health logic and :func:`run_frontend_task`, so a task gives the same
 result on either engine; :class:`Engine` is what the session may call.
 
-Back-end health: after a task whose masks did not arrive in time, the back-end is *lost*:
-the front-end neither submits to it nor waits for it (tasks run degraded: local masks, no
-online estimate) and checks every ``backend_retry_s`` seconds whether it answers again and is
-idle; then it is used again from the next task on.
+Back-end health: when the back-end cannot take a task (the transport fails) or, with the
+golden online estimate, does not deliver the reference in time, it is *lost*: the front-end
+stops submitting to it (tasks still run whole: the masks are the front-end's own; the
+background stops advancing, and golden-estimate tasks run degraded) and checks every
+``backend_retry_s`` seconds whether it answers again and is idle; then it is used again from
+the next task on.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.pipeline import warm_up
-from edgerecon.quality.frames import frame_defects, without_defective
 from edgerecon.runtime.backend import BackEnd
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.frontend import (
@@ -33,9 +34,10 @@ from edgerecon.runtime.frontend import (
     TaskOutput,
     too_few_cameras,
 )
-from edgerecon.runtime.messages import GoldenReply, MasksReply, TaskPlan
+from edgerecon.runtime.messages import GoldenReply, TaskPlan, TaskWork
 from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
+from edgerecon.scene.stream import SceneTracker, bootstrap_scene, dataset_scene_at
 from edgerecon.types import FrameSet, PointCloud
 
 logger = logging.getLogger(__name__)
@@ -43,95 +45,69 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SceneModel:
-    """What both roles start from: the background models and, when the dataset has a clip of
-    the empty scene, one frame set of it for the first background reconstruction."""
+    """What the roles start from: the background models at the first task (and where that
+    is on their update schedule) and, when the dataset has a clip of the empty scene, one
+    frame set of it for the first background reconstruction."""
 
     states: tuple[BackgroundState, ...]
+    step: int
+    """Update step of the models' schedule (time indices)."""
+    next_update: int
+    """The next scheduled update the models have not learned."""
     initial_background: FrameSet | None
     learned_from: str
-    """"background clip" or "first N frames"."""
+    """What the models were bootstrapped from (the clip, or frames of the stream)."""
     seconds: float
+
+    def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
+        """Live background models (a copy: the snapshot stays as it is)."""
+        return SceneTracker(
+            foreground=RigForeground.from_states(rig, self.states, config),
+            step=self.step,
+            next_update=self.next_update,
+            learned_from=self.learned_from,
+        )
 
 
 def learn_scene_model(
     dataset: Dataset,
     foreground: ForegroundConfig | None = None,
-    warmup_frames: int = 30,
+    start: int = 0,
 ) -> SceneModel:
-    """Learn the per-camera background models from the dataset's background clip, or from the
-    first ``warmup_frames`` frames of the stream (the per-pixel median ignores actors that
-    move)."""
+    """The background models as they are at time index ``start`` (the first task): the
+    bootstrap of :mod:`edgerecon.scene.stream` (background clip, or frames spread over the
+    stream's first second), then the scheduled updates before ``start``."""
     t0 = time.perf_counter()
-    source = dataset.open_background()
-    if source is not None:
-        with source:
-            framesets = list(source.iter_frames())
-        fg = RigForeground.learn_from_framesets(dataset.rig, framesets, foreground)
-        first = framesets[len(framesets) // 2]
-        initial = FrameSet(time_index=-1, images=first.images)
-        what = "background clip"
-    else:
-        with dataset.open_frames() as frames:
-            stop = min(frames.num_frames, warmup_frames)
-            framesets = list(frames.iter_frames(0, stop))
-        fg = RigForeground.learn_from_framesets(dataset.rig, framesets, foreground)
-        initial = None
-        what = f"first {len(framesets)} frames"
+    clip = dataset.open_background()
+    try:
+        with dataset.open_frames() as source:
+            tracker = bootstrap_scene(dataset.rig, source, dataset.fps, foreground, clip=clip)
+            tracker.catch_up(source, start)
+            initial = None
+            if clip is not None:
+                initial = FrameSet(time_index=-1, images=clip.read(clip.num_frames // 2).images)
+    finally:
+        if clip is not None:
+            clip.close()
     return SceneModel(
-        states=tuple(fg.states()),
+        states=tuple(tracker.foreground.states()),
+        step=tracker.step,
+        next_update=tracker.next_update,
         initial_background=initial,
-        learned_from=what,
+        learned_from=tracker.learned_from,
         seconds=time.perf_counter() - t0,
     )
 
 
 def foreground_at(
-    dataset: Dataset,
-    t: int,
-    scene: SceneModel | None = None,
-    *,
-    adapt_frames: int = 5,
-    config: ForegroundConfig | None = None,
+    dataset: Dataset, t: int, config: ForegroundConfig | None = None
 ) -> tuple[FrameSet, ForegroundResult]:
-    """The frames of time ``t`` and their foreground, for the offline commands and the
-    benchmarks: the scene model (learned here when not given) first adapts on the
-    ``adapt_frames`` frames before ``t``, as it would have online."""
-    scene = scene or learn_scene_model(dataset, config)
-    model = RigForeground.from_states(dataset.rig, scene.states, config)
+    """The frames of time ``t`` and their foreground as the online system computes it (for
+    the offline commands and the benchmarks)."""
+    tracker = dataset_scene_at(dataset, t, config)
     with dataset.open_frames() as source:
-        for k in range(max(0, t - adapt_frames), t):
-            model.segment(source.read(k))
         frames = source.read(t)
-    return frames, model.segment(frames)
-
-
-def replay_scene_model(
-    dataset: Dataset,
-    scene: SceneModel,
-    time_indices: Sequence[int],
-    config: RuntimeConfig,
-) -> SceneModel:
-    """``scene`` after its background models learned from the frames of ``time_indices`` in
-    order, as the back-end's did while serving those tasks (``--resume``: the resumed
-    back-end segments the next frame with the models an uninterrupted run would have).
-    Unusable cameras are left out as the session leaves them out."""
-    if not time_indices:
-        return scene
-    t0 = time.perf_counter()
-    model = RigForeground.from_states(dataset.rig, scene.states, config.foreground)
-    with dataset.open_frames(missing="skip_camera") as source:
-        framesets = (
-            without_defective(fs, frame_defects(fs, config.frame_check))
-            for fs in (source.read(t) for t in time_indices)
-        )
-        n = model.warm_up(framesets)
-    logger.info("background models replayed %d frames in %.1f s", n, time.perf_counter() - t0)
-    return dataclasses.replace(
-        scene,
-        states=tuple(model.states()),
-        learned_from=f"{scene.learned_from} + {n} frames replayed",
-        seconds=scene.seconds + time.perf_counter() - t0,
-    )
+    return frames, tracker.segment(frames)
 
 
 class Engine(Protocol):
@@ -143,8 +119,18 @@ class Engine(Protocol):
         """The controller's configuration for the next task."""
         ...
 
+    def pending_updates(self, time_index: int) -> list[int]:
+        """Time indices whose frames the scheduled background updates need before the task
+        of ``time_index`` (the session reads them and passes them to :meth:`run_task`)."""
+        ...
+
     def run_task(
-        self, frames: FrameSet, plan: TaskPlan, task: int, defects: Mapping[str, str]
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        task: int,
+        defects: Mapping[str, str],
+        updates: Sequence[FrameSet] = (),
     ) -> TaskOutput:
         """Run one task; never raises for a failed task (its record says why)."""
         ...
@@ -167,8 +153,7 @@ class Engine(Protocol):
 class BackendClient(Protocol):
     """The front-end's calls to a back-end, wherever it runs (None replies: late or lost)."""
 
-    def submit(self, frames: FrameSet) -> None: ...
-    def masks(self, time_index: int, timeout: float) -> MasksReply | None: ...
+    def submit(self, work: TaskWork) -> None: ...
     def golden(self, time_index: int, timeout: float) -> GoldenReply | None: ...
 
 
@@ -199,15 +184,20 @@ class BackendLink:
         self.outages = 0
 
     def usable(self) -> bool:
-        """Whether to submit the next task to the back-end (checks a lost back-end at most
-        every ``retry_s``)."""
-        if not self.lost:
-            return True
+        """Whether to submit the next task to the back-end. A healthy back-end is pinged at
+        most every ``retry_s`` too (nothing waits on it for the task itself, so a dead one
+        would otherwise go unnoticed and the background stop advancing); a lost one is
+        checked as often whether it is back."""
         now = time.monotonic()
         if now < self._next_check:
-            return False
+            return not self.lost
         self._next_check = now + self.retry_s
         status = self._ping()
+        if not self.lost:
+            if status is None:  # dead or stuck: the engine is bringing up a new one
+                self.mark_lost("does not answer its health check")
+                return False
+            return True
         if (
             status is not None
             and status.get("alive")
@@ -244,7 +234,7 @@ def start_frontend(
         dataset.rig,
         config,
         controller,
-        model_states=scene.states,
+        scene.tracker(dataset.rig, config.foreground),
         restored=restored,
         background=background,
     )
@@ -258,31 +248,37 @@ def run_frontend_task(
     plan: TaskPlan,
     task: int,
     defects: Mapping[str, str],
+    updates: Sequence[FrameSet] = (),
 ) -> TaskOutput:
     """One task on the front-end with the back-end's help while it is usable (the same on
     every engine: only ``backend``'s transport differs)."""
     t = frames.time_index
     use = backend is not None and not too_few_cameras(frames) and link.usable()
-    if use and backend is not None:
+    submitted = False
+
+    def submit(work: TaskWork) -> None:
+        nonlocal use, submitted
+        if not use or backend is None:
+            return
         try:
-            backend.submit(frames)
+            backend.submit(work)
+            submitted = True
         except Exception as exc:  # the transport failed: a lost back-end
             link.mark_lost(f"submit failed: {type(exc).__name__}")
             use = False
 
-    def masks(timeout: float) -> MasksReply | None:
-        if not use or backend is None:
+    def golden(timeout: float) -> GoldenReply | None:
+        if not submitted or backend is None:
             return None
-        reply = backend.masks(t, timeout)
+        reply = backend.golden(t, timeout)
         if reply is None:
-            link.mark_lost(f"no masks for time {t} within {timeout:.1f} s")
+            link.mark_lost(f"no golden reference for time {t} within {timeout:.1f} s")
         return reply
 
-    def golden(timeout: float) -> GoldenReply | None:
-        return backend.golden(t, timeout) if use and backend is not None else None
-
-    out = frontend.run_task(frames, plan, masks, golden, task=task, defects=defects)
-    out.metrics.submitted = use
+    out = frontend.run_task(
+        frames, plan, submit, golden, task=task, defects=defects, updates=updates
+    )
+    out.metrics.submitted = submitted
     if not use and out.metrics.degraded:
         out.metrics.degraded_reason = f"back-end lost ({link.lost_reason})"
     return out
@@ -319,12 +315,9 @@ class EmbeddedEngine:
 
     def _new_backend(self) -> BackEnd:
         start = self.frontend.register_backend()
-        states = start.model_states or self.scene.states
-        fg = RigForeground.from_states(self.dataset.rig, states, self.config.foreground)
         return BackEnd(
             self.dataset.rig,
             self.config,
-            fg,
             push=self.frontend.push_background,
             initial_background=self.scene.initial_background if start.first else None,
             epoch=start.epoch,
@@ -345,12 +338,21 @@ class EmbeddedEngine:
     def plan(self, time_index: int) -> TaskPlan:
         return self.frontend.next_plan(time_index)
 
+    def pending_updates(self, time_index: int) -> list[int]:
+        return self.frontend.pending_updates(time_index)
+
     def run_task(
-        self, frames: FrameSet, plan: TaskPlan, task: int, defects: Mapping[str, str]
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        task: int,
+        defects: Mapping[str, str],
+        updates: Sequence[FrameSet] = (),
     ) -> TaskOutput:
-        backend = self.backend
-        client = _LocalBackend(backend)
-        return run_frontend_task(self.frontend, self.link, client, frames, plan, task, defects)
+        client = _LocalBackend(self.backend)
+        return run_frontend_task(
+            self.frontend, self.link, client, frames, plan, task, defects, updates
+        )
 
     def state(self) -> FrontEndState:
         return self.frontend.state()
@@ -378,11 +380,8 @@ class _LocalBackend:
     def __init__(self, backend: BackEnd) -> None:
         self._backend = backend
 
-    def submit(self, frames: FrameSet) -> None:
-        self._backend.submit(frames)
-
-    def masks(self, time_index: int, timeout: float) -> MasksReply | None:
-        return self._backend.masks(time_index, timeout)
+    def submit(self, work: TaskWork) -> None:
+        self._backend.submit(work)
 
     def golden(self, time_index: int, timeout: float) -> GoldenReply | None:
         return self._backend.golden(time_index, timeout)

@@ -1,15 +1,20 @@
 """The front-end role: each task's critical path, the online evaluation, the optimizer.
 
 Per task the front-end runs the one composition of a task (:func:`pipeline.reconstruct_task`)
-with the optimizer's configuration (r, pi(N')), the masks the back-end computes (or, when they
-do not arrive in time, its own: :meth:`FrontEnd.obtain_foreground`) and the newest background
-it holds. The critical path ends when the merged cloud is ready; then the front-end scores the
-task's foreground sparse cloud against the back-end's golden reference (the online quality
-estimate) and feeds (T, Q) to the controller.
+with the optimizer's configuration (r, pi(N')), the foreground it computes itself (the scene
+stage: :meth:`FrontEnd.obtain_foreground`, a few tens of milliseconds at the working
+resolution; the front-end owns the background models and applies their scheduled updates,
+see :mod:`edgerecon.scene.stream`) and the newest background it holds. Once the foreground is
+known it hands the frames and masks to the back-end (golden reference, background rebuilds).
+The critical path ends when the merged cloud is ready; then the front-end estimates the
+task's quality (by default from its own dense foreground and the masks,
+:func:`~edgerecon.quality.online.silhouette_quality`; or against the back-end's golden
+reference, the paper's estimate) and feeds (T, Q) to the controller.
 
 The front-end owns the run's state that must survive a restart (:class:`FrontEndState`): the
 controller, where pi(N') came from, the background version it holds and the back-end epochs
-it handed out.
+it handed out. The background models need no saving: they are a function of the stream
+(:mod:`edgerecon.scene.stream`) and a resumed run rebuilds them.
 
 Every task runs under a watchdog (:meth:`FrontEnd.run_task`): an exception in any stage, or a
 task still running after ``RuntimeConfig.watchdog_s``, gives a failed record, never a dead run.
@@ -33,25 +38,26 @@ from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
 from edgerecon.pipeline import TaskCancelled, num_objects, reconstruct_task
-from edgerecon.quality.online import OnlineQualityConfig, online_quality
+from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
     GoldenReply,
-    MasksReply,
     TaskMetrics,
     TaskPlan,
+    TaskWork,
     describe_exception,
 )
-from edgerecon.scene.background import BackgroundState
-from edgerecon.scene.foreground import ForegroundResult, RigForeground
+from edgerecon.scene.foreground import ForegroundResult
+from edgerecon.scene.stream import SceneTracker
 from edgerecon.types import FrameSet, PointCloud, StageTimings
 
 logger = logging.getLogger(__name__)
 
+#: Hands a task's work to the back-end (never raises: a transport failure marks it lost).
+SubmitFn = Callable[[TaskWork], None]
 #: Waits for a reply: ``provider(timeout_s)`` returns the reply or None (late or unavailable).
-MasksProvider = Callable[[float], MasksReply | None]
 GoldenProvider = Callable[[float], GoldenReply | None]
 
 #: Fewer sparse points than this and camera selection also uses the dense foreground points.
@@ -108,8 +114,6 @@ class BackendStart:
     """What a (re)starting back-end gets from the front-end (:meth:`FrontEnd.register_backend`)."""
 
     epoch: int
-    model_states: tuple[BackgroundState, ...] | None
-    """The newest background-model snapshot the front-end holds (None: the initial one)."""
     first: bool
     """The first back-end of this front-end (it may start from the empty-scene clip)."""
 
@@ -129,9 +133,12 @@ class _Job:
 
     frames: FrameSet
     plan: TaskPlan
-    masks: MasksProvider
+    submit: SubmitFn
     golden: GoldenProvider
     task: int
+    updates: tuple[FrameSet, ...] = ()
+    """Frames of the scheduled background updates due before this task (the session reads
+    them; ``FrontEnd.pending_updates``)."""
 
 
 class FixedController:
@@ -173,23 +180,21 @@ class FrontEnd:
         rig: Rig,
         config: RuntimeConfig,
         controller: BisectionController | FixedController,
+        scene: SceneTracker | None = None,
         *,
-        model_states: Sequence[BackgroundState] | None = None,
         restored: FrontEndState | None = None,
         background: PointCloud | None = None,
     ) -> None:
         self.rig = rig
         self.config = config
         self.controller = controller
-        self._local_fg: RigForeground | None = None
+        self.scene = scene
+        self._scene_lock = threading.Lock()
         self._lock = threading.Lock()
         self._commit = threading.Lock()
         self._background = PointCloud.empty() if background is None else background
         self._bg_version = BgVersion()
         self._bg_published = BgVersion()
-        self._bg_states: tuple[BackgroundState, ...] | None = (
-            None if model_states is None else tuple(model_states)
-        )
         self._backend_epoch = 0
         self._backends_registered = 0
         self.pi_source: dict[str, Any] | None = None
@@ -214,15 +219,11 @@ class FrontEnd:
             )
 
     def register_backend(self) -> BackendStart:
-        """A back-end (re)starts: its epoch (the next one) and the models to start from."""
+        """A back-end (re)starts: its epoch (the next one), and whether it is the first."""
         with self._lock:
             self._backend_epoch += 1
             self._backends_registered += 1
-            return BackendStart(
-                epoch=self._backend_epoch,
-                model_states=self._bg_states,
-                first=self._backends_registered == 1,
-            )
+            return BackendStart(epoch=self._backend_epoch, first=self._backends_registered == 1)
 
     # ------------------------------------------------------------------ background pushes
     def push_background(self, update: BackgroundUpdate) -> BgVersion:
@@ -232,8 +233,6 @@ class FrontEnd:
             if update.version > self._bg_version:
                 self._background = update.cloud
                 self._bg_version = update.version
-                if update.model_states is not None:
-                    self._bg_states = update.model_states
                 self.backgrounds_received += 1
             else:
                 logger.info(
@@ -266,47 +265,58 @@ class FrontEnd:
             time_index=time_index, scale=float(cfg.scale), camera_ids=ids, phase=str(cfg.phase)
         )
 
-    # ------------------------------------------------------------------ masks: wait or local
+    # ------------------------------------------------------------------ the scene stage
+    def _tracker(self) -> SceneTracker:
+        if self.scene is None:
+            raise RuntimeError("this front-end was built without background models")
+        return self.scene
+
+    def pending_updates(self, time_index: int) -> list[int]:
+        """Time indices of the scheduled background updates still to apply before the task
+        of ``time_index`` (the session reads those frames for :meth:`run_task`)."""
+        return [] if self.scene is None else self.scene.pending(time_index)
+
     def obtain_foreground(
-        self, frames: FrameSet, masks: MasksProvider, timings: StageTimings
-    ) -> tuple[ForegroundResult, str]:
-        """The task's foreground and, when the back-end did not serve it, why (the task is
-        then degraded). The whole mask-wait / local-fallback policy lives here: wait up to
-        ``masks_wait_s`` for the back-end's masks, else segment with the newest model
-        snapshot this front-end holds."""
-        with timings.stage("wait_masks"):
-            reply = masks(self.config.masks_wait_s)
-        if reply is not None and reply.foreground is not None:
-            # Back to normal: the next outage starts from the back-end's newest snapshot.
-            self._local_fg = None
-            return reply.foreground, ""
-        reason = "no masks from the back-end" if reply is None else f"back-end: {reply.error}"
-        with timings.stage("local_masks"):
-            if self._local_fg is None:
-                if self._bg_states is None:
-                    raise RuntimeError(f"{reason}, and no background model snapshot")
-                self._local_fg = RigForeground.from_states(
-                    self.rig, self._bg_states, self.config.foreground
-                )
-            return self._local_fg.segment(frames), reason
+        self, frames: FrameSet, updates: Sequence[FrameSet], timings: StageTimings
+    ) -> ForegroundResult:
+        """The task's foreground: the scheduled background updates due before it (usually
+        none or one: one per ``update_interval_s`` of stream time), then the segmentation at
+        the working resolution. The masks are computed once, here, where they are needed
+        first; the back-end gets them with the frames."""
+        scene = self._tracker()
+        if updates:
+            with timings.stage("scene_update"):
+                for u in updates:
+                    scene.learn(u)
+        with timings.stage("scene"):
+            return scene.segment(frames)
 
     # ------------------------------------------------------------------ the task
     def run_task(
         self,
         frames: FrameSet,
         plan: TaskPlan,
-        masks: MasksProvider,
+        submit: SubmitFn,
         golden: GoldenProvider,
         *,
         task: int = 0,
         defects: Mapping[str, str] | None = None,
+        updates: Sequence[FrameSet] = (),
     ) -> TaskOutput:
         """Run one task (critical path, then online evaluation and the optimizer step) under
         the watchdog: never raises (a failed task is a record). ``defects``: cameras the
-        session left out (unusable frames), name -> defect."""
+        session left out (unusable frames), name -> defect; ``updates``: the frames of
+        :meth:`pending_updates`."""
         guard = TaskGuard()
         box: dict[str, Any] = {}
-        job = _Job(frames=frames, plan=plan, masks=masks, golden=golden, task=task)
+        job = _Job(
+            frames=frames,
+            plan=plan,
+            submit=submit,
+            golden=golden,
+            task=task,
+            updates=tuple(updates),
+        )
 
         def work() -> None:
             try:
@@ -343,16 +353,19 @@ class FrontEnd:
         return TaskOutput(metrics=m, merged=None, foreground=None)
 
     def _process(self, job: _Job, defects: dict[str, str], guard: TaskGuard) -> TaskOutput:
-        frames, plan, masks, golden, task = job.frames, job.plan, job.masks, job.golden, job.task
+        frames, plan, golden, task = job.frames, job.plan, job.golden, job.task
         if defects and too_few_cameras(frames):
             return self._empty(job, defects)
         start = time.perf_counter()
         background, bg_version = self.background()
-        reason = ""
+        want_golden = self.config.online_quality == "golden"
+        segmented: list[ForegroundResult] = []
 
         def foreground(timings: StageTimings) -> ForegroundResult:
-            nonlocal reason
-            fg, reason = self.obtain_foreground(frames, masks, timings)
+            with self._scene_lock:
+                fg = self.obtain_foreground(frames, job.updates, timings)
+            segmented.append(fg)
+            job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
             return fg
 
         result = reconstruct_task(
@@ -375,11 +388,14 @@ class FrontEnd:
         timings = result.timings
         fg_rec = result.foreground
 
-        # ---- after the critical path: online evaluation and the optimizer step
-        degraded = bool(reason)
+        # ---- after the critical path: online evaluation, the optimizer step and, when the
+        # task's frame is on the update schedule, its background update (due for the next
+        # task; it reuses this task's segmentation)
+        fg = segmented[0]
+        degraded, reason = False, ""
         quality: float | None = None
-        if not degraded:
-            with timings.stage("wait_golden"):  # after the critical path (not in T)
+        if want_golden:
+            with timings.stage("wait_golden"):
                 ref = golden(self.config.golden_wait_s)
             if ref is None or ref.fg_points3D is None:
                 degraded = True
@@ -394,6 +410,11 @@ class FrontEnd:
                     ref.fg_points3D,
                     OnlineQualityConfig(threshold=self.eval_threshold),
                 ).value
+        else:
+            with timings.stage("online_quality"):
+                quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
+        with timings.stage("scene_update_after"), self._scene_lock:
+            self._tracker().learn(frames, fg)
         with self._commit:
             if guard.cancel.is_set():
                 raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")

@@ -14,9 +14,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundResult
-from edgerecon.types import PointCloud
+from edgerecon.types import FrameSet, PointCloud
 
 
 @dataclass(frozen=True, order=True)
@@ -60,14 +59,17 @@ class TaskPlan:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
-class MasksReply:
-    """The back-end's foreground of one timestamp."""
+class TaskWork:
+    """What the front-end hands the back-end for one task, once its scene stage is done: the
+    frames and their foreground (masks, objects, hull at the working resolution), for the
+    golden reference and the background rebuilds. The back-end never segments: the masks
+    are computed once, by the front-end that needs them first."""
 
-    time_index: int
-    foreground: ForegroundResult | None
-    """None when the back-end failed on this timestamp (see ``error``)."""
-    seconds: float
-    error: str = ""
+    frames: FrameSet
+    foreground: ForegroundResult
+    golden: bool
+    """Whether the front-end wants the golden reference of this task (online quality
+    "golden")."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -93,9 +95,6 @@ class BackgroundUpdate:
     cloud: PointCloud
     seconds: float
     """Time the rebuild took on the back-end."""
-    model_states: tuple[BackgroundState, ...] | None = None
-    """Snapshot of the background models, so the front-end can compute masks itself if the
-    back-end is lost (degraded mode)."""
 
 
 @dataclass(kw_only=True)

@@ -29,7 +29,6 @@ from edgerecon.runtime.engine import (
     Engine,
     SceneModel,
     learn_scene_model,
-    replay_scene_model,
 )
 from edgerecon.runtime.frontend import FixedController
 from edgerecon.runtime.messages import TaskMetrics
@@ -139,9 +138,13 @@ def run_online(
             controller_config=controller_config,
             saved_state=None if saved is None else saved.frontend.controller,
         )
-        scene = scene or learn_scene_model(dataset, config.foreground, config.warmup_frames)
-        served = [m.time_index for m in previous if m.submitted]
-        scene = replay_scene_model(dataset, scene, served, config)
+        if scene is None:
+            # The background models as they are at the first task still to run (the one
+            # stream definition of edgerecon.scene.stream: a resumed run continues with the
+            # models an uninterrupted run would have).
+            done = {m.time_index for m in previous}
+            todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
+            scene = learn_scene_model(dataset, config.foreground, todo[0] if todo else 0)
         if on_ready is not None:
             on_ready(scene)
         restored = None if saved is None else saved.frontend

@@ -17,15 +17,15 @@ back-end can push backgrounds while the front-end is busy. The actors are thin s
 logic lives in the roles and in :func:`~edgerecon.runtime.engine.run_frontend_task`, shared
 with the embedded engine. The back-end actor restarts when its process dies (and is killed
 for a restart when its task thread died or is stuck past the watchdog); a (re)started actor
-gets its epoch and the newest model snapshot from the front-end, which notices through
-:class:`BackendLink` and uses it again.
+gets its epoch from the front-end, which notices through :class:`BackendLink` and uses it
+again.
 """
 
 from __future__ import annotations
 
 import logging
 import socket
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from edgerecon.io.dataset import Dataset
@@ -39,8 +39,9 @@ from edgerecon.runtime.engine import (
     start_frontend,
 )
 from edgerecon.runtime.frontend import FixedController, FrontEndState, TaskOutput
-from edgerecon.runtime.messages import TaskPlan
+from edgerecon.runtime.messages import TaskPlan, TaskWork
 from edgerecon.runtime.ray_reaper import start_reaper
+from edgerecon.scene.foreground import RigForeground
 from edgerecon.types import EdgereconError, FrameSet, PointCloud
 
 logger = logging.getLogger(__name__)
@@ -88,22 +89,18 @@ def _ray() -> Any:
 
 class _BackendActor:
     """Actor shell around :class:`BackEnd` (thin: all logic lives in the role class). A
-    (re)started actor asks the front-end for its epoch and the newest model snapshot."""
+    (re)started actor asks the front-end for its epoch."""
 
     def __init__(
         self, dataset: Dataset, config: RuntimeConfig, scene: SceneModel, frontend: Any
     ) -> None:
         from edgerecon.runtime.backend import BackEnd
-        from edgerecon.scene.foreground import RigForeground
 
         start = _ray().get(frontend.register_backend.remote())
-        states = start.model_states or scene.states
-        fg = RigForeground.from_states(dataset.rig, states, config.foreground)
         self._frontend = frontend
         self.backend = BackEnd(
             dataset.rig,
             config,
-            fg,
             push=self._push,
             initial_background=scene.initial_background if start.first else None,
             epoch=start.epoch,
@@ -113,11 +110,9 @@ class _BackendActor:
         # Fire and forget: the front-end takes it between (or during) tasks.
         self._frontend.push_background.remote(update)
 
-    def submit(self, frames_ref: list[Any]) -> None:
-        self.backend.submit(_ray().get(frames_ref[0]))
-
-    def masks(self, time_index: int, timeout: float) -> Any:
-        return self.backend.masks(time_index, timeout)
+    def submit(self, frames_ref: list[Any], foreground: Any, golden: bool) -> None:
+        frames = _ray().get(frames_ref[0])
+        self.backend.submit(TaskWork(frames=frames, foreground=foreground, golden=golden))
 
     def golden(self, time_index: int, timeout: float) -> Any:
         return self.backend.golden(time_index, timeout)
@@ -141,9 +136,10 @@ class _RemoteBackend:
         self._ref = frames_ref
         self._link = link
 
-    def submit(self, frames: FrameSet) -> None:
-        del frames  # already in the object store
-        self._actor.submit.remote([self._ref])
+    def submit(self, work: TaskWork) -> None:
+        # The frames are in the object store already; the foreground (masks at the working
+        # resolution) travels with the call.
+        self._actor.submit.remote([self._ref], work.foreground, work.golden)
 
     def _call(self, method: Any, *args: Any, timeout: float) -> Any:
         ray = _ray()
@@ -152,9 +148,6 @@ class _RemoteBackend:
         except (ray.exceptions.RayError, TimeoutError) as exc:
             self._link.mark_lost(type(exc).__name__)
             return None
-
-    def masks(self, time_index: int, timeout: float) -> Any:
-        return self._call(self._actor.masks, time_index, timeout, timeout=timeout)
 
     def golden(self, time_index: int, timeout: float) -> Any:
         return self._call(self._actor.golden, time_index, timeout, timeout=timeout)
@@ -204,12 +197,22 @@ class _FrontendActor:
     def push_background(self, update: Any) -> Any:
         return self.frontend.push_background(update)
 
+    def pending_updates(self, time_index: int) -> list[int]:
+        return self.frontend.pending_updates(time_index)
+
     def run_task(
-        self, frames_ref: list[Any], plan: TaskPlan, task: int, defects: dict[str, str]
+        self,
+        frames_ref: list[Any],
+        plan: TaskPlan,
+        task: int,
+        defects: dict[str, str],
+        updates: list[FrameSet],
     ) -> TaskOutput:
         frames: FrameSet = _ray().get(frames_ref[0])
         client = _RemoteBackend(self.backend, frames_ref[0], self.link)
-        return run_frontend_task(self.frontend, self.link, client, frames, plan, task, defects)
+        return run_frontend_task(
+            self.frontend, self.link, client, frames, plan, task, defects, updates
+        )
 
     def state(self) -> Any:
         return self.frontend.state()
@@ -259,6 +262,8 @@ class RayEngine:
         front_cls = ray.remote(_FrontendActor)
         back_cls = ray.remote(_BackendActor)
         self._scene_ref = ray.put(scene)
+        # The models' working sizes (to reduce update frames before they travel).
+        self._sizes = RigForeground.from_states(dataset.rig, scene.states, config.foreground)
         self.frontend = front_cls.options(
             num_cpus=0, resources={"frontend": 1}, max_concurrency=4
         ).remote(dataset, config, controller, self._scene_ref, restored, background)
@@ -275,16 +280,30 @@ class RayEngine:
     def plan(self, time_index: int) -> TaskPlan:
         return _ray().get(self.frontend.plan.remote(time_index))
 
+    def pending_updates(self, time_index: int) -> list[int]:
+        return list(_ray().get(self.frontend.pending_updates.remote(time_index)))
+
     def run_task(
-        self, frames: FrameSet, plan: TaskPlan, task: int, defects: Mapping[str, str]
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        task: int,
+        defects: Mapping[str, str],
+        updates: Sequence[FrameSet] = (),
     ) -> TaskOutput:
         ray = _ray()
         ref = ray.put(frames)
+        # Update frames travel reduced to the background models' working size (a few
+        # percent of a full-HD frame set's bytes).
+        small = [self._reduce(u) for u in updates]
         # The front-end's watchdog answers first; this bound is for a front-end gone silent.
         limit = self.config.watchdog_s + 2 * _RPC_GRACE_S
         return ray.get(
-            self.frontend.run_task.remote([ref], plan, task, dict(defects)), timeout=limit
+            self.frontend.run_task.remote([ref], plan, task, dict(defects), small), timeout=limit
         )
+
+    def _reduce(self, frames: FrameSet) -> FrameSet:
+        return self._sizes.reduce(frames)
 
     def state(self) -> FrontEndState:
         return _ray().get(self.frontend.state.remote())

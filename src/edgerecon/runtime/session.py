@@ -284,13 +284,19 @@ class Session:
 
     def _run_one(self, source: FrameSource, t: int, task: int) -> TaskOutput:
         try:
+            # The frames of the background models' scheduled updates due before t, read
+            # first (sources stream forwards), unusable cameras left out as in tasks.
+            updates = [
+                without_defective(u, frame_defects(u, self.frame_check))
+                for u in (source.read(s) for s in self.engine.pending_updates(t))
+            ]
             frames = source.read(t)
             defects = frame_defects(frames, self.frame_check)
             frames = without_defective(frames, defects)
             named = {self.dataset.rig[i].name: d for i, d in enumerate(defects) if d is not None}
             self._note_defects(t, named)
             plan = self.engine.plan(t)
-            return self.engine.run_task(frames, plan, task, named)
+            return self.engine.run_task(frames, plan, task, named, updates)
         except Exception as exc:  # any stage, any engine: a failed record, never a dead run
             error = describe_exception(exc)
             logger.error("task %d (time %d) failed: %s", task, t, error)
