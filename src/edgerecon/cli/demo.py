@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
         background_updates=not args.no_background_updates,
         background_scale=args.background_scale,
         sparse_scope=args.sparse_scope,
+        online_quality=args.online_quality,
     )
     if not args.json:
         console.print(

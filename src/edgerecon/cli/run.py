@@ -15,6 +15,7 @@ from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import SPARSE_SCOPES
 from edgerecon.runtime import FrameRange, RunSummary, RuntimeConfig, SessionOptions, TaskMetrics
+from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.online import run_online
 from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted
 
@@ -86,8 +87,16 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "--sparse-scope",
         choices=SPARSE_SCOPES,
         default="foreground",
-        help="foreground: SfM of the foreground masks only, after they arrive (default); "
+        help="foreground: SfM of the foreground masks only (default); "
         "scene: the paper's SfM of the whole frames, then the split",
+    )
+    p.add_argument(
+        "--online-quality",
+        choices=ONLINE_QUALITIES,
+        default="silhouette",
+        help="the controller's quality estimate: silhouette (the task's dense foreground "
+        "against every camera's masks, default) or golden (the paper's: foreground sparse "
+        "points against the back-end's golden reference)",
     )
     p.add_argument("--no-clouds", action="store_true", help="do not write per-task clouds")
     p.add_argument(
@@ -116,8 +125,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "run",
         help="run the online system (front-end + back-end) on a dataset",
         description="Reconstruct a stream task by task within a deadline: the optimizer picks "
-        "the image scale and cameras, the back-end computes masks, golden references and "
-        "backgrounds. Writes metrics.jsonl, per-task merged clouds and summary.json. A task "
+        "the image scale and cameras, the front-end computes the masks, the back-end rebuilds "
+        "the background. Writes metrics.jsonl, per-task merged clouds and summary.json. A task "
         "that fails (any stage raises, or it runs past the watchdog of max(10 x deadline, "
         "30 s)) is recorded and the run goes on.",
         epilog=EXIT_CODES_HELP,
@@ -304,6 +313,7 @@ def run(args: argparse.Namespace) -> int:
         background_updates=not args.no_background_updates,
         background_scale=args.background_scale,
         sparse_scope=args.sparse_scope,
+        online_quality=args.online_quality,
     )
     fixed = parse_fixed(args, dataset)
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))

@@ -51,6 +51,7 @@ from edgerecon.runtime.engine import Engine
 from edgerecon.runtime.frontend import TaskOutput
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
+from edgerecon.types import EdgereconError, FrameSet
 
 logger = logging.getLogger(__name__)
 
@@ -286,10 +287,7 @@ class Session:
         try:
             # The frames of the background models' scheduled updates due before t, read
             # first (sources stream forwards), unusable cameras left out as in tasks.
-            updates = [
-                without_defective(u, frame_defects(u, self.frame_check))
-                for u in (source.read(s) for s in self.engine.pending_updates(t))
-            ]
+            updates = self._update_frames(source, t)
             frames = source.read(t)
             defects = frame_defects(frames, self.frame_check)
             frames = without_defective(frames, defects)
@@ -303,6 +301,20 @@ class Session:
             logger.debug("traceback", exc_info=exc)
             m = TaskMetrics.failed(task=task, time_index=t, error=error, deadline_s=self.deadline_s)
             return TaskOutput(metrics=m, merged=None, foreground=None)
+
+    def _update_frames(self, source: FrameSource, t: int) -> list[FrameSet]:
+        """The frames of the background models' scheduled updates due before ``t``, unusable
+        cameras left out as in tasks; a frame that cannot be read is skipped (the schedule
+        moves on without it)."""
+        out = []
+        for s in self.engine.pending_updates(t):
+            try:
+                frames = source.read(s)
+            except EdgereconError as exc:
+                logger.debug("background update at time %d skipped: %s", s, exc)
+                continue
+            out.append(without_defective(frames, frame_defects(frames, self.frame_check)))
+        return out
 
     def _note_defects(self, t: int, defects: dict[str, str]) -> None:
         """One warning when frames become unusable, one line when they recover."""
