@@ -101,27 +101,32 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
         engine.close()
 
 
-def test_resume_restores_state_background_and_equals_uninterrupted_run(
-    tiny, tmp_path, monkeypatch
-):
+def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp_path, monkeypatch):
     ds, scene = tiny
     config = runtime_config()
     fixed = (0.8, None)
-    taken = []
-    real_push = FrontEnd.push_background
+    taken = []  # (front-end, version) of every push
+    current = []  # the front-end of the run in progress (the last to register a back-end)
+    real_push, real_register = FrontEnd.push_background, FrontEnd.register_backend
 
     def push(self, update):
-        taken.append(update.version)
+        taken.append((self, update.version))
         return real_push(self, update)
 
+    def register(self):
+        current.append(self)
+        return real_register(self)
+
     monkeypatch.setattr(FrontEnd, "push_background", push)
+    monkeypatch.setattr(FrontEnd, "register_backend", register)
 
     # Frames arrive slowly after tasks 0 and 4: the back-end (of epoch 1, then of epoch 2
     # after the resume) has time to push a background.
     def slow(m):
         if m.task in (0, 4):
             epoch = 1 if m.task == 0 else 2
-            assert _wait(lambda: any(v.epoch == epoch for v in taken), timeout=180)
+            pushed = lambda: any(fe is current[-1] and v.epoch == epoch for fe, v in taken)  # noqa: E731
+            assert _wait(pushed, timeout=180)
 
     whole = tmp_path / "whole"
     _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)
