@@ -323,15 +323,18 @@ class Session:
     # ------------------------------------------------------------------ summary
     def summarise(self) -> RunSummary:
         ok = [m for m in self.metrics if m.status == "ok"]
+        empty = [m for m in ok if m.frame_defects and m.num_cameras < MIN_CAMERAS]
         s = RunSummary(
             tasks=len(self.metrics),
             failed=len(self.metrics) - len(ok),
             degraded=sum(m.degraded for m in ok),
-            empty=sum(bool(m.frame_defects) and m.num_cameras < MIN_CAMERAS for m in ok),
+            empty=len(empty),
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
         )
+        skip = {id(m) for m in empty}
+        ok = [m for m in ok if id(m) not in skip]  # averages over the tasks that reconstructed
         if ok:
             s.avg_scale = float(np.mean([m.scale for m in ok]))
             s.avg_cameras = float(np.mean([m.num_cameras for m in ok]))
