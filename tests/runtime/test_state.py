@@ -287,3 +287,27 @@ def test_golden_task_refreshes_camera_mapping_and_late_golden_is_degraded(tiny):
         "time_index": 1,
         "rows": fe.pi_source["rows"],
     }
+
+
+def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, monkeypatch):
+    import errno
+
+    import edgerecon.runtime.session as session_module
+
+    real = session_module.write_ply
+    calls = {"n": 0}
+
+    def full(path, cloud, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, cloud, **kw)
+
+    monkeypatch.setattr(session_module, "write_ply", full)
+    config = runtime_config(background_updates=False)
+    with pytest.raises(EdgereconError, match=r"No space left.*after 1 committed tasks.*--resume"):
+        run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None))
+    assert RunState.load(tmp_path).tasks_done == 1
+    monkeypatch.setattr(session_module, "write_ply", real)
+    _, metrics = run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None), resume=True)
+    assert [m.time_index for m in metrics] == [0, 1, 2]
