@@ -104,21 +104,28 @@ def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp
     ds, scene = tiny
     config = runtime_config()
     fixed = (0.8, None)
-    taken = []
-    real_push = FrontEnd.push_background
+    taken = []  # (front-end, version) of every push
+    current = []  # the front-end of the run in progress (the last to register a back-end)
+    real_push, real_register = FrontEnd.push_background, FrontEnd.register_backend
 
     def push(self, update):
-        taken.append(update.version)
+        taken.append((self, update.version))
         return real_push(self, update)
 
+    def register(self):
+        current.append(self)
+        return real_register(self)
+
     monkeypatch.setattr(FrontEnd, "push_background", push)
+    monkeypatch.setattr(FrontEnd, "register_backend", register)
 
     # Frames arrive slowly after tasks 0 and 4: the back-end (of epoch 1, then of epoch 2
     # after the resume) has time to push a background.
     def slow(m):
         if m.task in (0, 4):
             epoch = 1 if m.task == 0 else 2
-            assert _wait(lambda: any(v.epoch == epoch for v in taken), timeout=180)
+            pushed = lambda: any(fe is current[-1] and v.epoch == epoch for fe, v in taken)  # noqa: E731
+            assert _wait(pushed, timeout=180)
 
     whole = tmp_path / "whole"
     _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)
@@ -281,3 +288,27 @@ def test_golden_task_refreshes_camera_mapping_and_late_golden_is_degraded(tiny):
         "time_index": 1,
         "rows": fe.pi_source["rows"],
     }
+
+
+def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, monkeypatch):
+    import errno
+
+    import edgerecon.runtime.session as session_module
+
+    real = session_module.write_ply
+    calls = {"n": 0}
+
+    def full(path, cloud, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, cloud, **kw)
+
+    monkeypatch.setattr(session_module, "write_ply", full)
+    config = runtime_config(background_updates=False)
+    with pytest.raises(EdgereconError, match=r"No space left.*after 1 committed tasks.*--resume"):
+        run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None))
+    assert RunState.load(tmp_path).tasks_done == 1
+    monkeypatch.setattr(session_module, "write_ply", real)
+    _, metrics = run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None), resume=True)
+    assert [m.time_index for m in metrics] == [0, 1, 2]

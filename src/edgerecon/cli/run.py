@@ -28,7 +28,8 @@ EXIT_INTERRUPTED = 130
 EXIT_CODES_HELP = f"""exit codes:
   {EXIT_OK}    every task was recorded ok (degraded and empty tasks included)
   {EXIT_BAD_INPUT}    bad input or refused before any work (options, dataset, --out in use
-       by another run, not empty without --resume/--overwrite, a different dataset)
+       by another run, not empty without --resume/--overwrite, a different dataset),
+       or the outputs could not be written (the committed tasks stay: --resume)
   {EXIT_TASKS_FAILED}    the run finished but some tasks failed (see metrics.jsonl; summary.json
        is written)
   {EXIT_INTERRUPTED}  interrupted (Ctrl-C or SIGTERM): summary.json is written and the command

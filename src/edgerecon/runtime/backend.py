@@ -183,6 +183,8 @@ class BackEnd:
                 self._serve(work)
             except BackendFault:
                 return
+            except Exception as exc:  # a bug outside the stages must not kill the node either
+                logger.exception("back-end: task %d failed: %s", frames.time_index, exc)
             finally:
                 with self._lock:
                     self._busy = False

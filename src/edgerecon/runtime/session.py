@@ -260,26 +260,39 @@ class Session:
         for when, kind, seconds in self.options.faults:
             if when == task:
                 logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
-                self.engine.inject_backend_fault(kind, seconds)
+                try:
+                    self.engine.inject_backend_fault(kind, seconds)
+                except Exception as exc:  # a drill must not end the run either
+                    logger.error("drill: injecting %r failed: %s", kind, exc)
         out = self._run_one(source, t, task)
         m = out.metrics
-        if m.status == "ok":
-            self._score(m, t, out)
-            if self.options.write_clouds and out.merged is not None:
-                write_ply(self.out / "tasks" / f"{t:06d}" / "merged.ply", out.merged)
-            if out.background is not None:
-                write_ply(self.out / "background.ply", out.background)
-        # Cloud, background, metrics line, then the run state: the commit point.
-        self.metrics.append(m)
-        self.folder.append_metrics(m)
-        RunState(
-            dataset=self.identity,
-            frames=(self.options.frames.start, self.options.frames.stop, self.options.frames.step),
-            policy=self.options.policy,
-            deadline_s=self.deadline_s,
-            tasks_done=len(self.metrics),
-            frontend=self.engine.state(),
-        ).save(self.out)
+        try:
+            if m.status == "ok":
+                self._score(m, t, out)
+                if self.options.write_clouds and out.merged is not None:
+                    write_ply(self.out / "tasks" / f"{t:06d}" / "merged.ply", out.merged)
+                if out.background is not None:
+                    write_ply(self.out / "background.ply", out.background)
+            # Cloud, background, metrics line, then the run state: the commit point.
+            self.folder.append_metrics(m)
+            self.metrics.append(m)
+            RunState(
+                dataset=self.identity,
+                frames=(
+                    self.options.frames.start,
+                    self.options.frames.stop,
+                    self.options.frames.step,
+                ),
+                policy=self.options.policy,
+                deadline_s=self.deadline_s,
+                tasks_done=len(self.metrics),
+                frontend=self.engine.state(),
+            ).save(self.out)
+        except OSError as exc:  # disk full, folder removed: stop with what is committed
+            raise EdgereconError(
+                f"cannot write the outputs of task {task} to {self.out} ({exc}); the run "
+                f"stopped after {len(self.metrics)} committed tasks: fix it and --resume"
+            ) from None
         if self.on_task is not None:
             self.on_task(m)
 
@@ -334,22 +347,29 @@ class Session:
     def _score(self, m: TaskMetrics, t: int, out: TaskOutput) -> None:
         if self._gt is None or self.options.ground_truth_threshold is None:
             return
-        ref = self._gt.reference_cloud(t, "foreground", min_views=2)
+        try:
+            ref = self._gt.reference_cloud(t, "foreground", min_views=2)
+        except EdgereconError as exc:  # ground truth of this time unreadable: no score
+            logger.warning("time %d: no offline score (%s)", t, exc)
+            return
         if len(ref) and out.foreground is not None:
             m.offline_fscore = fscore(out.foreground, ref, self.options.ground_truth_threshold)
 
     # ------------------------------------------------------------------ summary
     def summarise(self) -> RunSummary:
         ok = [m for m in self.metrics if m.status == "ok"]
+        empty = [m for m in ok if m.frame_defects and m.num_cameras < MIN_CAMERAS]
         s = RunSummary(
             tasks=len(self.metrics),
             failed=len(self.metrics) - len(ok),
             degraded=sum(m.degraded for m in ok),
-            empty=sum(bool(m.frame_defects) and m.num_cameras < MIN_CAMERAS for m in ok),
+            empty=len(empty),
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
         )
+        skip = {id(m) for m in empty}
+        ok = [m for m in ok if id(m) not in skip]  # averages over the tasks that reconstructed
         if ok:
             s.avg_scale = float(np.mean([m.scale for m in ok]))
             s.avg_cameras = float(np.mean([m.num_cameras for m in ok]))
