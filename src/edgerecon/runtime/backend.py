@@ -184,7 +184,7 @@ class BackEnd:
             except BackendFault:
                 return
             except Exception as exc:  # a bug outside the stages must not kill the node either
-                logger.exception("back-end: task %d failed: %s", frames.time_index, exc)
+                logger.exception("back-end: task %d failed: %s", work.frames.time_index, exc)
             finally:
                 with self._lock:
                     self._busy = False

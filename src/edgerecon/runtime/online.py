@@ -9,9 +9,10 @@ of this dataset and frame range for ``--resume``).
 ``--resume`` restores the run state together (:class:`~edgerecon.runtime.state.RunState`):
 the controller (a new ``--deadline`` is applied to it and the configuration search
 restarts), pi(N') and where it came from, the background cloud and its version, the last
-back-end epoch (the new back-end counts on from the next one); the background models replay
-the frames of the committed tasks the back-end had served, so the resumed run segments the
-next frame as an uninterrupted run would.
+back-end epoch (the new back-end counts on from the next one); the background models are
+rebuilt from the stream up to the next task (they are a function of the stream alone,
+:mod:`edgerecon.scene.stream`), so the resumed run segments the next frame as an
+uninterrupted run would.
 """
 
 from __future__ import annotations
