@@ -327,9 +327,9 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
             # The scheduled background updates before t (as the online system applies them).
             update_s = tracker.catch_up(source, t)
             frames = source.read(t)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             res = tracker.segment(frames)
-            seconds = time.perf_counter() - t0
+            seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
             truth = [gt.object_mask(c, t) for c in range(len(rig))]
             preds = [_like(lab, m) for lab, m in zip(res.label_images(), truth, strict=True)]
             score = score_mask_set(preds, truth)
@@ -356,6 +356,7 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
                     "object_recall": recall,
                     "seconds": seconds,
                     "update_seconds": update_s,
+                    "cpu_seconds": cpu,
                 }
             )
     selections: list[tuple[str, set[int]]] = [("all tasks", set(tasks))]
@@ -374,7 +375,10 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
             "tasks": len(sel),
             "foreground_iou_mean": float(np.mean([r["foreground_iou"] for r in sel])),
             "model_iou_mean": float(np.mean([r["model_iou"] for r in sel])),
+            "precision_mean": float(np.mean([r["precision"] for r in sel])),
+            "recall_mean": float(np.mean([r["recall"] for r in sel])),
             "seconds_mean": float(np.mean([r["seconds"] for r in sel])),
+            "cpu_seconds_mean": float(np.mean([r["cpu_seconds"] for r in sel])),
         }
         for k in ids:
             ious = [r["object_iou"][k] for r in sel if k in r["object_iou"]]
@@ -416,11 +420,14 @@ def print_online(r: dict[str, Any]) -> None:
             "model": row["model_iou"],
             **{f"IoU {k}": row["object_iou"].get(k) for k in ids},
             **{f"rec {k}": row["object_recall"].get(k) for k in ids},
+            "prec": row["precision"],
             "s/task": row["seconds"],
+            "CPU s": row["cpu_seconds"],
         }
         for row in r["rows"]
     ]
-    print_rows("per task", ["t", "light", "fg IoU", "model", *per_object, "s/task"], rows)
+    columns = ["t", "light", "fg IoU", "model", "prec", *per_object, "s/task", "CPU s"]
+    print_rows("per task", columns, rows)
     stats = [f"IoU {k} {m}" for k in ids for m in ("mean", "min")] + [f"rec {k}" for k in ids]
     rows = [
         {
@@ -430,13 +437,16 @@ def print_online(r: dict[str, Any]) -> None:
             "model": e["model_iou_mean"],
             **{f"IoU {k} {m}": e[f"iou_{k}_{m}"] for k in ids for m in ("mean", "min")},
             **{f"rec {k}": e[f"recall_{k}_mean"] for k in ids},
+            "prec": e["precision_mean"],
+            "rec": e["recall_mean"],
             "s/task": e["seconds_mean"],
+            "CPU s": e["cpu_seconds_mean"],
         }
         for e in r["summary"]
     ]
     print_rows(
         "summary (means over tasks)",
-        ["stretch", "tasks", "fg IoU", "model", *stats, "s/task"],
+        ["stretch", "tasks", "fg IoU", "model", "prec", "rec", *stats, "s/task", "CPU s"],
         rows,
     )
 

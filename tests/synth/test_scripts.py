@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from edgerecon.synth import GroundTruth, Renderer, build_scene, preset_config, write_dataset
-from edgerecon.synth.motion import ActorScript, scripted_path
 from edgerecon.synth.scene import SceneConfig
+from edgerecon.synth.scripts import ActorScript, scripted_path
 
 # The frames the hd4 script promises (docs/ARCHITECTURE.md, "Ground truth folder").
 HD4_STRETCHES = {

@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from edgerecon.geometry.camera import Camera, Rig, look_at
 from edgerecon.synth import motion
 from edgerecon.synth.primitives import Box, Cylinder, Room
+from edgerecon.synth.scripts import ROOM_LIGHTS, ROOM_SCRIPTS, ActorScript, scripted_path
 from edgerecon.synth.textures import Texture, make_texture
 
 logger = logging.getLogger(__name__)
@@ -194,7 +195,7 @@ class SceneConfig:
     """Voxel size deduplicating the foreground ground-truth cloud, metres."""
     gt_voxel_background_m: float = 0.006
     """Voxel size deduplicating the background ground-truth cloud, metres."""
-    actor_scripts: tuple[motion.ActorScript, ...] = ()
+    actor_scripts: tuple[ActorScript, ...] = ()
     """Scripted motion of actors 1, 2, ... (keys, still intervals, presence, posture); actors
     beyond the scripts walk at random, scripts beyond ``num_actors`` are not used."""
 
@@ -245,7 +246,7 @@ class SceneConfig:
         )
         for i, script in enumerate(self.actor_scripts):
             _check(
-                isinstance(script, motion.ActorScript),
+                isinstance(script, ActorScript),
                 f"actor_scripts[{i}]",
                 script,
                 "an ActorScript",
@@ -275,7 +276,7 @@ class SceneConfig:
         if "room_size_m" in d:
             d["room_size_m"] = tuple(d["room_size_m"])
         if "actor_scripts" in d:
-            d["actor_scripts"] = tuple(motion.ActorScript.from_dict(a) for a in d["actor_scripts"])
+            d["actor_scripts"] = tuple(ActorScript.from_dict(a) for a in d["actor_scripts"])
         return cls(rig=rig, realism=realism, **d)
 
 
@@ -357,45 +358,6 @@ def preset_config(name: str, **overrides: Any) -> SceneConfig:
 # ------------------------------------------------------------- people in a room (hd4, hd4p)
 #: A phone or webcam lens after the vendor's own correction: mild barrel distortion.
 PHONE_DISTORTION = (-0.06, 0.02, 0.0, 0.0, 0.0)
-
-#: The people-in-a-room script at 25 fps (world metres, the rig's target at the origin; the
-#: four cameras stand towards the room's corners, so the +x wall is between cam0 and cam3):
-#: actor 1 walks in and stands still at frames 30-180 (6 s), then walks on; actor 2 walks out
-#: through the +x wall at frame 70 and comes back at frame 130; actor 3 sits on a chair,
-#: talking (hand and head gestures), throughout.
-ROOM_SCRIPTS = (
-    motion.ActorScript(
-        keys=(
-            (0.0, -1.1, 1.0),
-            (14.0, -0.62, 0.62),
-            (30.0, -0.15, 0.35),
-            (200.0, 0.3, 0.75),
-            (222.0, 0.85, 0.7),
-            (250.0, 1.0, 0.05),
-        ),
-        still=((30.0, 180.0),),
-    ),
-    motion.ActorScript(
-        keys=(
-            (0.0, 0.6, -0.5),
-            (25.0, 1.4, -0.9),
-            (50.0, 2.4, -0.6),
-            (70.0, 3.3, -0.2),
-            (130.0, 3.3, 0.2),
-            (152.0, 2.3, -0.2),
-            (176.0, 1.3, -0.5),
-            (200.0, 0.45, -0.25),
-            (225.0, 0.2, 0.4),
-            (250.0, 0.5, 1.1),
-        ),
-        present=((0.0, 70.0), (130.0, 250.0)),
-    ),
-    motion.ActorScript(
-        keys=((0.0, -0.55, -0.65),), posture="sit", gesture=0.5, gesture_period_frames=40.0
-    ),
-)
-#: Lights dim to 45 % over a second from frame 185, stay there 10 frames, recover by 245.
-ROOM_LIGHTS = ((185.0, 1.0), (210.0, 0.45), (220.0, 0.45), (245.0, 1.0))
 
 
 def _hd4(portrait: bool = False) -> SceneConfig:
@@ -915,7 +877,7 @@ def scripted_paths(config: SceneConfig, samples_per_frame: float = 0.5) -> F64:
     for script in config.actor_scripts[: config.num_actors]:
         times = np.array([key[0] for key in script.keys], float)
         points = np.array([key[1:] for key in script.keys], float)
-        path = motion.scripted_path(times, points, script.still)
+        path = scripted_path(times, points, script.still)
         for a, b in script.presence(config.num_frames):
             lo, hi = max(a, path.x[0]), min(b, path.x[-1])
             n = max(2, int((hi - lo) * samples_per_frame) + 1)
