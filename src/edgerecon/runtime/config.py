@@ -58,6 +58,10 @@ class RuntimeConfig:
     """Least time between the starts of two background rebuilds."""
     background_scale: float = 1.0
     """Image scale of background rebuilds (the back-end has time: golden by default)."""
+    background_process: bool = True
+    """Rebuild the background in a process of its own (a thread of the back-end's process
+    holding the interpreter lock while descheduled stalls the front-end's critical path in
+    the embedded engine)."""
     background_nice: int = 10
     """OS niceness of the background-rebuild thread (Linux), so that the current task's
     work (and golden references) is served first."""
