@@ -294,6 +294,12 @@ class BackgroundModel:
     def __init__(self, state: BackgroundState, config: BackgroundConfig | None = None) -> None:
         self.config = config or BackgroundConfig()
         self._state = state
+        self._stats: (
+            tuple[
+                NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]
+            ]
+            | None
+        ) = None
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -450,8 +456,15 @@ class BackgroundModel:
         """From the current background: the per-channel noise variance with the edge-jitter
         term, the grey background, its window mean and its window standard deviation.
 
-        Computed from the state each frame (a few single-channel filters), so a model
-        re-created from its state behaves exactly like the original."""
+        Derived from the state alone (so a model re-created from its state behaves exactly
+        like the original) and kept until the next update: segmenting never changes it."""
+        if self._stats is None:
+            self._stats = self._compute_background_stats()
+        return self._stats
+
+    def _compute_background_stats(
+        self,
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
         cfg = self.config
         s = self._state
         grey = np.asarray(cv2.transform(s.mean, _GREY), np.float32)
@@ -590,6 +603,7 @@ class BackgroundModel:
             self._state.mean[ghost] = target[ghost]
             foreground = foreground & ~ghost
         learned = self._update(image, foreground, seg.gain)
+        self._stats = None  # the background changed
         return UpdateStats(
             learned_px=learned, ghost_px=int(np.count_nonzero(ghost)), ghosts=num_ghosts
         )
