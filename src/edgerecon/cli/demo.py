@@ -16,9 +16,11 @@ from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.cli.run import add_online_arguments, build_options, live_printer, print_summary
+from edgerecon.cli.view import live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import reconstruct, warm_up
 from edgerecon.quality import evaluate_clouds
+from edgerecon.report import write_report
 from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.online import run_online
 from edgerecon.synth import GroundTruth, preset_config, write_dataset
@@ -109,16 +111,18 @@ def run(args: argparse.Namespace) -> int:
         from edgerecon.cli.reconstruct import parse_cameras
 
         fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
-    summary, metrics = run_online(
-        dataset,
-        rt,
-        options,
-        out / "run",
-        engine=args.engine,
-        address=args.address,
-        fixed=fixed,
-        on_task=live_printer(not args.json),
-    )
+    with live_viewer(args, out / "run"):
+        summary, metrics = run_online(
+            dataset,
+            rt,
+            options,
+            out / "run",
+            engine=args.engine,
+            address=args.address,
+            fixed=fixed,
+            on_task=live_printer(not args.json),
+        )
+    figures = write_report([out / "run"], out / "run" / "report")
     result = {
         "scene": str(scene_dir),
         "generated": generated,
@@ -133,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
         "deadline_s": deadline,
         "summary": summary.to_dict(),
         "tasks": [m.to_dict() for m in metrics],
+        "figures": {k: str(v) for k, v in figures.items()},
         "total_s": round(time.perf_counter() - t0, 2),
     }
     (out / "demo.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -150,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
     )
     console.print(
         f"merged clouds in {out / 'run' / 'tasks'}; metrics in "
-        f"{out / 'run' / 'metrics.jsonl'}; total {result['total_s']:.0f} s"
+        f"{out / 'run' / 'metrics.jsonl'}; figures in {out / 'run' / 'report'}; "
+        f"total {result['total_s']:.0f} s"
     )
     return 0
 

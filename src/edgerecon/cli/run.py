@@ -8,6 +8,7 @@ from typing import Any
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.cli.reconstruct import parse_cameras
+from edgerecon.cli.view import add_live_view_arguments, live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.runtime import FrameRange, RunSummary, RuntimeConfig, SessionOptions, TaskMetrics
 from edgerecon.runtime.config import SPARSE_SCOPES
@@ -73,6 +74,7 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         help="drill: before task TASK, make the back-end stall (KIND=stall), crash "
         "(crash) or, with Ray, kill its process (kill)",
     )
+    add_live_view_arguments(p)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -207,16 +209,17 @@ def run(args: argparse.Namespace) -> int:
     if args.fixed is not None:
         fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))
-    summary, metrics = run_online(
-        dataset,
-        config,
-        options,
-        args.out,
-        engine=args.engine,
-        address=args.address,
-        fixed=fixed,
-        on_task=live_printer(not args.json),
-    )
+    with live_viewer(args, args.out):
+        summary, metrics = run_online(
+            dataset,
+            config,
+            options,
+            args.out,
+            engine=args.engine,
+            address=args.address,
+            fixed=fixed,
+            on_task=live_printer(not args.json),
+        )
     if args.json:
         emit_json({"summary": summary.to_dict(), "tasks": [m.to_dict() for m in metrics]})
     else:

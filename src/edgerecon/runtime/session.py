@@ -14,6 +14,7 @@ Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn 
 * ``metrics.jsonl``: one JSON line per task (:class:`TaskMetrics`), failed tasks included;
 * ``tasks/<time>/merged.ply``: the merged cloud of each task (label and ``bg_version`` per point);
 * ``background.ply``: the newest background the front-end has merged;
+* ``rig.json``: the rig (written when the run starts; the viewer draws its cameras);
 * ``state.json``: the controller's state and progress, for ``--resume``;
 * ``summary.json``: the run's summary (the paper's Table III).
 
@@ -35,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.ply import atomic_write_text, read_ply, write_ply
 from edgerecon.quality.metrics import fscore
@@ -200,6 +202,7 @@ class Session:
     def run(self) -> RunSummary:
         wall0 = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
+        save_rig(self.out / "rig.json", self.dataset.rig)
         done = self.load_previous() if self.options.resume else set()
         if not self.options.resume:
             for name in ("metrics.jsonl", "state.json", "summary.json"):
