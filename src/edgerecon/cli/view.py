@@ -73,11 +73,11 @@ def run(args: argparse.Namespace) -> int:
     config = ViewerConfig(
         host=args.host, port=args.port, point_budget=args.points, coloring=args.coloring
     )
-    # Started next to a run (run --view), the folder may not exist yet.
-    viewer = serve_run(args.run_dir, config, wait_for_run_s=30.0 if args.parent_pid else 0.0)
-    if not viewer.run.path.is_dir():
-        viewer.stop()
+    # Started next to a run (run --view), the folder may not exist yet: it is followed
+    # from the moment it does.
+    if args.parent_pid is None and not os.path.isdir(args.run_dir):
         raise ValueError(f"run folder not found: {args.run_dir}")
+    viewer = serve_run(args.run_dir, config)
     if args.json:
         sys.stdout.write(json.dumps({"url": viewer.url, "port": viewer.port}) + "\n")
         sys.stdout.flush()

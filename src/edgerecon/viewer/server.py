@@ -27,7 +27,6 @@ import logging
 import math
 import os
 import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -544,16 +543,6 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def serve_run(
-    run_dir: str | os.PathLike[str],
-    config: ViewerConfig | None = None,
-    *,
-    wait_for_run_s: float = 0.0,
-) -> RunViewer:
-    """Start a viewer on ``run_dir`` (waiting up to ``wait_for_run_s`` for the folder to
-    appear, for viewers started alongside a run)."""
-    deadline = time.monotonic() + wait_for_run_s
-    path = Path(run_dir)
-    while not path.is_dir() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    return RunViewer(path, config).start()
+def serve_run(run_dir: str | os.PathLike[str], config: ViewerConfig | None = None) -> RunViewer:
+    """Start a viewer on ``run_dir`` (which may not exist yet: a run about to start)."""
+    return RunViewer(Path(run_dir), config).start()
