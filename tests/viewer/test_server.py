@@ -6,8 +6,8 @@ import pytest
 pytest.importorskip("viser")
 
 from edgerecon.viewer.server import RunViewer, ViewerConfig, initial_view
+from edgerecon.viewer.wire import WireClient
 from tests.conftest import ring_rig
-from tests.viewer._client import WireClient
 from tests.viewer._runs import FG_RGB, append_task, scene_cloud, task_metrics, write_run
 
 # The watcher thread is slowed down so that the test drives refresh() itself.

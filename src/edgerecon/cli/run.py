@@ -39,9 +39,16 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--policy",
         choices=("all", "newest"),
-        default="all",
-        help="all: every listed timestamp is a task; newest: frames arrive in real "
-        "time and each task takes the newest one",
+        default=None,
+        help="all: every listed timestamp is a task (default for recorded frames); newest: "
+        "frames arrive in real time and each task takes the newest one (live streams)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="live streams: stop after this many seconds (default: until Ctrl-C)",
     )
     p.add_argument(
         "--fixed",
@@ -188,7 +195,8 @@ def build_options(
 ) -> SessionOptions:
     return SessionOptions(
         frames=FrameRange.parse(args.frames) if args.frames else FrameRange(),
-        policy=args.policy,
+        policy=args.policy or ("newest" if dataset.is_live else "all"),
+        duration_s=args.duration,
         write_clouds=not args.no_clouds,
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,
         resume=args.resume,

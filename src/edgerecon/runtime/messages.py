@@ -100,6 +100,8 @@ class TaskMetrics:
     num_objects: int = 0
     search_steps: int = 0
     """Configuration-search steps taken by the controller so far."""
+    sync_spread_s: float | None = None
+    """Live streams: newest minus oldest capture time of the task's frames, seconds."""
     error: str = ""
     wall_time: float = 0.0
     """Unix time when the task finished."""

@@ -9,6 +9,12 @@ Frame policy (frames can arrive faster than tasks finish):
   arrived and drops the older ones (counted in the summary as ``frames_dropped``). This is
   what a live deployment does: the user always sees the most recent state of the scene.
 
+Live streams (``frames.kind = "stream"``, :mod:`edgerecon.io.streams`): the policy is
+``newest`` (the source's readers keep only each camera's newest frame, and every task takes
+the newest synchronized set); tasks are numbered 0, 1, ... and go on for ``duration_s`` (or
+until ``frames.stop`` tasks, or Ctrl-C). Each task records its sync spread; the summary
+adds the source's counts (waits, cameras left out, frames dropped).
+
 Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn file):
 
 * ``metrics.jsonl``: one JSON line per task (:class:`TaskMetrics`), failed tasks included;
@@ -95,12 +101,17 @@ class SessionOptions:
     """When the dataset has ground truth: score each task's foreground against it at this
     distance (rig units) — the offline F-score. None = no offline scoring."""
     resume: bool = False
+    duration_s: float | None = None
+    """Live streams: stop starting tasks after this many seconds (None: until ``frames``'s
+    stop, or Ctrl-C)."""
     fault: tuple[int, str, float] | None = None
     """Drill: (task number, fault kind, seconds) injected into the back-end before that task."""
 
     def __post_init__(self) -> None:
         if self.policy not in ("all", "newest"):
             raise ValueError(f"policy must be 'all' or 'newest', got {self.policy!r}")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError(f"duration must be > 0 seconds, got {self.duration_s}")
 
 
 @dataclass
@@ -126,6 +137,9 @@ class RunSummary:
     stage_means_s: dict[str, float] = field(default_factory=dict)
     engine: str = ""
     wall_s: float = 0.0
+    stream: dict[str, Any] = field(default_factory=dict)
+    """Live streams: the source's counts (``StreamFrameSource.stats``) and the tasks' sync
+    spread (mean / max seconds)."""
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -158,6 +172,7 @@ class Session:
         self.frames_dropped = 0
         self._gt: Any = None
         self._bg_written = 0
+        self._stream: dict[str, Any] = {}
         if options.ground_truth_threshold is not None and dataset.ground_truth is not None:
             from edgerecon.synth import GroundTruth
 
@@ -199,6 +214,28 @@ class Session:
             yield todo[newest]
             pos = newest + 1
 
+    def _live_schedule(self, done: set[int]) -> Iterator[int]:
+        """Live streams: tasks ``start, start + 1, ...`` (after those done) until
+        ``duration_s`` has passed or ``frames.stop``; each read takes the newest frames."""
+        end = (
+            None if self.options.duration_s is None else time.monotonic() + self.options.duration_s
+        )
+        t = max(done | {self.options.frames.start - 1}) + 1
+        stop = self.options.frames.stop
+        while (stop is None or t < stop) and (end is None or time.monotonic() < end):
+            yield t
+            t += 1
+
+    def _stream_stats(self, source: Any) -> None:
+        stats = source.stats()
+        self.frames_dropped = int(stats["frames_dropped"])
+        spread = [m.sync_spread_s for m in self.metrics if m.sync_spread_s is not None]
+        self._stream = {
+            **stats,
+            "sync_spread_mean_s": float(np.mean(spread)) if spread else None,
+            "sync_spread_max_s": float(np.max(spread)) if spread else None,
+        }
+
     def run(self) -> RunSummary:
         wall0 = time.perf_counter()
         self.out.mkdir(parents=True, exist_ok=True)
@@ -207,15 +244,21 @@ class Session:
         if not self.options.resume:
             for name in ("metrics.jsonl", "state.json", "summary.json"):
                 (self.out / name).unlink(missing_ok=True)
-        indices = self.options.frames.indices(self.dataset.num_frames)
-        if not indices:
-            raise EdgereconError(
-                f"--frames selects no timestamp of {self.dataset.name} "
-                f"({self.dataset.num_frames} frames)"
-            )
+        if self.dataset.is_live:
+            if self.options.policy != "newest":
+                raise EdgereconError("live streams take the newest frames: use --policy newest")
+            schedule = self._live_schedule(done)
+        else:
+            indices = self.options.frames.indices(self.dataset.num_frames)
+            if not indices:
+                raise EdgereconError(
+                    f"--frames selects no timestamp of {self.dataset.name} "
+                    f"({self.dataset.num_frames} frames)"
+                )
+            schedule = self._schedule(indices, done)
         task = len(self.metrics)
         with self.dataset.open_frames(missing="skip_camera") as source:
-            for t in self._schedule(indices, done):
+            for t in schedule:
                 if self.options.fault is not None and self.options.fault[0] == task:
                     _, kind, seconds = self.options.fault
                     logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
@@ -227,6 +270,8 @@ class Session:
                 if self.on_task is not None:
                     self.on_task(m)
                 task += 1
+            if self.dataset.is_live:
+                self._stream_stats(source)
         summary = self.summarise()
         summary.wall_s = round(time.perf_counter() - wall0, 3)
         atomic_write_text(self.out / "summary.json", json.dumps(summary.to_dict(), indent=2) + "\n")
@@ -248,6 +293,7 @@ class Session:
                 wall_time=time.time(),
             )
         m = out.metrics
+        m.sync_spread_s = frames.sync_spread_s
         if self._gt is not None and self.options.ground_truth_threshold is not None:
             ref = self._gt.reference_cloud(t, "foreground", min_views=2)
             m.offline_fscore = (
@@ -295,6 +341,7 @@ class Session:
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
+            stream=dict(self._stream),
         )
         if ok:
             s.avg_scale = float(np.mean([m.scale for m in ok]))
