@@ -181,6 +181,21 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("frames dropped (newest policy)", s.frames_dropped),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
+    if s.stream:
+        st = s.stream
+        spread = (
+            "-"
+            if st.get("sync_spread_mean_s") is None
+            else f"{st['sync_spread_mean_s'] * 1000:.1f} / {st['sync_spread_max_s'] * 1000:.1f}"
+        )
+        rows += [
+            ("sync spread mean / max (ms)", spread),
+            (
+                "cameras left out: stalled / out of sync",
+                f"{st['left_out_stalled']} / {st['left_out_of_sync']}",
+            ),
+            ("sets that waited for sync / reconnects", f"{st['waited']} / {st['reconnects']}"),
+        ]
     print_table(title, ["metric", "value"], rows)
     if s.stage_means_s:
         print_table(
