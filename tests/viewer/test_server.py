@@ -68,3 +68,18 @@ def test_initial_view_looks_at_the_scene_with_the_rigs_up():
     assert np.allclose(view.up, [0, 0, 1])
     assert view.position[2] > 1.5  # above the cameras
     assert np.linalg.norm(view.position[:2]) > 4.0  # outside the ring
+
+
+def test_initial_view_is_in_metres_for_a_millimetre_rig():
+    import dataclasses
+
+    from edgerecon.geometry import Camera
+
+    rig_m = ring_rig(5)
+    cams = [
+        Camera(name=c.name, width=c.width, height=c.height, K=c.K, R=c.R, t=c.t * 1000.0)
+        for c in rig_m
+    ]
+    rig_mm = dataclasses.replace(rig_m, cameras=tuple(cams), unit="mm")
+    a, b = initial_view(rig_m), initial_view(rig_mm)
+    assert np.allclose(a.position, b.position) and np.allclose(a.look_at, b.look_at)
