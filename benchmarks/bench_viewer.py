@@ -57,8 +57,10 @@ def one_run(
     options = SessionOptions(frames=FrameRange(start=0, stop=args.tasks))
     fixed = None if args.adaptive else (args.scale, None)
     viewer = client = None
+    viewer_cpu0 = 0.0
     if view:
         viewer = start_viewer_process(out, port=0)
+        viewer_cpu0 = cpu_seconds(viewer.pid)  # its start-up (imports) is before the run
         client = subprocess.Popen(
             ["nice", "-n", "19", sys.executable, "-m", "edgerecon.viewer.wire", str(viewer.port)],
             stdout=subprocess.PIPE,
@@ -75,7 +77,7 @@ def one_run(
         viewer_cpu = client_cpu = None
         received: dict[str, Any] = {}
         if viewer is not None:
-            viewer_cpu = cpu_seconds(viewer.pid)
+            viewer_cpu = cpu_seconds(viewer.pid) - viewer_cpu0
             viewer.stop()
         if client is not None:
             client_cpu = cpu_seconds(client.pid)
