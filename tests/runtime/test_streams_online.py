@@ -23,8 +23,8 @@ def test_online_run_on_three_live_streams_with_a_stall(tiny_dataset, tmp_path):
     stalled_at: list[int] = []
 
     def on_task(m):
-        if m.task == 1:  # cam3 (stream index 2) stops for 4 s from now
-            server.add_stall(2, 0.0, 4.0)
+        if m.task == 1:  # cam3 (stream index 2) stops for 3 s from now
+            server.add_stall(2, 0.0, 3.0)
             stalled_at.append(m.task)
 
     try:
@@ -33,7 +33,7 @@ def test_online_run_on_three_live_streams_with_a_stall(tiny_dataset, tmp_path):
         config = RuntimeConfig(
             deadline_s=5.0, masks_timeout_s=20.0, golden_timeout_s=20.0, background_updates=False
         )
-        options = SessionOptions(policy="newest", duration_s=14.0, frames=FrameRange(start=0))
+        options = SessionOptions(policy="newest", duration_s=10.0, frames=FrameRange(start=0))
         summary, metrics = run_online(
             ds, config, options, tmp_path / "run", fixed=(1.0, None), on_task=on_task
         )

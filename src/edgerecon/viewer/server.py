@@ -267,7 +267,6 @@ class RunViewer:
         self._shown = m
         if self._point_size is None and len(cloud) > 1:
             self._point_size = 1.5 * point_spacing(cloud.points3D)
-            self._gui["point_size"].value = 1.0
         options = available_colorings(cloud)
         menu = self._gui["coloring"]
         labels = tuple(COLORINGS[k] for k in options)
@@ -415,12 +414,21 @@ class RunViewer:
                 f" ({failed} failed, {degraded} degraded)"
                 + ("" if self._follow() else " · replaying")
             )
-        self._gui["status"].content = text
+        self._set_text("status", text)
         if self._shown is not None:
             newest = tasks[-1] if tasks else self._shown
-            self._gui["task"].content = task_panel(
-                self._shown, self._rig, self._num_points, len(self._cloud or ()), newest
+            self._set_text(
+                "task",
+                task_panel(
+                    self._shown, self._rig, self._num_points, len(self._cloud or ()), newest
+                ),
             )
+
+    def _set_text(self, name: str, text: str) -> None:
+        # Every assignment is a message to every client: send changes only.
+        handle = self._gui[name]
+        if handle.content != text:
+            handle.content = text
 
 
 def timeline(
