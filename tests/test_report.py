@@ -25,8 +25,9 @@ def test_figures_plot_the_runs_numbers(tmp_path):
     runs = load_runs([run])
     ax = figure("latency", runs).axes[0]
     line = ax.lines[0]
-    assert np.allclose(line.get_xdata(), [0, 1, 2, 3, 4])
-    assert np.allclose(line.get_ydata(), [1.0, 1.25, 1.5, 1.75, 2.0])
+    assert np.allclose(line.get_xdata(), [0, 1, 2, 3, 4, 5])
+    assert np.allclose(line.get_ydata()[:5], [1.0, 1.25, 1.5, 1.75, 2.0])
+    assert np.isnan(line.get_ydata()[5])  # the failed task breaks the line
     missed = next(ln for ln in ax.lines if ln.get_marker() == "x")
     assert np.allclose(missed.get_xdata(), [3, 4])  # 1.75 and 2.0 s > 1.5 s
     failed = next(ln for ln in ax.lines if ln.get_marker() == "|")

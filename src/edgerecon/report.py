@@ -103,7 +103,15 @@ def plot_latency(ax: Axes, runs: Sequence[RunData]) -> None:
         ok = run.ok
         x = np.array([m.task for m in ok])
         y = np.array([m.critical_path_s for m in ok])
-        ax.plot(x, y, "-", color=color, lw=1.2, label=run.label)
+        # The line breaks at failed tasks (NaN).
+        ax.plot(
+            [m.task for m in run.tasks],
+            [m.critical_path_s if m.status == "ok" else np.nan for m in run.tasks],
+            "-",
+            color=color,
+            lw=1.2,
+            label=run.label,
+        )
         full = np.array([not m.degraded for m in ok], bool)
         ax.plot(x[full], y[full], "o", color=color, ms=3.5)
         ax.plot(x[~full], y[~full], "o", mfc="none", color=color, ms=5, label=None)
