@@ -9,7 +9,8 @@ import pytest
 
 pytest.importorskip("viser")
 
-from edgerecon.viewer.server import RunViewer, ViewerConfig, ViewPose, initial_view
+from edgerecon.viewer.layout import ViewPose, initial_view
+from edgerecon.viewer.server import RunViewer, ViewerConfig
 from tests.conftest import ring_rig
 from tests.viewer._browser import Browser, chromium_or_skip
 from tests.viewer._runs import scene_cloud, write_run

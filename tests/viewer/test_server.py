@@ -5,7 +5,8 @@ import pytest
 
 pytest.importorskip("viser")
 
-from edgerecon.viewer.server import RunViewer, ViewerConfig, initial_view
+from edgerecon.viewer.layout import initial_view
+from edgerecon.viewer.server import RunViewer, ViewerConfig
 from edgerecon.viewer.wire import WireClient
 from tests.conftest import ring_rig
 from tests.viewer._runs import FG_RGB, append_task, scene_cloud, task_metrics, write_run
