@@ -184,10 +184,15 @@ class FrameSet:
 
     @property
     def sync_spread_s(self) -> float | None:
-        """Newest minus oldest capture time of the frames (live streams), else None."""
+        """Newest minus oldest capture time of the frames present (live streams), else
+        None."""
         if self.capture_times_s is None:
             return None
-        times = [t for t in self.capture_times_s if t is not None]
+        times = [
+            t
+            for t, im in zip(self.capture_times_s, self.images, strict=True)
+            if t is not None and im is not None
+        ]
         return float(max(times) - min(times)) if times else None
 
     @property

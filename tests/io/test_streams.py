@@ -148,3 +148,21 @@ def test_stream_dataset_descriptor(tmp_path):
     write_dataset_descriptor(tmp_path / "dead", rig=rig, frames=spec, fps=FPS)
     with pytest.raises(DataError, match="no camera stream delivered"):
         open_dataset(tmp_path / "dead")
+
+
+def test_check_never_raises_and_names_who_is_missing():
+    names = ["cam0", "cam1", "cam2"]
+    server = MjpegServer(solid_frames(W, H), names, fps=FPS, stalls={2: [(0.0, 60.0)]}).start()
+    try:
+        with _source(server, open_timeout_s=5.0) as source:
+            frames, problems = source.check(0)
+            assert frames.images[2] is None and frames.images[0] is not None
+            assert set(problems) == {"cam2"}
+            assert source.frame_counts["cam0"] >= 1 and source.frame_counts["cam2"] == 0
+    finally:
+        server.stop()
+    # A set without a frame reports no spread from it.
+    from edgerecon.types import FrameSet
+
+    fs = FrameSet(time_index=0, images=(frames.images[0], None), capture_times_s=(10.0, 5.0))
+    assert fs.sync_spread_s == 0.0

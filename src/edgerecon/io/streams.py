@@ -458,6 +458,25 @@ class StreamFrameSource(FrameSource):
             capture_times_s=tuple(times),
         )
 
+    @property
+    def frame_counts(self) -> dict[str, int]:
+        """Frames each camera delivered so far."""
+        return {s.name: s.frames_received for s in self._streams}
+
+    def check(self, t: int) -> tuple[FrameSet, dict[str, str]]:
+        """``read(t)`` that never raises: the set (cameras left out are None) and camera ->
+        why it is not in the set ("stalled", "out of sync", or the reader's error)."""
+        try:
+            frames = self.read(t)
+        except DataError as exc:
+            empty = FrameSet(time_index=t, images=(None,) * len(self._streams))
+            return empty, {s.name: s.error or str(exc) for s in self._streams}
+        problems = {}
+        for i, s in enumerate(self._streams):
+            if frames.images[i] is None:
+                problems[s.name] = s.error or ("stalled" if self._stalled[i] else "out of sync")
+        return frames, problems
+
     def iter_frames(
         self, start: int = 0, stop: int | None = None, step: int = 1
     ) -> Iterator[FrameSet]:
