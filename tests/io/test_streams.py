@@ -159,7 +159,7 @@ def test_check_never_raises_and_names_who_is_missing():
     names = ["cam0", "cam1", "cam2"]
     server = MjpegServer(solid_frames(W, H), names, fps=FPS, stalls={2: [(0.0, 60.0)]}).start()
     try:
-        with _source(server, open_timeout_s=5.0) as source:
+        with _source(server, open_timeout_s=2.0) as source:
             frames, problems = source.check(0)
             assert frames.images[2] is None and frames.images[0] is not None
             assert set(problems) == {"cam2"}
@@ -171,3 +171,62 @@ def test_check_never_raises_and_names_who_is_missing():
 
     fs = FrameSet(time_index=0, images=(frames.images[0], None), capture_times_s=(10.0, 5.0))
     assert fs.sync_spread_s == 0.0
+
+
+def test_mjpeg_http_reader_parts_without_length_auth_and_other_content():
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    import cv2
+
+    from edgerecon.io.mjpeg import MjpegHttpCapture
+
+    jpeg = cv2.imencode(".jpg", stamp(np.full((H, W, 3), 90, np.uint8), 77))[1].tobytes()
+    seen = {}
+
+    class Handler(BaseHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def do_GET(self):
+            seen["auth"] = self.headers.get("Authorization")
+            if self.path == "/video.mp4":
+                self.send_response(200)
+                self.send_header("Content-Type", "video/mp4")
+                self.end_headers()
+                return
+            if self.path != "/mjpg":
+                self.send_error(404)
+                return
+            self.send_response(200)
+            self.send_header("Content-Type", 'multipart/x-mixed-replace;boundary="--myb"')
+            self.end_headers()
+            for _ in range(3):  # parts without Content-Length
+                self.wfile.write(b"--myb\r\nContent-Type: image/jpeg\r\n\r\n" + jpeg + b"\r\n")
+            self.wfile.write(b"--myb--\r\n")
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    base = f"127.0.0.1:{httpd.server_address[1]}"
+    try:
+        cap = MjpegHttpCapture(
+            f"http://me:se%20cret@{base}/mjpg", open_timeout_s=5, read_timeout_s=5
+        )
+        assert cap.isOpened()
+        ticks = []
+        while cap.grab():
+            ok, image = cap.retrieve()
+            assert ok and image.shape == (H, W, 3)
+            ticks.append(read_stamp(image))
+        assert ticks == [77, 77, 77]  # every part, the closing boundary ends the stream
+        cap.release()
+        import base64
+
+        assert seen["auth"] == "Basic " + base64.b64encode(b"me:se cret").decode()
+        other = MjpegHttpCapture(f"http://{base}/video.mp4", open_timeout_s=5, read_timeout_s=5)
+        assert not other.isOpened() and other.not_mjpeg  # FFmpeg's turn
+        missing = MjpegHttpCapture(f"http://{base}/nope", open_timeout_s=5, read_timeout_s=5)
+        assert not missing.isOpened() and not missing.not_mjpeg and "404" in missing.error
+    finally:
+        httpd.shutdown()
+        httpd.server_close()

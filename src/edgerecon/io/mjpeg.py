@@ -1,4 +1,14 @@
-"""A loopback MJPEG server: recorded or synthetic frames served as live camera streams.
+"""MJPEG over HTTP: a reader (:class:`MjpegHttpCapture`) and a loopback server.
+
+``MjpegHttpCapture`` reads an HTTP ``multipart/x-mixed-replace`` JPEG stream (most IP
+cameras' MJPEG endpoint) with the interface of ``cv2.VideoCapture`` (``isOpened``, ``grab``,
+``retrieve``, ``release``). Live streams use it for ``http(s)://`` URLs instead of OpenCV's
+FFmpeg backend, whose opening of a stream holds a process-wide lock: a camera that accepts
+the connection but sends nothing would block every other camera's (re)connection for the
+open timeout. It also knows each frame's arrival exactly (no read-ahead at opening).
+User and password in the URL (``http://user:pass@host/...``) are sent as basic auth.
+
+A loopback MJPEG server: recorded or synthetic frames served as live camera streams.
 
 ``MjpegServer`` serves one ``multipart/x-mixed-replace`` stream per camera
 (``http://127.0.0.1:PORT/<camera>``), the format of most IP cameras' MJPEG endpoints, which
@@ -15,11 +25,14 @@ cameras; it binds 127.0.0.1 unless told otherwise.
 
 from __future__ import annotations
 
+import base64
 import dataclasses
+import http.client
 import logging
 import os
 import threading
 import time
+import urllib.parse
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -38,6 +51,132 @@ STAMP_CELL_PX = 10
 
 FrameProvider = Callable[[int, int], Image]
 """``frame(camera_index, tick)`` -> BGR image of that camera at that tick."""
+
+
+class MjpegHttpCapture:
+    """Frames of an HTTP MJPEG stream, one JPEG part at a time (see module docstring).
+
+    ``isOpened()`` is False when the server cannot be reached within ``open_timeout_s``,
+    answers with an error, or does not serve ``multipart/*`` (``not_mjpeg`` then tells the
+    caller to try another reader). A part that does not arrive within ``read_timeout_s``
+    makes ``grab()`` return False (the caller reconnects).
+    """
+
+    def __init__(self, url: str, *, open_timeout_s: float, read_timeout_s: float) -> None:
+        self.url = url
+        self.not_mjpeg = False
+        self.error = ""
+        self._conn: http.client.HTTPConnection | None = None
+        self._resp: http.client.HTTPResponse | None = None
+        self._boundary = b""
+        self._data: bytes | None = None
+        self._pending_boundary = False
+        parts = urllib.parse.urlsplit(url)
+        conn_cls = (
+            http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
+        )
+        headers = {"User-Agent": "edgerecon", "Accept": "multipart/x-mixed-replace, */*"}
+        if parts.username is not None:
+            cred = f"{urllib.parse.unquote(parts.username)}:{urllib.parse.unquote(parts.password or '')}"
+            headers["Authorization"] = "Basic " + base64.b64encode(cred.encode()).decode()
+        path = parts.path or "/"
+        if parts.query:
+            path += "?" + parts.query
+        try:
+            conn = conn_cls(parts.hostname or "", parts.port, timeout=open_timeout_s)
+            conn.request("GET", path, headers=headers)
+            resp = conn.getresponse()
+        except (OSError, http.client.HTTPException) as exc:
+            self.error = str(exc)
+            return
+        ctype = resp.getheader("Content-Type", "") or ""
+        if resp.status != 200:
+            self.error = f"HTTP {resp.status} {resp.reason}"
+            conn.close()
+            return
+        if not ctype.lower().startswith("multipart/"):
+            self.not_mjpeg = True
+            self.error = f"content type {ctype!r} is not multipart"
+            conn.close()
+            return
+        boundary = ""
+        for field in ctype.split(";")[1:]:
+            key, _, value = field.strip().partition("=")
+            if key.lower() == "boundary":
+                boundary = value.strip().strip('"')
+        if boundary.startswith("--"):
+            boundary = boundary[2:]
+        if not boundary:
+            self.error = "multipart stream without a boundary"
+            conn.close()
+            return
+        if conn.sock is not None:
+            conn.sock.settimeout(read_timeout_s)
+        self._conn, self._resp, self._boundary = conn, resp, b"--" + boundary.encode()
+
+    def isOpened(self) -> bool:
+        return self._resp is not None
+
+    def get(self, prop: int) -> float:
+        return 0.0
+
+    def grab(self) -> bool:
+        """Read the next JPEG part (False: timeout, end of stream or a broken part)."""
+        resp = self._resp
+        if resp is None:
+            return False
+        try:
+            if self._pending_boundary:  # read with the previous part (no Content-Length)
+                self._pending_boundary = False
+            else:
+                line = resp.readline()
+                while line and not line.startswith(self._boundary):
+                    line = resp.readline()
+                if not line or line.startswith(self._boundary + b"--"):
+                    return False
+            length = None
+            while True:
+                header = resp.readline()
+                if not header:
+                    return False
+                if header in (b"\r\n", b"\n"):
+                    break
+                key, _, value = header.decode("latin-1").partition(":")
+                if key.strip().lower() == "content-length":
+                    length = int(value.strip())
+            if length is not None:
+                data = resp.read(length)
+                if len(data) < length:
+                    return False
+            else:  # no length: the part ends at the next boundary
+                chunks = []
+                while True:
+                    line = resp.readline()
+                    if not line:
+                        return False
+                    if line.startswith(self._boundary):
+                        self._pending_boundary = True
+                        break
+                    chunks.append(line)
+                data = b"".join(chunks).removesuffix(b"\r\n")
+        except (OSError, http.client.HTTPException, ValueError):  # timeouts are OSError
+            return False
+        self._data = data
+        return True
+
+    def retrieve(self) -> tuple[bool, Image | None]:
+        if self._data is None:
+            return False, None
+        image = cv2.imdecode(np.frombuffer(self._data, np.uint8), cv2.IMREAD_COLOR)
+        self._data = None
+        if image is None:
+            return False, None
+        return True, np.asarray(image, np.uint8)
+
+    def release(self) -> None:
+        if self._conn is not None:
+            self._conn.close()
+        self._conn = self._resp = None
 
 
 def stamp(image: Image, tick: int) -> Image:

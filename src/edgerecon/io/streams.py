@@ -1,7 +1,8 @@
 """Live camera streams: one reader thread per camera, tasks take the newest synchronized set.
 
-A dataset whose ``frames.kind`` is ``"stream"`` names one source per camera: anything
-OpenCV's FFmpeg backend opens (``rtsp://``, ``http://`` MJPEG, ...), a V4L2 device
+A dataset whose ``frames.kind`` is ``"stream"`` names one source per camera: an ``http://``
+MJPEG stream (read by :class:`edgerecon.io.mjpeg.MjpegHttpCapture`), anything else OpenCV's
+FFmpeg backend opens (``rtsp://``, other HTTP streams, ...), a V4L2 device
 (``/dev/video0``, or its index ``0``), or a video file, played at its own frame rate
 (``loop`` replays it). :class:`StreamFrameSource` runs one reader thread per camera that keeps
 only the **newest** frame and its capture time (wall clock, taken when the frame's data
@@ -19,6 +20,10 @@ arrived): nothing queues, so a slow consumer never sees old frames.
 3. after ``max_wait_s`` it takes that group and leaves the others out of this set
    (counted in ``stats()["left_out_of_sync"]``); with fewer than ``min_cameras`` cameras
    (or none alive) it raises ``DataError`` (the session records a failed task and goes on).
+
+OpenCV's FFmpeg backend opens one stream at a time in a process: an ``rtsp://`` camera that
+accepts connections but sends nothing delays the (re)opening of the other FFmpeg streams by
+up to ``open_timeout_s`` (HTTP MJPEG does not go through FFmpeg and is not affected).
 
 The tolerance bounds how far the scene moves between views: by default one frame interval
 (``1 / fps``; 40 ms without an ``fps``), the smallest value that free-running cameras at the
@@ -145,6 +150,7 @@ class CameraStream:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._warned_open = False
+        self._not_mjpeg = False
 
     @property
     def location(self) -> str:
@@ -172,6 +178,17 @@ class CameraStream:
         """(capture, is_file) or (None, _) when it cannot be opened now."""
         src = self.source
         timeout_ms = int(self.config.open_timeout_s * 1000)
+        if src.startswith(("http://", "https://")) and not self._not_mjpeg:
+            from edgerecon.io.mjpeg import MjpegHttpCapture
+
+            mjpeg = MjpegHttpCapture(
+                src, open_timeout_s=self.config.open_timeout_s, read_timeout_s=self.config.stall_s
+            )
+            if mjpeg.isOpened():
+                return mjpeg, False
+            if not mjpeg.not_mjpeg:
+                return None, False
+            self._not_mjpeg = True  # another kind of HTTP stream: FFmpeg reads it
         if _is_url(src):
             cap = cv2.VideoCapture(
                 src,
