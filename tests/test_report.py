@@ -63,3 +63,13 @@ def test_report_refuses_folders_without_tasks(tmp_path):
     (tmp_path / "metrics.jsonl").write_text("")
     with pytest.raises(EdgereconError, match="no task"):
         load_runs([tmp_path])
+
+
+def test_background_versions_with_back_end_epochs_plot_in_order(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=4)  # counters 0, 0, 1, 1
+    runs = load_runs([run])
+    for m, epoch in zip(runs[0].tasks, (0, 0, 0, 1), strict=True):
+        m.bg_epoch = epoch  # a restarted back-end counts from 1 again (runs that record epochs)
+    ax = figure("background", runs).axes[0]
+    assert list(ax.lines[0].get_ydata()) == [0, 0, 1, 2]
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["v0.0", "v0.1", "v1.1"]

@@ -189,23 +189,34 @@ def plot_quality(ax: Axes, runs: Sequence[RunData]) -> None:
 
 def plot_background(ax: Axes, runs: Sequence[RunData]) -> None:
     """Background version merged into each task, over the run's wall clock."""
+    # A version is (back-end epoch, counter) where the run records epochs (a restarted
+    # back-end counts from 1 again): plotted in order, labelled "v<epoch>.<counter>".
+    versions = sorted({_version(m) for r in runs for m in r.ok})
+    with_epochs = any(e for e, _ in versions)
     for run, color in zip(runs, _COLORS, strict=False):
         ok = [m for m in run.ok if m.wall_time]
         if not ok:
             continue
         t0 = ok[0].wall_time - ok[0].critical_path_s
         t = [m.wall_time - t0 for m in ok]
-        v = [m.bg_version for m in ok]
+        v = [versions.index(_version(m)) if with_epochs else m.bg_version for m in ok]
         ax.step(t, v, where="post", color=color, label=run.label)
         ax.plot(t, v, ".", color=color, ms=3)
     ax.set_xlabel("wall time since the first task started (s)")
     ax.set_ylabel("background version")
-    from matplotlib.ticker import MaxNLocator
+    if with_epochs:
+        ax.set_yticks(range(len(versions)), [f"v{e}.{c}" for e, c in versions])
+    else:
+        from matplotlib.ticker import MaxNLocator
 
-    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_title("background versions merged (points: tasks)")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
+
+
+def _version(m: TaskMetrics) -> tuple[int, int]:
+    return int(getattr(m, "bg_epoch", 0)), int(m.bg_version)
 
 
 def stage_means(run: RunData) -> dict[str, float]:
