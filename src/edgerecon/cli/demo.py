@@ -15,7 +15,15 @@ import time
 from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli.run import add_online_arguments, build_options, live_printer, print_summary
+from edgerecon.cli.run import (
+    EXIT_OK,
+    EXIT_TASKS_FAILED,
+    add_online_arguments,
+    build_options,
+    live_printer,
+    parse_fixed,
+    print_summary,
+)
 from edgerecon.cli.view import live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import reconstruct, warm_up
@@ -95,7 +103,9 @@ def run(args: argparse.Namespace) -> int:
     rt = RuntimeConfig(
         deadline_s=deadline,
         background_updates=not args.no_background_updates,
+        background_scale=args.background_scale,
         sparse_scope=args.sparse_scope,
+        online_quality=args.online_quality,
     )
     if not args.json:
         console.print(
@@ -105,12 +115,9 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.frames is None:
         args.frames = f"0:{dataset.num_frames}"
-    options = build_options(args, dataset, threshold)
-    fixed = None
-    if args.fixed is not None:
-        from edgerecon.cli.reconstruct import parse_cameras
-
-        fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
+    # The run folder is the demo's own work folder: a new demo replaces the last one.
+    options = build_options(args, dataset, threshold, overwrite=True)
+    fixed = parse_fixed(args, dataset)
     with live_viewer(args, out / "run"):
         summary, metrics = run_online(
             dataset,
@@ -141,9 +148,10 @@ def run(args: argparse.Namespace) -> int:
         "total_s": round(time.perf_counter() - t0, 2),
     }
     (out / "demo.json").write_text(json.dumps(result, indent=2) + "\n")
+    code = EXIT_TASKS_FAILED if summary.failed else EXIT_OK
     if args.json:
         emit_json(result)
-        return 0
+        return code
     print_summary(f"demo: {dataset.name}, deadline {deadline:.2f} s", summary)
     print_table(
         "original vs optimized pipeline (per task)",
@@ -158,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
         f"{out / 'run' / 'metrics.jsonl'}; figures in {out / 'run' / 'report'}; "
         f"total {result['total_s']:.0f} s"
     )
-    return 0
+    return code
 
 
 def _scene_matches(scene_dir: Path, config: dict[str, object]) -> bool:

@@ -10,10 +10,9 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_text, write_ply
-from edgerecon.pipeline import reconstruct, reconstruct_split, warm_up
-from edgerecon.runtime.engine import learn_scene_model
-from edgerecon.scene.foreground import RigForeground
+from edgerecon.pipeline import reconstruct, reconstruct_task, warm_up
 from edgerecon.scene.merge import write_merged
+from edgerecon.scene.stream import dataset_scene_at
 
 
 def add_task_arguments(p: argparse.ArgumentParser) -> None:
@@ -104,15 +103,13 @@ __all__ = ["add_task_arguments", "parse_cameras", "register", "run"]
 
 def _run_split(args: argparse.Namespace, dataset: Dataset, config: ReconstructionConfig) -> int:
     rig = dataset.rig
-    scene = learn_scene_model(dataset)
-    model = RigForeground.from_states(rig, scene.states)
+    # The background models as the online system has them at T (edgerecon.scene.stream).
+    tracker = dataset_scene_at(dataset, args.time, progress=not args.json)
     with dataset.open_frames() as source:
-        # Let the model see a few frames before T (it adapts, as it would online).
-        for t in range(max(0, args.time - 5), args.time):
-            model.segment(source.read(t))
         frames = source.read(args.time)
-    foreground = model.segment(frames)
-    result = reconstruct_split(frames, rig, foreground, config)
+    foreground = tracker.segment(frames)
+    # Whole-frame SfM: the background is densified here from the points labelled background.
+    result = reconstruct_task(frames, rig, foreground, config, sparse_scope="scene")
     out = Path(args.out)
     write_merged(out, result.merged)
     write_ply(out / "sparse.ply", result.sparse.cloud)
@@ -120,7 +117,8 @@ def _run_split(args: argparse.Namespace, dataset: Dataset, config: Reconstructio
         "dataset": str(dataset.root),
         "unit": rig.unit,
         "cameras": [rig[i].name for i in result.camera_ids],
-        "background_model": scene.learned_from,
+        "background_model": tracker.learned_from,
+        "background_updates": tracker.updates,
         "foreground_area": foreground.areas(),
         **result.summary(),
     }
