@@ -81,7 +81,7 @@ def main() -> None:
         ds = open_dataset(live_dir)
         config = RuntimeConfig(deadline_s=args.deadline)
         options = SessionOptions(
-            policy="newest", duration_s=args.duration, frames=FrameRange(start=0)
+            policy="newest", duration_s=args.duration, frames=FrameRange(start=0), overwrite=True
         )
         out = Path(args.work) / "demo-live-run"
         wall0 = time.perf_counter()

@@ -64,7 +64,7 @@ def one_run(
         golden_timeout_s=60.0,
         background_updates=args.background,
     )
-    options = SessionOptions(frames=FrameRange(start=0, stop=args.tasks))
+    options = SessionOptions(frames=FrameRange(start=0, stop=args.tasks), overwrite=True)
     viewer = start_viewer_process(out, port=0)
     client = subprocess.Popen(
         ["nice", "-n", "19", sys.executable, "-m", "edgerecon.viewer.wire", str(viewer.port)],

@@ -47,6 +47,7 @@ def _source(server: MjpegServer, **config) -> StreamFrameSource:
     config.setdefault("sync_tolerance_s", 0.05)
     config.setdefault("stall_s", 0.6)
     config.setdefault("max_wait_s", 0.5)
+    config.setdefault("min_cameras", 2)
     urls = {name: server.url(name) for name in server.camera_names}
     return StreamFrameSource(urls, fps=FPS, config=StreamConfig(**config))
 
@@ -96,6 +97,7 @@ def test_newest_synchronized_frames_and_a_stalled_camera_that_rejoins(caplog):
     assert len(stalled) == 1 and "cam2" in stalled[0].getMessage()
     assert len(back) == 1
     assert stats["left_out_stalled"] > 0 and stats["frames_dropped"] > stats["sets"]
+    assert stats["stalls"] == 1 and stats["returns"] == 1
     assert stats["stalled"] == {"cam0": False, "cam1": False, "cam2": False}
 
 

@@ -249,11 +249,12 @@ def print_summary(title: str, s: RunSummary) -> None:
         )
         rows += [
             ("sync spread mean / max (ms)", spread),
+            ("camera stalls / returns", f"{st['stalls']} / {st['returns']}"),
+            ("reads without 3 synchronized cameras", st["no_set"]),
             (
-                "cameras left out: stalled / out of sync",
-                f"{st['left_out_stalled']} / {st['left_out_of_sync']}",
+                "sets that waited for sync / cameras left out of sync",
+                f"{st['waited']} / {st['left_out_of_sync']}",
             ),
-            ("sets that waited for sync / reconnects", f"{st['waited']} / {st['reconnects']}"),
         ]
     print_table(title, ["metric", "value"], rows)
     if s.stage_means_s:

@@ -19,7 +19,8 @@ arrived): nothing queues, so a slow consumer never sees old frames.
    within the tolerance (the newest such group);
 3. after ``max_wait_s`` it takes that group and leaves the others out of this set
    (counted in ``stats()["left_out_of_sync"]``); with fewer than ``min_cameras`` cameras
-   (or none alive) it raises ``DataError`` (the session records a failed task and goes on).
+   (3 by default; or none alive) it raises ``DataError`` (the session records a failed task
+   and goes on: one per ``max_wait_s`` while too few cameras are up).
 
 OpenCV's FFmpeg backend opens one stream at a time in a process: an ``rtsp://`` camera that
 accepts connections but sends nothing delays the (re)opening of the other FFmpeg streams by
@@ -76,8 +77,9 @@ class StreamConfig:
     leaving the late ones out, seconds."""
     stall_s: float = 2.0
     """A camera whose newest frame is older than this is stalled and left out, seconds."""
-    min_cameras: int = 2
-    """Fewest cameras a set may have (fewer: the read fails, the task is recorded failed)."""
+    min_cameras: int = 3
+    """Fewest cameras a set may have (fewer: after ``max_wait_s`` the read fails and the task
+    is recorded failed); 3, what a reconstruction task needs (``config.MIN_CAMERAS``)."""
     open_timeout_s: float = 10.0
     """How long opening a stream may take (and, at dataset opening, how long to wait for
     each camera's first frame), seconds."""
@@ -340,7 +342,15 @@ class StreamFrameSource(FrameSource):
         self._used_seq = [0] * len(self._streams)
         self._stalled = [False] * len(self._streams)
         self._stalled_since = [0.0] * len(self._streams)
-        self._counts = {"sets": 0, "waited": 0, "left_out_of_sync": 0, "left_out_stalled": 0}
+        self._counts = {
+            "sets": 0,
+            "no_set": 0,
+            "waited": 0,
+            "left_out_of_sync": 0,
+            "left_out_stalled": 0,
+            "stalls": 0,
+            "returns": 0,
+        }
         self._frames_used = 0
         self._started = False
         self._started_at = 0.0
@@ -411,6 +421,7 @@ class StreamFrameSource(FrameSource):
     def read(self, t: int) -> FrameSet:
         self.start()
         deadline = time.monotonic() + self.config.max_wait_s
+        need = min(self.config.min_cameras, len(self._streams))
         waited = False
         group: list[int] = []
         with self._changed:
@@ -433,16 +444,17 @@ class StreamFrameSource(FrameSource):
                 # waits for the streams to open).
                 connecting = {i for i in range(len(newest)) if self._connecting(i, now)}
                 expected = set(live) | connecting
-                if connecting and len(group) < self.config.min_cameras:
+                if connecting and len(group) < need:
                     deadline = max(
                         deadline,
                         time.monotonic() + self._started_at + self.config.open_timeout_s - now,
                     )
                 timed_out = time.monotonic() >= deadline
                 if group and (set(group) == expected or timed_out):
-                    if len(group) >= min(self.config.min_cameras, len(self._streams)):
+                    if len(group) >= need:
                         break
                 if timed_out:
+                    self._counts["no_set"] += 1
                     alive = [self._streams[i].name for i in live]
                     raise DataError(
                         f"no {self.config.min_cameras} cameras with synchronized frames within "
@@ -520,6 +532,7 @@ class StreamFrameSource(FrameSource):
                 continue  # not a stall yet
             if i not in live and not self._stalled[i]:
                 self._stalled[i] = True
+                self._counts["stalls"] += 1
                 self._stalled_since[i] = now
                 f = s.newest()
                 why = s.error or (
@@ -530,14 +543,16 @@ class StreamFrameSource(FrameSource):
                 )
             elif i in live and self._stalled[i]:
                 self._stalled[i] = False
+                self._counts["returns"] += 1
                 logger.warning(
                     "camera %r is back after %.1f s", s.name, now - self._stalled_since[i]
                 )
 
     def stats(self) -> dict[str, Any]:
-        """Counts so far: sets taken, sets that waited for synchronization, cameras left out
-        (out of sync / stalled), frames received / used / dropped, reconnects, and per
-        camera whether it is stalled now."""
+        """Counts so far: sets taken, reads that gave no set (too few cameras), sets that
+        waited for synchronization, cameras left out of sets (out of sync / stalled), stalls
+        and returns of cameras, frames received / used / dropped, reconnects, and per camera
+        whether it is stalled now."""
         received = sum(s.frames_received for s in self._streams)
         return {
             **self._counts,
