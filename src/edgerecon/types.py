@@ -176,9 +176,24 @@ class FrameSet:
     """One BGR uint8 image per rig camera, in rig order, at the calibration's resolution."""
     timestamp_s: float | None = None
     """Capture time in seconds when known (frame index / fps for videos)."""
+    capture_times_s: tuple[float | None, ...] | None = None
+    """Per camera, the wall-clock capture time of its frame (live streams; None: unknown)."""
 
     def __len__(self) -> int:
         return len(self.images)
+
+    @property
+    def sync_spread_s(self) -> float | None:
+        """Newest minus oldest capture time of the frames present (live streams), else
+        None."""
+        if self.capture_times_s is None:
+            return None
+        times = [
+            t
+            for t, im in zip(self.capture_times_s, self.images, strict=True)
+            if t is not None and im is not None
+        ]
+        return float(max(times) - min(times)) if times else None
 
     @property
     def available(self) -> list[int]:

@@ -24,9 +24,11 @@ from edgerecon.cli.run import (
     parse_fixed,
     print_summary,
 )
+from edgerecon.cli.view import live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import reconstruct, warm_up
 from edgerecon.quality import evaluate_clouds
+from edgerecon.report import write_report
 from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.online import run_online
 from edgerecon.synth import GroundTruth, preset_config, write_dataset
@@ -116,16 +118,18 @@ def run(args: argparse.Namespace) -> int:
     # The run folder is the demo's own work folder: a new demo replaces the last one.
     options = build_options(args, dataset, threshold, overwrite=True)
     fixed = parse_fixed(args, dataset)
-    summary, metrics = run_online(
-        dataset,
-        rt,
-        options,
-        out / "run",
-        engine=args.engine,
-        address=args.address,
-        fixed=fixed,
-        on_task=live_printer(not args.json),
-    )
+    with live_viewer(args, out / "run"):
+        summary, metrics = run_online(
+            dataset,
+            rt,
+            options,
+            out / "run",
+            engine=args.engine,
+            address=args.address,
+            fixed=fixed,
+            on_task=live_printer(not args.json),
+        )
+    figures = write_report([out / "run"], out / "run" / "report")
     result = {
         "scene": str(scene_dir),
         "generated": generated,
@@ -140,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         "deadline_s": deadline,
         "summary": summary.to_dict(),
         "tasks": [m.to_dict() for m in metrics],
+        "figures": {k: str(v) for k, v in figures.items()},
         "total_s": round(time.perf_counter() - t0, 2),
     }
     (out / "demo.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -158,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
     )
     console.print(
         f"merged clouds in {out / 'run' / 'tasks'}; metrics in "
-        f"{out / 'run' / 'metrics.jsonl'}; total {result['total_s']:.0f} s"
+        f"{out / 'run' / 'metrics.jsonl'}; figures in {out / 'run' / 'report'}; "
+        f"total {result['total_s']:.0f} s"
     )
     return code
 

@@ -78,7 +78,7 @@ def describe(ds: Dataset) -> dict[str, Any]:
         **ds.to_dict(),
         "up": list(rig.up),
         "scene_scale": rig.scene_scale(),
-        "duration_s": None if ds.fps is None else ds.num_frames / ds.fps,
+        "duration_s": None if ds.fps is None or ds.is_live else ds.num_frames / ds.fps,
         "background_frames": background_frames,
         "cameras": [
             {
@@ -150,7 +150,8 @@ def run(args: argparse.Namespace) -> int:
     fps = "unknown" if ds.fps is None else f"{ds.fps:g}"
     console.print(f"[bold]{ds.name}[/] ({ds.layout}) at {ds.root}")
     console.print(
-        f"{len(ds.rig)} cameras, {ds.num_frames} frames ({ds.frames.kind}), fps {fps}, "
+        f"{len(ds.rig)} cameras, {'live' if ds.is_live else ds.num_frames} frames "
+        f"({ds.frames.kind}), fps {fps}, "
         f"unit {unit}, up {tuple(ds.rig.up)}, scene scale {info['scene_scale']:.4g} {unit}"
     )
     bg = info["background_frames"]

@@ -12,6 +12,7 @@ from typing import Any
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, error_console, print_table
 from edgerecon.cli.reconstruct import parse_cameras
+from edgerecon.cli.view import add_live_view_arguments, live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import SPARSE_SCOPES
 from edgerecon.runtime import FrameRange, RunSummary, RuntimeConfig, SessionOptions, TaskMetrics
@@ -60,9 +61,16 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--policy",
         choices=("all", "newest"),
-        default="all",
-        help="all: every listed timestamp is a task; newest: frames arrive in real "
-        "time and each task takes the newest one",
+        default=None,
+        help="all: every listed timestamp is a task (default for recorded frames); newest: "
+        "frames arrive in real time and each task takes the newest one (live streams)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="live streams: stop after this many seconds (default: until Ctrl-C)",
     )
     p.add_argument(
         "--fixed",
@@ -119,6 +127,7 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         help="drill (repeatable): before task TASK, make the back-end stall for SECONDS "
         "(KIND=stall, default 30 s), crash (crash) or, with Ray, kill its process (kill)",
     )
+    add_live_view_arguments(p)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -231,6 +240,22 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("frames dropped (newest policy)", s.frames_dropped),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
+    if s.stream:
+        st = s.stream
+        spread = (
+            "-"
+            if st.get("sync_spread_mean_s") is None
+            else f"{st['sync_spread_mean_s'] * 1000:.1f} / {st['sync_spread_max_s'] * 1000:.1f}"
+        )
+        rows += [
+            ("sync spread mean / max (ms)", spread),
+            ("camera stalls / returns", f"{st['stalls']} / {st['returns']}"),
+            ("reads without 3 synchronized cameras", st["no_set"]),
+            (
+                "sets that waited for sync / cameras left out of sync",
+                f"{st['waited']} / {st['left_out_of_sync']}",
+            ),
+        ]
     print_table(title, ["metric", "value"], rows)
     if s.stage_means_s:
         print_table(
@@ -245,7 +270,8 @@ def build_options(
 ) -> SessionOptions:
     return SessionOptions(
         frames=FrameRange.parse(args.frames) if args.frames else FrameRange(),
-        policy=args.policy,
+        policy=args.policy or ("newest" if dataset.is_live else "all"),
+        duration_s=args.duration,
         write_clouds=not args.no_clouds,
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,
         resume=args.resume,
@@ -339,7 +365,7 @@ def run_and_report(args: argparse.Namespace, start: Any, *, title: str) -> int:
     """Run ``start(on_task)`` (-> summary, metrics), print or emit the result and return the
     exit code (see ``EXIT_CODES_HELP``)."""
     try:
-        with sigterm_as_interrupt():
+        with sigterm_as_interrupt(), live_viewer(args, args.out):
             summary, metrics = start(live_printer(not args.json))
     except RunInterrupted as stop:
         error_console.print(

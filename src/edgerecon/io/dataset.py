@@ -22,7 +22,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -37,6 +37,7 @@ from edgerecon.io.calibration import (
     save_rig,
 )
 from edgerecon.io.frames import (
+    FrameKind,
     FrameSource,
     FrameSpec,
     MissingPolicy,
@@ -80,6 +81,12 @@ class Dataset:
         return len(self.rig)
 
     @property
+    def is_live(self) -> bool:
+        """True for live camera streams (``frames.kind == "stream"``): no fixed frame count,
+        each read is the newest synchronized set."""
+        return self.frames.kind == "stream"
+
+    @property
     def is_static(self) -> bool:
         """True for a single-timestamp dataset (e.g. Middlebury)."""
         return self.num_frames == 1
@@ -99,7 +106,7 @@ class Dataset:
             "name": self.name,
             "layout": self.layout,
             "num_cameras": self.num_cameras,
-            "num_frames": self.num_frames,
+            "num_frames": None if self.is_live else self.num_frames,
             "fps": self.fps,
             "unit": self.rig.unit,
             "frames_kind": self.frames.kind,
@@ -132,7 +139,17 @@ def open_dataset(path: str | os.PathLike[str]) -> Dataset:
 
 def _check_source(spec: FrameSpec, rig: Rig, what: str) -> tuple[int, float | None]:
     """Open ``spec`` against ``rig`` once: checks files and frame sizes; returns
-    (num_frames, fps)."""
+    (num_frames, fps). Live streams: waits for each camera's first frame (a camera that
+    delivers none is reported and joins when it comes up)."""
+    if spec.kind == "stream":
+        from edgerecon.io.streams import StreamFrameSource
+
+        with spec.open(rig) as live:
+            assert isinstance(live, StreamFrameSource)
+            absent = live.wait_first_frames()
+            if absent:
+                logger.warning("%s: no frame yet from cameras %s", what, absent)
+            return live.num_frames, live.fps
     with spec.open(rig) as source:
         if source.num_frames == 0:
             raise DataError(f"{what}: no frames")
@@ -231,8 +248,9 @@ def _spec_from_section(
     if not isinstance(section, Mapping):
         raise DataError(f"{descriptor}: {what!r} must be an object with 'kind' and 'cameras'")
     kind = section.get("kind")
-    if kind not in ("video", "images"):
-        raise DataError(f"{descriptor}: {what}.kind must be 'video' or 'images', got {kind!r}")
+    kinds = ("video", "images", "stream") if what == "frames" else ("video", "images")
+    if kind not in kinds:
+        raise DataError(f"{descriptor}: {what}.kind must be one of {kinds}, got {kind!r}")
     cameras = section.get("cameras")
     pattern = section.get("pattern")
     if cameras is None and isinstance(pattern, str):
@@ -254,11 +272,28 @@ def _spec_from_section(
     start = section.get("start", 0)
     if not isinstance(start, int) or start < 0:
         raise DataError(f"{descriptor}: {what}.start must be a non-negative integer")
-    paths = tuple((n, str(root / str(cameras[n]))) for n in names)
+    if kind == "stream":
+        paths = tuple((n, _stream_location(str(cameras[n]), root)) for n in names)
+    else:
+        paths = tuple((n, str(root / str(cameras[n]))) for n in names)
     try:
-        return FrameSpec(kind=kind, cameras=paths, start=start, fps=fps)
-    except ValueError as exc:
+        stream = None
+        if kind == "stream":
+            from edgerecon.io.streams import StreamConfig
+
+            stream = StreamConfig.from_dict(section)
+        return FrameSpec(
+            kind=cast(FrameKind, kind), cameras=paths, start=start, fps=fps, stream=stream
+        )
+    except (ValueError, TypeError) as exc:
         raise DataError(f"{descriptor}: {what}: {exc}") from None
+
+
+def _stream_location(text: str, root: Path) -> str:
+    """A stream entry as given when it is a URL or a device; a file relative to ``root``."""
+    if "://" in text or text.startswith("/dev/") or text.isdigit():
+        return text
+    return str(root / text)
 
 
 def _open_descriptor(descriptor: Path) -> Dataset:
@@ -385,14 +420,20 @@ def _section(
     if isinstance(spec, FrameSpec):
         out: dict[str, Any] = {
             "kind": spec.kind,
-            "cameras": {n: _relative(Path(p), root) for n, p in spec.cameras},
+            "cameras": {
+                n: p if spec.kind == "stream" else _relative(Path(p), root) for n, p in spec.cameras
+            },
         }
         if spec.start:
             out["start"] = spec.start
+        if spec.stream is not None:
+            out.update(spec.stream.to_dict())
     else:
         out = dict(spec)
-        if out.get("kind") not in ("video", "images"):
-            raise ValueError(f"{what}.kind must be 'video' or 'images', got {out.get('kind')!r}")
+        if out.get("kind") not in ("video", "images", "stream"):
+            raise ValueError(
+                f"{what}.kind must be 'video', 'images' or 'stream', got {out.get('kind')!r}"
+            )
         if "cameras" in out:
             out["cameras"] = {str(k): str(v) for k, v in out["cameras"].items()}
         elif "pattern" not in out:

@@ -15,6 +15,8 @@ implementations share one per-camera reader interface:
   field (``frames/cam0/{index:06d}.png``), a folder whose sorted image files are the frames,
   or a single image file (a static camera with one frame).
 
+Live cameras (``kind="stream"``) are :class:`edgerecon.io.streams.StreamFrameSource`.
+
 The number of frames of a source is the minimum over its cameras (a warning is logged when
 they differ). A frame that is missing or cannot be decoded raises ``DataError`` naming the
 camera and the time index, unless the source was opened with ``missing="skip_camera"``:
@@ -48,6 +50,7 @@ from edgerecon.types import CalibrationError, DataError, EdgereconError, FrameSe
 
 if TYPE_CHECKING:
     from edgerecon.geometry.camera import Rig
+    from edgerecon.io.streams import StreamConfig
 
 logger = logging.getLogger(__name__)
 
@@ -698,7 +701,8 @@ def check_frame_size(rig: Rig, camera: str, size: tuple[int, int], where: str) -
 
 
 # --------------------------------------------------------------------------------- specs
-FrameKind = Literal["video", "images"]
+FrameKind = Literal["video", "images", "stream"]
+FRAME_KINDS: tuple[str, ...] = ("video", "images", "stream")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -706,17 +710,21 @@ class FrameSpec:
     """Picklable description of a frame source: what ``dataset.json`` says about it."""
 
     kind: FrameKind
-    """"video" (one file per camera) or "images" (pattern / folder / single file per camera)."""
+    """"video" (one file per camera), "images" (pattern / folder / single file per camera)
+    or "stream" (one live source per camera: URL, device or file played in real time; see
+    ``io.streams``)."""
     cameras: tuple[tuple[str, str], ...]
-    """(camera name, absolute path or pattern) in rig order."""
+    """(camera name, absolute path, pattern, URL or device) in rig order."""
     start: int = 0
     """File index of time index 0 (image patterns only)."""
     fps: float | None = None
     """Frame rate to report; None: the videos' own rate (images: unknown)."""
+    stream: StreamConfig | None = None
+    """How live streams are read and synchronized ("stream" only; None = defaults)."""
 
     def __post_init__(self) -> None:
-        if self.kind not in ("video", "images"):
-            raise ValueError(f"kind must be 'video' or 'images', got {self.kind!r}")
+        if self.kind not in FRAME_KINDS:
+            raise ValueError(f"kind must be one of {FRAME_KINDS}, got {self.kind!r}")
         if self.start < 0:
             raise ValueError(f"start must be >= 0, got {self.start}")
         if self.fps is not None and not self.fps > 0:
@@ -730,6 +738,12 @@ class FrameSpec:
     def open(self, rig: Rig | None = None, missing: MissingPolicy = "error") -> FrameSource:
         """Build the frame source (opens and verifies the files)."""
         paths = dict(self.cameras)
+        if self.kind == "stream":
+            from edgerecon.io.streams import StreamFrameSource
+
+            return StreamFrameSource(
+                paths, rig=rig, missing=missing, fps=self.fps, config=self.stream
+            )
         if self.kind == "video":
             return VideoFrameSource(paths, rig=rig, missing=missing, fps=self.fps)
         return ImageFolderFrameSource(

@@ -143,6 +143,8 @@ class TaskMetrics:
     num_objects: int = 0
     search_steps: int = 0
     """Configuration-search steps taken by the controller so far."""
+    sync_spread_s: float | None = None
+    """Live streams: newest minus oldest capture time of the task's frames, seconds."""
     error: str = ""
     """Why the task failed (status "failed"): the stage's exception, or the watchdog."""
     wall_time: float = 0.0

@@ -84,7 +84,7 @@ def check_options(
     if engine not in ENGINES:
         raise ValueError(f"--engine must be one of {ENGINES}, got {engine!r}")
     fr = options.frames
-    if not fr.indices(dataset.num_frames):
+    if not dataset.is_live and not fr.indices(dataset.num_frames):
         raise ValueError(
             f"--frames {fr.start}:{'' if fr.stop is None else fr.stop}:{fr.step} selects no "
             f"timestamp of {dataset.name} (frames 0..{dataset.num_frames - 1})"
@@ -146,8 +146,12 @@ def run_online(
             # stream definition of edgerecon.scene.stream: a resumed run continues with the
             # models an uninterrupted run would have).
             done = {m.time_index for m in previous}
-            todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
-            scene = learn_scene_model(dataset, config.foreground, todo[0] if todo else 0)
+            if dataset.is_live:  # tasks are numbered on: no frame index to catch up to
+                first = max(done, default=fr.start - 1) + 1
+            else:
+                todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
+                first = todo[0] if todo else 0
+            scene = learn_scene_model(dataset, config.foreground, first)
         if on_ready is not None:
             on_ready(scene)
         restored = None if saved is None else saved.frontend

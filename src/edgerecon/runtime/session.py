@@ -9,12 +9,19 @@ Frame policy (frames can arrive faster than tasks finish):
   arrived and drops the older ones (counted in the summary as ``frames_dropped``). This is
   what a live deployment does: the user always sees the most recent state of the scene.
 
+Live streams (``frames.kind = "stream"``, :mod:`edgerecon.io.streams`): the policy is
+``newest`` (the source's readers keep only each camera's newest frame, and every task takes
+the newest synchronized set); tasks are numbered 0, 1, ... and go on for ``duration_s`` (or
+until ``frames.stop`` tasks, or Ctrl-C). Each task records its sync spread; the summary
+adds the source's counts (waits, cameras left out, frames dropped).
+
 Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn file; 0644):
 
 * ``metrics.jsonl``: one JSON line per task (:class:`TaskMetrics`), failed tasks included;
 * ``tasks/<time>/merged.ply``: the merged cloud of each task (label and ``bg_version`` per point);
 * ``background.ply``: the newest background cloud the front-end holds (the background itself,
   as the back-end built it);
+* ``rig.json``: the rig (written when the run starts; the viewer draws its cameras);
 * ``state.json``: the run state (:class:`~edgerecon.runtime.state.RunState`), written last for
   each task: the commit point of ``--resume``;
 * ``summary.json``: the run's summary (the paper's Table III), also after Ctrl-C;
@@ -42,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from edgerecon.config import MIN_CAMERAS
+from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.frames import FrameSource
 from edgerecon.io.ply import atomic_write_text, write_ply
@@ -104,6 +112,9 @@ class SessionOptions:
     distance (rig units) — the offline F-score. None = no offline scoring."""
     resume: bool = False
     """Continue the run in the output folder (same dataset, same frame start and step)."""
+    duration_s: float | None = None
+    """Live streams: stop starting tasks after this many seconds (None: until ``frames``'s
+    stop, or Ctrl-C)."""
     overwrite: bool = False
     """Replace the run files of a non-empty output folder (refused otherwise)."""
     faults: tuple[tuple[int, str, float], ...] = ()
@@ -113,6 +124,8 @@ class SessionOptions:
     def __post_init__(self) -> None:
         if self.policy not in ("all", "newest"):
             raise ValueError(f"policy must be 'all' or 'newest', got {self.policy!r}")
+        if self.duration_s is not None and not self.duration_s > 0:
+            raise ValueError(f"duration must be > 0 seconds, got {self.duration_s}")
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
         for task, kind, seconds in self.faults:
@@ -160,6 +173,9 @@ class RunSummary:
     wall_s: float = 0.0
     interrupted: bool = False
     """The run was stopped (Ctrl-C, SIGTERM) before its last task: ``--resume`` goes on."""
+    stream: dict[str, Any] = field(default_factory=dict)
+    """Live streams: the source's counts (``StreamFrameSource.stats``) and the tasks' sync
+    spread (mean / max seconds)."""
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -206,6 +222,7 @@ class Session:
         self.frames_dropped = 0
         self._defects: dict[str, str] = {}
         self._gt: Any = None
+        self._stream: dict[str, Any] = {}
         if options.ground_truth_threshold is not None and dataset.ground_truth is not None:
             from edgerecon.synth import GroundTruth
 
@@ -227,16 +244,48 @@ class Session:
             yield todo[newest]
             pos = newest + 1
 
+    def _live_schedule(self, done: set[int]) -> Iterator[int]:
+        """Live streams: tasks ``start, start + 1, ...`` (after those done) until
+        ``duration_s`` has passed or ``frames.stop``; each read takes the newest frames."""
+        end = (
+            None if self.options.duration_s is None else time.monotonic() + self.options.duration_s
+        )
+        t = max(done | {self.options.frames.start - 1}) + 1
+        stop = self.options.frames.stop
+        while (stop is None or t < stop) and (end is None or time.monotonic() < end):
+            yield t
+            t += 1
+
+    def _stream_stats(self, source: Any) -> None:
+        stats = source.stats()
+        self.frames_dropped = int(stats["frames_dropped"])
+        spread = [m.sync_spread_s for m in self.metrics if m.sync_spread_s is not None]
+        self._stream = {
+            **stats,
+            "sync_spread_mean_s": float(np.mean(spread)) if spread else None,
+            "sync_spread_max_s": float(np.max(spread)) if spread else None,
+        }
+
     def run(self) -> RunSummary:
         """Run every task not yet committed; Ctrl-C writes the summary and raises
         :class:`RunInterrupted`."""
         wall0 = time.perf_counter()
-        indices = self.options.frames.indices(self.dataset.num_frames)
+        save_rig(self.out / "rig.json", self.dataset.rig)
         done = {m.time_index for m in self.metrics}
+        if self.dataset.is_live:
+            if self.options.policy != "newest":
+                raise EdgereconError("live streams take the newest frames: use --policy newest")
+            schedule = self._live_schedule(done)
+        else:
+            schedule = self._schedule(self.options.frames.indices(self.dataset.num_frames), done)
         try:
             with self.dataset.open_frames(missing="skip_camera") as source:
-                for t in self._schedule(indices, done):
-                    self._task(source, t, len(self.metrics))
+                try:
+                    for t in schedule:
+                        self._task(source, t, len(self.metrics))
+                finally:
+                    if self.dataset.is_live:
+                        self._stream_stats(source)
         except KeyboardInterrupt:
             summary = self._finish(wall0, interrupted=True)
             raise RunInterrupted(summary, self.metrics) from None
@@ -307,7 +356,9 @@ class Session:
             named = {self.dataset.rig[i].name: d for i, d in enumerate(defects) if d is not None}
             self._note_defects(t, named)
             plan = self.engine.plan(t)
-            return self.engine.run_task(frames, plan, task, named, updates)
+            out = self.engine.run_task(frames, plan, task, named, updates)
+            out.metrics.sync_spread_s = frames.sync_spread_s
+            return out
         except Exception as exc:  # any stage, any engine: a failed record, never a dead run
             error = describe_exception(exc)
             logger.error("task %d (time %d) failed: %s", task, t, error)
@@ -367,6 +418,7 @@ class Session:
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
+            stream=dict(self._stream),
         )
         skip = {id(m) for m in empty}
         ok = [m for m in ok if id(m) not in skip]  # averages over the tasks that reconstructed

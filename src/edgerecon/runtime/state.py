@@ -44,7 +44,15 @@ STATE_FORMAT = "edgerecon-run-state"
 STATE_VERSION = 2
 
 #: What a run writes in its output folder (``--overwrite`` removes these and nothing else).
-RUN_FILES = ("metrics.jsonl", "state.json", "summary.json", "background.ply", "tasks")
+RUN_FILES = (
+    "metrics.jsonl",
+    "state.json",
+    "summary.json",
+    "background.ply",
+    "tasks",
+    "rig.json",
+    "report",
+)
 LOCK_NAME = ".lock"
 
 

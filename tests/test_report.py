@@ -1,0 +1,75 @@
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.report import FIGURES, figure, load_runs, stage_means, summary_rows, write_report
+from edgerecon.types import EdgereconError
+from tests.viewer._runs import append_task, task_metrics, write_run
+
+
+def test_report_writes_every_figure_as_a_png(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=5)
+    paths = write_report([run], tmp_path / "figs")
+    assert list(paths) == list(FIGURES)
+    for name, path in paths.items():
+        image = cv2.imread(str(path))
+        assert image is not None and image.shape[0] > 150 and image.shape[1] > 600, name
+        assert image.std() > 10  # not a blank page
+    page = cv2.imread(str(paths["summary"]))
+    assert page.shape[0] > page.shape[1]  # a portrait page
+
+
+def test_figures_plot_the_runs_numbers(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=5)
+    append_task(run, task_metrics(5, status="failed", error="no frames"), None)
+    runs = load_runs([run])
+    ax = figure("latency", runs).axes[0]
+    line = ax.lines[0]
+    assert np.allclose(line.get_xdata(), [0, 1, 2, 3, 4, 5])
+    assert np.allclose(line.get_ydata()[:5], [1.0, 1.25, 1.5, 1.75, 2.0])
+    assert np.isnan(line.get_ydata()[5])  # the failed task breaks the line
+    missed = next(ln for ln in ax.lines if ln.get_marker() == "x")
+    assert np.allclose(missed.get_xdata(), [3, 4])  # 1.75 and 2.0 s > 1.5 s
+    failed = next(ln for ln in ax.lines if ln.get_marker() == "|")
+    assert list(failed.get_xdata()) == [5]
+    ax_r, ax_n = figure("configuration", runs).axes
+    assert np.allclose(ax_r.lines[0].get_ydata(), [1.0, 0.9, 0.8, 0.7, 0.6])
+    assert set(ax_n.lines[0].get_ydata()) == {4}
+    q = figure("quality", runs).axes[0]
+    assert np.allclose(q.lines[0].get_ydata(), [0.9, 0.85, 0.8, 0.75, 0.7])
+    bg = figure("background", runs).axes[0]
+    assert list(bg.lines[0].get_ydata()) == [0, 0, 1, 1, 2]
+    assert stage_means(runs[0]) == pytest.approx({"sfm": 0.5, "fg_dense.depth": 0.9})
+    rows = dict(summary_rows(runs[0]))
+    assert rows["deadline misses (all / after convergence)"].startswith("2 / ")
+    assert rows["tasks / failed / degraded"].startswith("6 / 1 / ")
+
+
+def test_several_runs_share_a_figure_labelled_by_deadline(tmp_path):
+    a = write_run(tmp_path / "a", num_tasks=3)
+    b = tmp_path / "b"
+    b.mkdir()
+    for k in range(3):
+        append_task(b, task_metrics(k, deadline_s=5.0), None)
+    runs = load_runs([a, b])
+    assert [r.label for r in runs] == ["deadline 1.5 s", "deadline 5 s"]
+    ax = figure("latency", runs).axes[0]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [r.label for r in runs]
+
+
+def test_report_refuses_folders_without_tasks(tmp_path):
+    with pytest.raises(EdgereconError, match="metrics.jsonl"):
+        load_runs([tmp_path])
+    (tmp_path / "metrics.jsonl").write_text("")
+    with pytest.raises(EdgereconError, match="no task"):
+        load_runs([tmp_path])
+
+
+def test_background_versions_with_back_end_epochs_plot_in_order(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=4)  # counters 0, 0, 1, 1
+    runs = load_runs([run])
+    for m, epoch in zip(runs[0].tasks, (0, 0, 0, 1), strict=True):
+        m.bg_epoch = epoch  # a restarted back-end counts from 1 again (runs that record epochs)
+    ax = figure("background", runs).axes[0]
+    assert list(ax.lines[0].get_ydata()) == [0, 0, 1, 2]
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["v0.0", "v0.1", "v1.1"]
