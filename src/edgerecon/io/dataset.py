@@ -254,9 +254,21 @@ def _spec_from_section(
     start = section.get("start", 0)
     if not isinstance(start, int) or start < 0:
         raise DataError(f"{descriptor}: {what}.start must be a non-negative integer")
+    offsets = section.get("offsets", {})
+    if not isinstance(offsets, Mapping) or not all(
+        isinstance(k, int) and k >= 0 for k in offsets.values()
+    ):
+        raise DataError(
+            f"{descriptor}: {what}.offsets must map camera names to non-negative frame counts"
+        )
+    unknown = sorted(set(offsets) - set(names))
+    if unknown:
+        raise DataError(f"{descriptor}: {what}.offsets names cameras {unknown} the rig lacks")
     paths = tuple((n, str(root / str(cameras[n]))) for n in names)
     try:
-        return FrameSpec(kind=kind, cameras=paths, start=start, fps=fps)
+        return FrameSpec(
+            kind=kind, cameras=paths, start=start, fps=fps, offsets=tuple(offsets.items())
+        )
     except ValueError as exc:
         raise DataError(f"{descriptor}: {what}: {exc}") from None
 
@@ -389,6 +401,8 @@ def _section(
         }
         if spec.start:
             out["start"] = spec.start
+        if spec.offsets:
+            out["offsets"] = dict(spec.offsets)
     else:
         out = dict(spec)
         if out.get("kind") not in ("video", "images"):
