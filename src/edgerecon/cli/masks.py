@@ -188,7 +188,12 @@ def run(args: argparse.Namespace) -> int:
         },
     }
     if args.hull_ply and hull is not None:
-        write_ply(out / "hull.ply", hull_cloud(hull, rig.cameras, frames.images))
+        write_ply(
+            out / "hull.ply",
+            hull_cloud(hull, rig.cameras, frames.images),
+            unit=rig.unit,
+            up=rig.up,
+        )
     atomic_write_text(out / "masks.json", to_json(summary) + "\n")
     if args.json:
         emit_json(summary)

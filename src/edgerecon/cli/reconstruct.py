@@ -74,9 +74,9 @@ def run(args: argparse.Namespace) -> int:
     warm_up()  # timings.json reports the pipeline, not the kernels' loading
     result = reconstruct(frames, rig, config)
     out = Path(args.out)
-    write_ply(out / "sparse.ply", result.sparse.cloud)
+    write_ply(out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up)
     if result.dense is not None:
-        write_ply(out / "dense.ply", result.dense.cloud)
+        write_ply(out / "dense.ply", result.dense.cloud, unit=rig.unit, up=rig.up)
     summary = {
         "dataset": str(dataset.root),
         "unit": rig.unit,
@@ -114,8 +114,8 @@ def _run_split(args: argparse.Namespace, dataset: Dataset, config: Reconstructio
     foreground = model.segment(frames)
     result = reconstruct_split(frames, rig, foreground, config)
     out = Path(args.out)
-    write_merged(out, result.merged)
-    write_ply(out / "sparse.ply", result.sparse.cloud)
+    write_merged(out, result.merged, unit=rig.unit, up=rig.up)
+    write_ply(out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up)
     summary = {
         "dataset": str(dataset.root),
         "unit": rig.unit,
