@@ -35,6 +35,7 @@ _console: Any = None  # rich Console the displays draw on (stderr), set by enabl
 _announce = True
 _owner: Any = None  # the active live display, or None
 _status_hook: Callable[[str], None] | None = None  # an owner's status line, if it has one
+_live_console: Any = None  # the console an owner's display draws on (print through it)
 _collectors: list[PhaseLog] = []
 _lock = threading.RLock()
 
@@ -99,18 +100,24 @@ def _main_thread() -> bool:
 
 
 @contextlib.contextmanager
-def own_display(status: Callable[[str], None] | None = None) -> Iterator[None]:
+def own_display(status: Callable[[str], None] | None = None, console: Any = None) -> Iterator[None]:
     """Mark the caller's live display as the terminal's only one for the duration;
-    ``status`` receives the text of phases and loops that run meanwhile."""
-    global _owner, _status_hook
+    ``status`` receives the text of phases and loops that run meanwhile; ``console`` is the
+    console it draws on, through which log lines must be printed (``live_console``)."""
+    global _owner, _status_hook, _live_console
     with _lock:
-        previous = (_owner, _status_hook)
-        _owner, _status_hook = object(), status
+        previous = (_owner, _status_hook, _live_console)
+        _owner, _status_hook, _live_console = object(), status, console
     try:
         yield
     finally:
         with _lock:
-            _owner, _status_hook = previous
+            _owner, _status_hook, _live_console = previous
+
+
+def live_console() -> Any:
+    """The console of the active live display (print there to appear above it), or None."""
+    return _live_console
 
 
 @contextlib.contextmanager
@@ -154,7 +161,7 @@ def phase(name: str, *, announce_after_s: float = 1.0) -> Iterator[None]:
     try:
         if spinner is not None:
             status = spinner
-            with _claim(lambda text: status.update(f"{name} ... {text}")), spinner:
+            with _claim(lambda text: status.update(f"{name} ... {text}"), status.console), spinner:
                 yield
         else:
             yield
@@ -177,15 +184,15 @@ def phase(name: str, *, announce_after_s: float = 1.0) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _claim(status: Callable[[str], None] | None = None) -> Iterator[None]:
-    global _owner, _status_hook
+def _claim(status: Callable[[str], None] | None = None, console: Any = None) -> Iterator[None]:
+    global _owner, _status_hook, _live_console
     with _lock:
-        _owner, _status_hook = object(), status
+        _owner, _status_hook, _live_console = object(), status, console
     try:
         yield
     finally:
         with _lock:
-            _owner, _status_hook = None, None
+            _owner, _status_hook, _live_console = None, None, None
 
 
 def track(items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
@@ -213,7 +220,7 @@ def track(items: Iterable[T], description: str, total: int | None = None) -> Ite
         return
     from rich.progress import Progress
 
-    with _claim(), Progress(transient=True, console=_get_console()) as bar:
+    with _claim(None, _get_console()), Progress(transient=True, console=_get_console()) as bar:
         task = bar.add_task(description, total=total)
         for item in items:
             yield item

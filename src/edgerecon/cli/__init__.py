@@ -137,7 +137,11 @@ class _ConsoleHandler(logging.Handler):
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            error_console.print(Text(self.format(record)), soft_wrap=True, highlight=False)
+            # While a live display owns the terminal, print through its console (a second
+            # console would write between its refreshes); stderr redirected: write there.
+            live = progress.live_console() if error_console.is_terminal else None
+            target = live if live is not None else error_console
+            target.print(Text(self.format(record)), soft_wrap=True, highlight=False)
         except Exception:  # pragma: no cover - logging must never raise
             self.handleError(record)
 

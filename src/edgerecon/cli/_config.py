@@ -71,3 +71,49 @@ def write_effective(
         f"Load it again with --config {Path(out_dir) / CONFIG_NAME}"
     )
     return write_config(Path(out_dir) / CONFIG_NAME, sections, header=header)
+
+
+def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, Any]:
+    """``RuntimeConfig`` and ``ControllerConfig`` of ``run`` / ``demo``: the file's
+    [runtime] / [controller] with the options typed on the command line on top; [run]
+    fills ``--frames`` / ``--policy`` / ``--engine`` when they were not typed."""
+    from edgerecon.configfile import build, section
+    from edgerecon.optimize.controller import ControllerConfig
+    from edgerecon.runtime.config import RuntimeConfig
+
+    for key in ("frames", "policy", "engine", "sparse_scope"):
+        if key in section(cfg, "run") and not given(args, key) and hasattr(args, key):
+            setattr(args, key, section(cfg, "run")[key])
+    rt = section(cfg, "runtime")
+    over: dict[str, Any] = {}
+    if args.deadline is not None:
+        over["deadline_s"] = args.deadline
+    elif "deadline_s" not in rt:
+        raise ValueError(
+            "--deadline is required (seconds per task), or deadline_s in the [runtime] table "
+            "of --config"
+        )
+    if getattr(args, "no_background_updates", False):
+        over["background_updates"] = False
+    if given(args, "sparse_scope") or "sparse_scope" not in rt:
+        over["sparse_scope"] = args.sparse_scope
+    runtime = build(RuntimeConfig, rt, where="runtime", overrides=over)
+    controller = build(
+        ControllerConfig,
+        section(cfg, "controller"),
+        where="controller",
+        overrides={"deadline_s": runtime.deadline_s},
+        exclude={"deadline_s"},
+    )
+    return runtime, controller
+
+
+def run_options_table(args: argparse.Namespace) -> dict[str, Any]:
+    """The [run] table of an online run's effective configuration."""
+    return {
+        "frames": args.frames,
+        "policy": args.policy,
+        "engine": args.engine,
+        "fixed": args.fixed,
+        "cameras": args.cameras,
+    }

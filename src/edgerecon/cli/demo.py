@@ -15,7 +15,15 @@ import time
 from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli.run import add_online_arguments, build_options, live_printer, print_summary
+from edgerecon.cli._config import load_config, online_configs, run_options_table, write_effective
+from edgerecon.cli.run import (
+    add_online_arguments,
+    build_options,
+    live_printer,
+    num_tasks,
+    print_summary,
+)
+from edgerecon.configfile import section
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import reconstruct, warm_up
 from edgerecon.quality import evaluate_clouds
@@ -89,12 +97,11 @@ def run(args: argparse.Namespace) -> int:
     golden_score = evaluate_clouds(
         golden.dense.cloud if golden.dense else golden.sparse.cloud, ref_all, threshold
     )[0]
-    deadline = args.deadline or round(args.deadline_fraction * golden.timings.total, 2)
-    rt = RuntimeConfig(
-        deadline_s=deadline,
-        background_updates=not args.no_background_updates,
-        sparse_scope=args.sparse_scope,
-    )
+    cfg = load_config(args)
+    if args.deadline is None and "deadline_s" not in section(cfg, "runtime"):
+        args.deadline = round(args.deadline_fraction * golden.timings.total, 2)
+    rt, controller_config = online_configs(args, cfg)
+    deadline = rt.deadline_s
     if not args.json:
         console.print(
             f"original pipeline (r=1, all {len(dataset.rig)} cameras, whole scene) at t={t_mid}: "
@@ -109,16 +116,20 @@ def run(args: argparse.Namespace) -> int:
         from edgerecon.cli.reconstruct import parse_cameras
 
         fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
-    summary, metrics = run_online(
-        dataset,
-        rt,
-        options,
-        out / "run",
-        engine=args.engine,
-        address=args.address,
-        fixed=fixed,
-        on_task=live_printer(not args.json),
-    )
+    with live_printer(not args.json, num_tasks(args, dataset)) as on_task:
+        summary, metrics = run_online(
+            dataset,
+            rt,
+            options,
+            out / "run",
+            engine=args.engine,
+            address=args.address,
+            fixed=fixed,
+            controller_config=controller_config,
+            on_task=on_task,
+        )
+    effective = {"runtime": rt, "controller": controller_config, "run": run_options_table(args)}
+    write_effective(out / "run", "demo", effective)
     result = {
         "scene": str(scene_dir),
         "generated": generated,

@@ -7,9 +7,17 @@ import math
 from typing import Any
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.cli._config import (
+    add_config_flag,
+    load_config,
+    online_configs,
+    run_options_table,
+    write_effective,
+)
+from edgerecon.cli._live import TaskDisplay
 from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.io.dataset import open_dataset
-from edgerecon.runtime import FrameRange, RunSummary, RuntimeConfig, SessionOptions, TaskMetrics
+from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetrics
 from edgerecon.runtime.config import SPARSE_SCOPES
 from edgerecon.runtime.online import run_online
 
@@ -20,8 +28,11 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "--deadline",
         type=float,
         required=False,
-        help="deadline per task in seconds (the average critical path aims at it)",
+        metavar="S",
+        help="deadline per task in seconds (the average critical path aims at it); required "
+        "by run unless --config's [runtime] sets deadline_s",
     )
+    add_config_flag(p)
     p.add_argument("--frames", default=None, help="timestamps A:B:STEP (default: the whole stream)")
     p.add_argument(
         "--engine",
@@ -132,25 +143,20 @@ TASK_COLUMNS = [
 ]
 
 
-def live_printer(enabled: bool) -> Any:
-    """A callback that prints one table row per finished task."""
-    if not enabled:
-        return None
+def live_printer(enabled: bool, total: int | None = None) -> TaskDisplay:
+    """The task rows and the status line (task i/N, ETA) of a run: a context manager and
+    the ``on_task`` callback (see ``cli._live``)."""
     widths = [4, 6, 7, 5, 3, 7, 4, 8, 9, 20]
-    header = " ".join(c.rjust(w) for c, w in zip(TASK_COLUMNS, widths, strict=True))
-    state = {"printed": False}
+    return TaskDisplay(columns=TASK_COLUMNS, widths=widths, row=task_row, total=total, rows=enabled)
 
-    def on_task(m: TaskMetrics) -> None:
-        if not state["printed"]:
-            console.print(f"[bold]{header}[/]", soft_wrap=True)
-            state["printed"] = True
-        row = task_row(m)
-        # One line per task even on an 80-column pipe (no wrapping).
-        console.print(
-            " ".join(str(v).rjust(w) for v, w in zip(row, widths, strict=True)), soft_wrap=True
-        )
 
-    return on_task
+def num_tasks(args: argparse.Namespace, dataset: Any) -> int | None:
+    """How many tasks ``--frames`` makes (at most, with --policy newest)."""
+    try:
+        frames = FrameRange.parse(args.frames) if args.frames else FrameRange()
+    except ValueError:
+        return None
+    return len(frames.indices(dataset.num_frames)) or None
 
 
 def print_summary(title: str, s: RunSummary) -> None:
@@ -196,30 +202,28 @@ def build_options(
 
 def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
-    if args.deadline is None:
-        raise ValueError("--deadline is required")
-    config = RuntimeConfig(
-        deadline_s=args.deadline,
-        background_updates=not args.no_background_updates,
-        sparse_scope=args.sparse_scope,
-    )
+    config, controller_config = online_configs(args, load_config(args))
     fixed = None
     if args.fixed is not None:
         fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))
-    summary, metrics = run_online(
-        dataset,
-        config,
-        options,
-        args.out,
-        engine=args.engine,
-        address=args.address,
-        fixed=fixed,
-        on_task=live_printer(not args.json),
-    )
+    with live_printer(not args.json, num_tasks(args, dataset)) as on_task:
+        summary, metrics = run_online(
+            dataset,
+            config,
+            options,
+            args.out,
+            engine=args.engine,
+            address=args.address,
+            fixed=fixed,
+            controller_config=controller_config,
+            on_task=on_task,
+        )
+    effective = {"runtime": config, "controller": controller_config, "run": run_options_table(args)}
+    write_effective(args.out, "run", effective)
     if args.json:
         emit_json({"summary": summary.to_dict(), "tasks": [m.to_dict() for m in metrics]})
     else:
-        print_summary(f"{dataset.name}: online run, deadline {args.deadline:g} s", summary)
+        print_summary(f"{dataset.name}: online run, deadline {config.deadline_s:g} s", summary)
         console.print(f"outputs in {args.out}")
     return 0
