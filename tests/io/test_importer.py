@@ -251,7 +251,14 @@ def test_import_caliscope_toml(scene, tmp_path):
     calib = tmp_path / "camera_array.toml"
     calib.write_text(caliscope_toml(ds.rig))
     # caliscope names its cameras cam_0..; the frame folders are cam0.. (punctuation ignored)
-    report = import_dataset(tmp_path / "cs", calibration=calib, frames=[str(ds.root / "frames")])
+    report = import_dataset(
+        tmp_path / "cs",
+        calibration=calib,
+        frames=[str(ds.root / "frames")],
+        background=[str(ds.root / "background")],
+    )
+    with report.dataset.open_background() as bg:
+        assert bg.num_frames == 12  # the scene's empty-room clip
     assert report.dataset.rig.names == [f"cam_{k}" for k in range(5)]
     assert all(c.matched_by == "name" for c in report.cameras)
     assert report.calibration_format == "toml" and "caliscope" in report.unit_note

@@ -170,8 +170,7 @@ def _run_whole(
     rig = dataset.rig
     with progress.phase(f"decode the frames of time {args.time}"), dataset.open_frames() as src:
         frames = src.read(args.time)
-    with progress.phase("load the compiled kernels (warm-up)"):
-        warm_up()  # timings.json reports the pipeline, not the kernels' loading
+    warm_up()  # timings.json reports the pipeline, not the kernels' loading (a phase)
     with progress.phase("reconstruct"):
         result = reconstruct(frames, rig, config)
     out = Path(args.out)
@@ -226,8 +225,7 @@ def _run_split(
     frames = framesets[-1]
     with progress.phase("foreground masks"):
         foreground = model.segment(frames)
-    with progress.phase("load the compiled kernels (warm-up)"):
-        warm_up()
+    warm_up()
     with progress.phase("reconstruct"):
         result = reconstruct_split(frames, rig, foreground, config, split_config=split_config)
     out = Path(args.out)
