@@ -86,3 +86,20 @@ def test_distance_cutoff_is_exact_below_and_a_bounded_estimate_beyond():
     assert a[0] == cut and b[0].precision == 0.5
     with pytest.raises(ValueError, match="max_distance"):
         evaluate_clouds(pred, ref, 0.01, max_distance=0.001)
+
+
+def test_nested_evaluation_equals_separate_ones():
+    from edgerecon.quality.metrics import evaluate_against, evaluate_nested
+
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0, 1, (30000, 3))
+    pred = ref[rng.integers(0, len(ref), 20000)] + rng.normal(0, 0.01, (20000, 3))
+    pred[:500] += 2.0  # far points: estimates
+    subset = rng.random(len(ref)) < 0.6
+    nested = evaluate_nested(pred, ref, [subset], [0.01, 0.02], max_distance=0.02)
+    separate = evaluate_against(pred, [ref, ref[subset]], [0.01, 0.02], max_distance=0.02)
+    for a, b in zip(nested, separate, strict=True):
+        for x, y in zip(a, b, strict=True):
+            assert x.precision == y.precision and x.recall == y.recall
+            assert x.accuracy_median == pytest.approx(y.accuracy_median)
+            assert x.completeness_mean == pytest.approx(y.completeness_mean)

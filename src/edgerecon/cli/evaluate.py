@@ -14,7 +14,7 @@ import numpy as np
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.ply import read_ply, read_ply_meta
-from edgerecon.quality.metrics import QualityScore, evaluate_against
+from edgerecon.quality.metrics import QualityScore, evaluate_against, evaluate_nested
 from edgerecon.types import DataError, PointCloud
 
 _COLUMNS = [
@@ -253,8 +253,8 @@ def _run_gt(args: argparse.Namespace) -> int:
     pred_all = read_ply(args.pred)
     th = resolve_thresholds(args.threshold, gt.rig, None, args.max_distance, "ground truth's rig")
     ref_all = gt.reference_cloud(args.time, part=args.part, min_views=1)
-    views = ref_all.attributes["num_views"]
-    ref_seen = ref_all.select(views >= args.min_views)
+    seen = np.asarray(ref_all.attributes["num_views"]) >= args.min_views
+    ref_seen = ref_all.select(seen)
     note = ""
     if args.no_label_filter or args.part == "all":
         pred = pred_all
@@ -267,8 +267,8 @@ def _run_gt(args: argparse.Namespace) -> int:
             f"PRED has no labels: scored its {len(pred):,} points within "
             f"{th.max_distance:.4g} of the ground-truth {args.part}"
         )
-    scores_all, scores_seen = evaluate_against(
-        pred, [ref_all, ref_seen], th.values, max_distance=th.max_distance
+    scores_all, scores_seen = evaluate_nested(
+        pred, ref_all, [seen], th.values, max_distance=th.max_distance
     )
     seconds = time.perf_counter() - t0
     unit = gt.rig.unit

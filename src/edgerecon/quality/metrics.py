@@ -132,27 +132,37 @@ def _query(
     q: NDArray[np.float64],
     workers: int,
     max_distance: float | None,
+) -> NDArray[np.float64]:
+    return _query_idx(ref, q, workers, max_distance)[0]
+
+
+def _query_idx(
+    ref: cKDTree | _Indexed,
+    q: NDArray[np.float64],
+    workers: int,
+    max_distance: float | None,
     *,
     sort: bool = True,
-) -> NDArray[np.float64]:
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Distances and nearest indices (-1 where the distance is an estimate or none)."""
     if sort and len(q) > 10_000:
         order = _spatial_order(q)
-        out = np.empty(len(q))
-        out[order] = _query(ref, q[order], workers, max_distance, sort=False)
-        return out
+        d_out = np.empty(len(q))
+        i_out = np.empty(len(q), np.int64)
+        d_out[order], i_out[order] = _query_idx(ref, q[order], workers, max_distance, sort=False)
+        return d_out, i_out
     tree = ref.tree if isinstance(ref, _Indexed) else ref
-    if max_distance is None:
-        d, _ = tree.query(q, k=1, workers=workers)
-        return np.asarray(d, dtype=np.float64)
-    bound = float(np.nextafter(max_distance, np.inf))
-    d, _ = tree.query(q, k=1, workers=workers, distance_upper_bound=bound)
+    bound = np.inf if max_distance is None else float(np.nextafter(max_distance, np.inf))
+    d, idx = tree.query(q, k=1, workers=workers, distance_upper_bound=bound)
     d = np.asarray(d, dtype=np.float64)
+    idx = np.asarray(idx, dtype=np.int64)
     far = ~np.isfinite(d)
-    if far.any() and isinstance(ref, _Indexed):
+    idx[far] = -1
+    if max_distance is not None and far.any() and isinstance(ref, _Indexed):
         coarse = ref.coarse(0.25 * max_distance)
         est, _ = coarse.query(q[far], k=1, workers=workers)
         d[far] = np.maximum(est, max_distance)
-    return d
+    return d, idx
 
 
 def _thresholds(thresholds: float | Sequence[float]) -> list[float]:
@@ -258,6 +268,46 @@ def _scores(
             )
         )
     return scores
+
+
+def evaluate_nested(
+    pred: PointCloud | Points3D,
+    ref: PointCloud | Points3D,
+    subsets: Sequence[NDArray[np.bool_]],
+    thresholds: float | Sequence[float],
+    *,
+    max_distance: float | None = None,
+    workers: int = -1,
+) -> list[list[QualityScore]]:
+    """``evaluate_against(pred, [ref, ref[m] for m in subsets])`` computed once: the
+    distances from a subset's points are the whole reference's, and a predicted point whose
+    nearest reference point lies in the subset keeps its distance; only the others are
+    searched again (ground truth seen by >= k cameras is such a subset)."""
+    ths = _thresholds(thresholds)
+    p, r = _as_points(pred), _as_points(ref)
+    if len(p) == 0 or len(r) == 0:
+        return evaluate_against(
+            p, [r, *(r[m] for m in subsets)], ths, max_distance=max_distance, workers=workers
+        )
+    if max_distance is not None and not max_distance >= max(ths):
+        raise ValueError(
+            f"max_distance {max_distance!r} must be at least the largest threshold {max(ths)}"
+        )
+    d_pr, nearest = _query_idx(_Indexed(r), p, workers, max_distance)
+    d_rp = _query(_Indexed(p), r, workers, max_distance)
+    out = [_scores(d_pr, d_rp, ths, max_distance)]
+    for m in subsets:
+        m = np.asarray(m, bool)
+        sub = r[m]
+        if len(sub) == 0:
+            out.append(_scores(np.full(len(p), np.inf), np.zeros(0), ths, max_distance))
+            continue
+        d_sub = d_pr.copy()
+        redo = (nearest < 0) | ~m[np.maximum(nearest, 0)]
+        if redo.any():
+            d_sub[redo] = _query(_Indexed(sub), p[redo], workers, max_distance)
+        out.append(_scores(d_sub, d_rp[m], ths, max_distance))
+    return out
 
 
 def fscore(pred: PointCloud | Points3D, ref: PointCloud | Points3D, threshold: float) -> float:
