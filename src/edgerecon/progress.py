@@ -176,7 +176,8 @@ def phase(name: str, *, announce_after_s: float = 1.0) -> Iterator[None]:
         if hook is not None:
             hook("")
         if _enabled and _announce and main and depth == 0 and seconds >= announce_after_s:
-            _get_console().print(
+            # Through the live display's console when one is active (above it).
+            (_live_console or _get_console()).print(
                 f"[dim]{time.strftime('%H:%M:%S')}[/] {name} [dim]{seconds:.1f} s[/]",
                 highlight=False,
                 soft_wrap=True,

@@ -90,3 +90,11 @@ def test_run_output_on_a_terminal_never_interleaves(tiny_dataset, tmp_path):
     assert logs, "\n".join(lines)  # the drill's warnings are on lines of their own
     for ln in rows + logs:
         assert "elapsed" not in ln and "━" not in ln
+    # A task of the run exports as it is (dataset and time from the run folder).
+    from edgerecon.cli import main
+    from edgerecon.io.colmap import read_colmap_model
+
+    task = tmp_path / "run" / "tasks" / "000003"
+    assert main(["export", str(task), "--out", str(tmp_path / "ws"), "--no-images"]) == 0
+    assert len(read_colmap_model(tmp_path / "ws" / "sparse").points3D) > 100
+    assert (tmp_path / "run" / "config.toml").read_text().count("[runtime") >= 1

@@ -20,6 +20,8 @@ import cv2
 import numpy as np
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table, to_json
+from edgerecon.cli._config import add_config_flag, load_config
+from edgerecon.configfile import build, section
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, write_ply
 from edgerecon.progress import track
@@ -58,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--no-hull", action="store_true", help="skip the visual-hull consistency of the masks"
     )
     p.add_argument("--hull-ply", action="store_true", help="also write the visual hull (hull.ply)")
+    add_config_flag(p)
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -134,7 +137,13 @@ def run(args: argparse.Namespace) -> int:
     if args.warmup < 0 or args.learn_frames < 1:
         raise DataError("--warmup must be >= 0 and --learn-frames >= 1")
     rig = dataset.rig
-    config = ForegroundConfig(hull_consistency=not args.no_hull)
+    # The scene model's settings are the online system's: [runtime.foreground] of --config.
+    config = build(
+        ForegroundConfig,
+        section(load_config(args), "runtime", "foreground"),
+        where="runtime.foreground",
+        overrides={"hull_consistency": False} if args.no_hull else None,
+    )
     t0 = time.perf_counter()
     model, learned_from = learn_foreground(dataset, config, args.learn_frames)
     learn_s = time.perf_counter() - t0
