@@ -212,8 +212,7 @@ def _run_split(
     fg_config = build(ForegroundConfig, section(rt, "foreground"), where="runtime.foreground")
     split_config = build(SplitPipelineConfig, section(rt, "split"), where="runtime.split")
     warmup_frames = int(rt.get("warmup_frames", 30))
-    with progress.phase("learn the background model"):
-        scene = learn_scene_model(dataset, fg_config, warmup_frames)
+    scene = learn_scene_model(dataset, fg_config, warmup_frames)  # a phase
     model = RigForeground.from_states(rig, scene.states, fg_config)
     before = list(range(max(0, args.time - 5), args.time))
     with progress.phase(f"decode the frames up to time {args.time}"), dataset.open_frames() as src:

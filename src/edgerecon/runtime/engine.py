@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from edgerecon import progress
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.pipeline import warm_up
@@ -44,6 +45,7 @@ class SceneModel:
     seconds: float
 
 
+@progress.phase("learn the background model")
 def learn_scene_model(
     dataset: Dataset,
     foreground: ForegroundConfig | None = None,
