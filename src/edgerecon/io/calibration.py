@@ -508,22 +508,17 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     colmap = find_colmap_model(folder)
     if colmap is not None:
         return "colmap", colmap
-    tomls = toml_calibrations(folder)
-    if len(tomls) == 1:
-        return "toml", tomls[0]
-    if len(tomls) > 1:
-        raise CalibrationError(
-            f"{folder}: several TOML calibrations ({', '.join(p.name for p in tomls)}); "
-            "pass one of them"
-        )
-    par = middlebury_par_files(folder)
-    if len(par) == 1:
-        return "middlebury", par[0]
-    if len(par) > 1:
-        raise CalibrationError(
-            f"{folder}: several Middlebury parameter files ({', '.join(p.name for p in par)}); "
-            "pass one of them"
-        )
+    for fmt, found, what in (
+        ("toml", toml_calibrations(folder), "TOML calibrations"),
+        ("middlebury", middlebury_par_files(folder), "Middlebury parameter files"),
+    ):
+        if len(found) > 1:
+            raise CalibrationError(
+                f"{folder}: several {what} ({', '.join(p.name for p in found)}); "
+                "pass one of them"
+            )
+        if found:
+            return fmt, found[0]
     if opencv_xml_cameras(folder):
         return "opencv-xml", folder
     sfm = sorted(folder.glob("sfm_data*.json"))
