@@ -52,6 +52,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--min-track", type=int, default=2, help="colmap: least images per point (default 2)"
     )
     p.add_argument(
+        "--max-range",
+        default="auto",
+        metavar="auto|none|X",
+        help="leave out points farther than X (the rig's unit) from the point the cameras look "
+        "at; auto: 3 x the farthest camera's distance from it (stray SfM points tens of metres "
+        "away make viewers zoom out and openMVS's scene bounds explode); needs the dataset",
+    )
+    p.add_argument(
         "--z-up-metres",
         "--z-up-meters",
         dest="z_up_metres",
@@ -105,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         raise DataError("--to colmap needs the dataset (--dataset DIR): the cameras come from it")
     dataset = open_dataset(dataset_path)
     cloud_path = _cloud_path(source, args.cloud, _COLMAP_ORDER)
-    cloud = read_ply(cloud_path)
+    cloud, dropped = crop_range(read_ply(cloud_path), dataset.rig, args.max_range)
     occluders = _occluders(source, cloud_path)
     frames = None
     if not args.no_images:
@@ -125,8 +133,12 @@ def run(args: argparse.Namespace) -> int:
         transform=z_up_metres(dataset.rig.unit, dataset.rig.up) if args.z_up_metres else None,
     )
     if args.json:
-        emit_json({**report.to_dict(), "cloud": str(cloud_path), "time": time_index})
+        emit_json(
+            {**report.to_dict(), "cloud": str(cloud_path), "time": time_index, "dropped": dropped}
+        )
         return 0
+    if dropped:
+        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
     console.print(
         f"{cloud_path}: {report.num_points:,} of {report.num_points_in:,} points seen by >= "
         f"{args.min_track} images (mean track {report.mean_track_length:.2f}); "
@@ -144,6 +156,30 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def crop_range(cloud: PointCloud, rig: Any, spec: str) -> tuple[PointCloud, int]:
+    """``cloud`` without the points beyond ``--max-range`` (see its help), and how many."""
+    import numpy as np
+
+    from edgerecon.cli.info import convergence_point
+
+    if spec == "none":
+        return cloud, 0
+    center = convergence_point(rig)
+    if center is None:
+        center = rig.centers.mean(axis=0)
+    if spec == "auto":
+        radius = 3.0 * float(np.linalg.norm(rig.centers - center, axis=1).max())
+    else:
+        try:
+            radius = float(spec)
+        except ValueError:
+            raise DataError(f"--max-range must be auto, none or a length, got {spec!r}") from None
+        if not radius > 0:
+            raise DataError(f"--max-range must be positive, got {spec!r}")
+    keep = np.linalg.norm(cloud.points3D - center, axis=1) <= radius
+    return cloud.select(keep), int(np.count_nonzero(~keep))
+
+
 def _occluders(source: Path, cloud_path: Path) -> PointCloud | None:
     """The densest cloud next to the exported one (hides what the cameras cannot see)."""
     folder = source if source.is_dir() else source.parent
@@ -159,6 +195,9 @@ def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -
     cloud = read_ply(cloud_path)
     meta = read_ply_meta(cloud_path)
     dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
+    dropped = 0
+    if dataset is not None:
+        cloud, dropped = crop_range(cloud, dataset.rig, args.max_range)
     unit = dataset.rig.unit if dataset else meta.unit
     up = tuple(dataset.rig.up) if dataset else meta.up
     note = ""
@@ -178,8 +217,13 @@ def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -
         comments.append(f"world frame {note}")
     write_ply(out, cloud, unit=unit, up=up, comments=comments)
     if args.json:
-        emit_json({"ply": str(out), "points": len(cloud), "unit": unit, "up": up, "note": note})
+        emit_json(
+            {"ply": str(out), "points": len(cloud), "unit": unit, "up": up, "note": note,
+             "dropped": dropped}
+        )  # fmt: skip
         return 0
+    if dropped:
+        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
     console.print(
         f"wrote {out}: {len(cloud):,} points, unit {unit or 'unknown'}, up {up or 'unknown'}"
         + (f" ({note})" if note else ""),

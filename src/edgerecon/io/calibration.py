@@ -514,8 +514,7 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     ):
         if len(found) > 1:
             raise CalibrationError(
-                f"{folder}: several {what} ({', '.join(p.name for p in found)}); "
-                "pass one of them"
+                f"{folder}: several {what} ({', '.join(p.name for p in found)}); pass one of them"
             )
         if found:
             return fmt, found[0]
