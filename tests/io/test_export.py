@@ -166,3 +166,14 @@ def test_export_ply_z_up_metres(reconstruction, tmp_path, capsys):
     assert main(["export", str(reconstruction), "--to", "colmap", "-o", str(tmp_path / "x"),
                  "--cloud", "nope"]) == 2  # fmt: skip
     assert "not found" in capsys.readouterr().err
+
+
+def test_max_range_drops_stray_points():
+    from edgerecon.cli.export import crop_range
+
+    rig = _rig_mm_z_down()  # cameras 4.27 m from where they look
+    pts = np.array([[0, 0, -800.0], [5000, 0, -800], [40000, 0, 0]])
+    cloud, dropped = crop_range(PointCloud(points3D=pts), rig, "auto")
+    assert dropped == 1 and len(cloud) == 2  # 3 x 4.27 m keeps the wall 5 m away
+    assert crop_range(PointCloud(points3D=pts), rig, "2000")[1] == 2
+    assert crop_range(PointCloud(points3D=pts), rig, "none")[1] == 0
