@@ -5,8 +5,9 @@
   are printed above it; writes to stdout and stderr (log lines, warnings, other libraries'
   prints) are redirected through it, and loops on other threads (the back-end's) never draw
   (``edgerecon.progress``), so nothing interleaves.
-* stdout piped but stderr a terminal: rows on stdout (plain lines), the status line on stderr.
-* neither: rows only. ``--json``: nothing until the end.
+* stdout piped (``run ... | tee log``, whose output lands on the same terminal): rows only,
+  as whole lines; no spinner or progress bar redraws a line meanwhile. ``--json``: nothing
+  until the end.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ class TaskDisplay:
         self.out = out or console
         self.err = err or error_console
         if live is None:
-            live = rows and (self.out.is_terminal or self.err.is_terminal)
+            live = rows and self.out.is_terminal
         self.live_on = live
         self.done = 0
         self.started = time.perf_counter()
@@ -101,8 +102,12 @@ class TaskDisplay:
 
     # ---------------------------------------------------------------- lifecycle
     def __enter__(self) -> TaskDisplay:
-        if self.live_on:
-            target = self.out if self.out.is_terminal else self.err
+        if not self.live_on:
+            # Still the only display: no phase spinner or progress bar may start meanwhile.
+            self._owner = progress.own_display(None, None)
+            self._owner.__enter__()
+        else:
+            target = self.out
             self._live = Live(
                 _Status(self),
                 console=target,
