@@ -184,7 +184,8 @@ def find_colmap_model(path: str | os.PathLike[str]) -> Path | None:
 
 def read_colmap_model(path: str | os.PathLike[str], *, points: bool = True) -> ColmapModel:
     """Read a COLMAP model folder (text or binary, detected; binary wins when both are
-    there, as in COLMAP). ``points=False`` skips points3D (a rig needs only the poses)."""
+    there, as in COLMAP). ``points=False`` skips points3D and the text form's 2D points (a rig
+    needs only the poses)."""
     folder = find_colmap_model(path)
     if folder is None:
         base = Path(path).parent if Path(path).is_file() else Path(path)
@@ -207,7 +208,7 @@ def read_colmap_model(path: str | os.PathLike[str], *, points: bool = True) -> C
         pts = _read_points_bin(pts_file) if points and pts_file.is_file() else ColmapPoints()
     else:
         cameras, meta = _read_cameras_txt(folder / "cameras.txt")
-        images = _read_images_txt(folder / "images.txt")
+        images = _read_images_txt(folder / "images.txt", points2D=points)
         pts_file = folder / "points3D.txt"
         pts = _read_points_txt(pts_file) if points and pts_file.is_file() else ColmapPoints()
     return ColmapModel(cameras=cameras, images=images, points3D=pts, meta=meta)
@@ -261,18 +262,11 @@ def _read_cameras_txt(path: Path) -> tuple[dict[int, ColmapCamera], dict[str, st
     return cameras, meta
 
 
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True
-
-
-def _read_images_txt(path: Path) -> dict[int, ColmapImage]:
+def _read_images_txt(path: Path, points2D: bool = True) -> dict[int, ColmapImage]:
     """Each image has a pose line, normally followed by its (possibly empty) 2D points line.
     Hand-written files often leave the points lines out, so a line counts as a points line
-    only if it directly follows a pose line and looks like one."""
+    only if it directly follows a pose line and looks like one. ``points2D=False`` skips
+    their contents (a rig needs only the poses; SfM models have thousands per image)."""
     images: dict[int, ColmapImage] = {}
     last: ColmapImage | None = None
     for lineno, line in enumerate(_read_text(path).splitlines(), start=1):
@@ -283,12 +277,20 @@ def _read_images_txt(path: Path) -> dict[int, ColmapImage]:
             prev, last = last, None
             if not words:
                 continue
-            if len(words) % 3 == 0 and all(_is_number(w) for w in words):
-                triples = np.array([float(w) for w in words]).reshape(-1, 3)
-                images[prev.image_id] = dataclasses.replace(
-                    prev, points2D=triples[:, :2].copy(), point3D_ids=triples[:, 2].astype(np.int64)
-                )
-                continue
+            if len(words) % 3 == 0:
+                try:
+                    values = np.array(words, dtype=np.float64)
+                except ValueError:
+                    values = None
+                if values is not None:
+                    if points2D:
+                        triples = values.reshape(-1, 3)
+                        images[prev.image_id] = dataclasses.replace(
+                            prev,
+                            points2D=triples[:, :2].copy(),
+                            point3D_ids=triples[:, 2].astype(np.int64),
+                        )
+                    continue
         if not words:
             continue
         where = f"{path}:{lineno}"
