@@ -95,8 +95,11 @@ def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, 
         )
     if getattr(args, "no_background_updates", False):
         over["background_updates"] = False
-    if given(args, "sparse_scope") or "sparse_scope" not in rt:
-        over["sparse_scope"] = args.sparse_scope
+    # Options that mirror a RuntimeConfig field: typed ones win, else the file, else the
+    # option's default.
+    for dest in ("sparse_scope", "background_scale"):
+        if hasattr(args, dest) and (given(args, dest) or dest not in rt):
+            over[dest] = getattr(args, dest)
     runtime = build(RuntimeConfig, rt, where="runtime", overrides=over)
     controller = build(
         ControllerConfig,
