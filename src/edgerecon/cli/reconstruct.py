@@ -61,10 +61,14 @@ def parse_cameras(text: str | None, rig: Rig, option: str = "--cameras") -> tupl
             raise DataError(f"{option}: unknown camera {tok!r} ({hint})") from None
     dup = sorted({rig[i].name for i in ids if ids.count(i) > 1})
     if dup:
-        raise DataError(f"{option}: camera(s) {', '.join(dup)} given twice")
+        raise DataError(
+            f"{option} must name at least {MIN_CAMERAS} distinct cameras: "
+            f"{', '.join(dup)} given twice ({text}); {hint}"
+        )
     if len(ids) < MIN_CAMERAS:
         raise DataError(
-            f"{option} needs at least {MIN_CAMERAS} cameras, got {len(ids)} ({text}); {hint}"
+            f"{option} must name at least {MIN_CAMERAS} distinct cameras, got {len(ids)} "
+            f"({text}); {hint}"
         )
     return tuple(ids)
 
