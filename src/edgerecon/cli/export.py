@@ -80,8 +80,10 @@ def _recorded(source: Path) -> dict[str, Any]:
         return {"dataset": data.get("dataset"), "time": data.get("time_index")}
     state = source.parent.parent / "state.json"
     if source.parent.name == "tasks" and state.is_file() and source.name.isdigit():
-        data = json.loads(state.read_text())
-        return {"dataset": data.get("dataset"), "time": int(source.name)}
+        dataset = json.loads(state.read_text()).get("dataset")
+        if isinstance(dataset, dict):  # the run state's dataset identity
+            dataset = dataset.get("root")
+        return {"dataset": dataset, "time": int(source.name)}
     return {}
 
 
