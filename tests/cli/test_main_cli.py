@@ -118,6 +118,9 @@ def test_reconstruct_config_file_phases_and_cameras(tiny_dataset, tmp_path, caps
     # Camera errors name the option, the ids and the names.
     assert main([*base, "-o", str(tmp_path / "c"), "--cameras", "0,1"]) == 2
     err = capsys.readouterr().err
-    assert "--cameras must name at least 3 distinct cameras, got 2" in err and "ids 0-4 = cam0, cam1" in err
+    assert (
+        "--cameras must name at least 3 distinct cameras, got 2" in err
+        and "ids 0-4 = cam0, cam1" in err
+    )
     assert main([*base, "-o", str(tmp_path / "c"), "--cameras", "0,1,cam7"]) == 2
     assert "unknown camera 'cam7'" in capsys.readouterr().err
