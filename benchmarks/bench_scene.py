@@ -7,6 +7,8 @@ utrecht4cam).
     python benchmarks/bench_scene.py --baselines                       # + OpenCV MOG2 / KNN
     python benchmarks/bench_scene.py --utrecht --time 200              # real data only
     python benchmarks/bench_scene.py --json scene.json
+    python benchmarks/bench_scene.py --online hd4 --tasks 0:240:6      # online, no empty clip
+    python benchmarks/bench_scene.py --online work/hd4p --json hd4p.json
 
 Per preset and seed the background models learn from the scene's background-only clip, then
 segment ``--frames`` timestamps. Reported:
@@ -26,6 +28,18 @@ segment ``--frames`` timestamps. Reported:
   the hull's per-pixel [near, far] range (what the dense stage would search).
 * ms/cam: milliseconds per camera-frame of background subtraction, and per frame of the hull
   and the objects.
+
+``--online DATASET_OR_PRESET`` runs the scene stage as the online system does (no empty-scene
+clip needed): the background models follow the one stream definition of
+``edgerecon.scene.stream`` (bootstrap from the clip or the stream's first second, then the
+scheduled updates before each task), then every task of ``--tasks A:B:STEP`` is segmented in
+order and scored against
+the ground-truth object masks of all cameras: per time, the foreground IoU and per actor the
+IoU of the predicted object matched to it (Hungarian on IoU, per image; 0 when no object
+matches) and its recall (share of its pixels called foreground, whatever the object). The
+summary gives mean / min over the tasks, over the stretches gt/scene.json records (an actor
+standing still, one away, the dimming), and the seconds of the scene stage per task. A preset
+name is written once under ``--work`` (at ``--size`` if given) and reused.
 """
 
 from __future__ import annotations
@@ -40,7 +54,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from _report import print_rows, report_header
 from edgerecon.quality import evaluate_clouds
+from edgerecon.quality.masks import at_resolution
 from edgerecon.scene import (
     BackgroundConfig,
     ForegroundConfig,
@@ -136,7 +152,8 @@ def run_preset(
         seconds["objects"] += res.timings.seconds.get("objects", 0.0)
         for c, cam in enumerate(rig):
             gt = frame.masks[c] > 0
-            for key, pred in (("model", res.model_masks[c]), ("final", res.masks[c])):
+            for key, low in (("model", res.model_masks[c]), ("final", res.masks[c])):
+                pred = at_resolution(low, gt.shape)  # working resolution -> the frame's
                 inter[key] += int(np.count_nonzero(pred & gt))
                 union[key] += int(np.count_nonzero(pred | gt))
             for name, subs in baselines.items():
@@ -200,17 +217,16 @@ def run_preset(
 
 
 def run_utrecht(t: int, config: ForegroundConfig, dense: str | None) -> dict[str, Any]:
-    from edgerecon.cli.masks import learn_foreground
     from edgerecon.io.dataset import open_dataset
+    from edgerecon.scene.stream import dataset_scene_at
 
     ds = open_dataset(SHARED / "utrecht4cam")
     t0 = time.perf_counter()
-    fg, _ = learn_foreground(ds, config)
+    tracker = dataset_scene_at(ds, t, config)
     learn_s = time.perf_counter() - t0
     with ds.open_frames() as src:
-        fg.warm_up(src.iter_frames(max(0, t - 10), t))
         frames = src.read(t)
-    res = fg.segment(frames)
+    res = tracker.segment(frames)
     out: dict[str, Any] = {
         "time": t,
         "learn_s": learn_s,
@@ -241,13 +257,198 @@ def silhouette_consistency(points3D: np.ndarray, rig: Any, masks: Any, tol_px: i
     for cam, m in zip(rig, masks, strict=True):
         if m is None:
             continue
-        grown = cv2.dilate(m.astype(np.uint8), k).astype(bool)
+        grown = at_resolution(
+            cv2.dilate(m.astype(np.uint8), k).astype(bool), (cam.height, cam.width)
+        )
         uv, depth = cam.project(points3D)
         inside = (depth > 0) & cam.in_image(uv)
         u = np.rint(uv[inside, 0]).astype(int).clip(0, cam.width - 1)
         v = np.rint(uv[inside, 1]).astype(int).clip(0, cam.height - 1)
         ok[np.flatnonzero(inside)[~grown[v, u]]] = False
     return float(ok.mean()) if len(ok) else float("nan")
+
+
+def online_dataset(spec: str, args: argparse.Namespace) -> Path:
+    """The dataset folder ``spec``, or the preset ``spec`` written (once) under ``--work``."""
+    from edgerecon.synth import PRESETS, preset_config, write_dataset
+
+    path = Path(spec)
+    if (path / "dataset.json").is_file():
+        return path
+    if spec not in PRESETS:
+        raise SystemExit(f"--online: {spec!r} is neither a dataset folder nor a preset")
+    overrides: dict[str, Any] = {"seed": args.seeds[0]}
+    if args.size:
+        w, h = (int(x) for x in args.size.lower().split("x"))
+        overrides.update(width=w, height=h)
+    config = preset_config(spec, **overrides)
+    out = Path(args.work) / f"{spec}-{config.rig.width}x{config.rig.height}-seed{args.seeds[0]}"
+    if not (out / "dataset.json").is_file():
+        print(f"writing {spec} to {out} (once)", flush=True)
+        write_dataset(config, out, overwrite=True)
+    return out
+
+
+def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
+    """A predicted mask or label image at the ground truth's resolution (nearest keeps the
+    ids; a missing camera predicts nothing)."""
+    if pred is None:
+        return np.zeros(truth.shape, np.int32)
+    if pred.shape != truth.shape:
+        src = pred.astype(np.uint8) if pred.dtype == bool else pred
+        pred = cv2.resize(src, truth.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    return pred
+
+
+def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.quality.masks import score_mask_set
+    from edgerecon.runtime.session import FrameRange
+    from edgerecon.scene.stream import bootstrap_scene
+    from edgerecon.synth import GroundTruth
+
+    path = online_dataset(spec, args)
+    ds = open_dataset(path)
+    gt = GroundTruth.open(path)
+    rig = ds.rig
+    t_learn = time.perf_counter()
+    clip = ds.open_background()
+    with ds.open_frames() as source:
+        tracker = bootstrap_scene(rig, source, ds.fps, config, clip=clip)
+    learn_s = time.perf_counter() - t_learn
+    tasks = FrameRange.parse(args.tasks).indices(ds.num_frames) if args.tasks else None
+    if tasks is None:
+        step = max(1, ds.num_frames // 40)
+        tasks = list(range(0, ds.num_frames, step))[:40]
+    ids = gt.actor_ids
+    rows: list[dict[str, Any]] = []
+    with ds.open_frames() as source:
+        for t in tasks:
+            # The scheduled background updates before t (as the online system applies them).
+            update_s = tracker.catch_up(source, t)
+            frames = source.read(t)
+            t0, c0 = time.perf_counter(), time.process_time()
+            res = tracker.segment(frames)
+            seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+            truth = [gt.object_mask(c, t) for c in range(len(rig))]
+            preds = [_like(lab, m) for lab, m in zip(res.label_images(), truth, strict=True)]
+            score = score_mask_set(preds, truth)
+            before_hull = [_like(p, m) for p, m in zip(res.model_masks, truth, strict=True)]
+            model_iou = score_mask_set(before_hull, truth).foreground_iou
+            recall: dict[int, float] = {}
+            for k in ids:
+                area = sum(int(np.count_nonzero(m == k)) for m in truth)
+                if area:
+                    hit = sum(
+                        int(np.count_nonzero((m == k) & (p > 0)))
+                        for m, p in zip(truth, preds, strict=True)
+                    )
+                    recall[k] = hit / area
+            rows.append(
+                {
+                    "time": t,
+                    "light": gt.illumination(t),
+                    "foreground_iou": score.foreground_iou,
+                    "model_iou": model_iou,
+                    "precision": score.precision,
+                    "recall": score.recall,
+                    "object_iou": {k: score.object_iou[k] for k in ids if k in score.object_iou},
+                    "object_recall": recall,
+                    "seconds": seconds,
+                    "update_seconds": update_s,
+                    "cpu_seconds": cpu,
+                }
+            )
+    selections: list[tuple[str, set[int]]] = [("all tasks", set(tasks))]
+    for kind in ("still", "away", "dimming"):
+        for item in gt.stretches[kind]:
+            who = f" actor {item['actor']}" if "actor" in item else ""
+            frames_in = set(range(item["start"], item["stop"]))
+            selections.append((f"{kind}{who} {item['start']}..{item['stop'] - 1}", frames_in))
+    summary = []
+    for name, frames_in in selections:
+        sel = [r for r in rows if r["time"] in frames_in]
+        if not sel:
+            continue
+        entry: dict[str, Any] = {
+            "stretch": name,
+            "tasks": len(sel),
+            "foreground_iou_mean": float(np.mean([r["foreground_iou"] for r in sel])),
+            "model_iou_mean": float(np.mean([r["model_iou"] for r in sel])),
+            "precision_mean": float(np.mean([r["precision"] for r in sel])),
+            "recall_mean": float(np.mean([r["recall"] for r in sel])),
+            "seconds_mean": float(np.mean([r["seconds"] for r in sel])),
+            "cpu_seconds_mean": float(np.mean([r["cpu_seconds"] for r in sel])),
+        }
+        for k in ids:
+            ious = [r["object_iou"][k] for r in sel if k in r["object_iou"]]
+            recs = [r["object_recall"][k] for r in sel if k in r["object_recall"]]
+            entry[f"iou_{k}_mean"] = float(np.mean(ious)) if ious else None
+            entry[f"iou_{k}_min"] = float(np.min(ious)) if ious else None
+            entry[f"recall_{k}_mean"] = float(np.mean(recs)) if recs else None
+        summary.append(entry)
+    cam = rig[0]
+    return {
+        **report_header(),
+        "dataset": str(path),
+        "name": ds.name,
+        "size": f"{cam.width}x{cam.height}",
+        "cameras": len(rig),
+        "learned_from": tracker.learned_from,
+        "learn_s": learn_s,
+        "updates": tracker.updates,
+        "ghosts_repaired": tracker.ghosts,
+        "tasks": tasks,
+        "stretches": gt.stretches,
+        "rows": rows,
+        "summary": summary,
+    }
+
+
+def print_online(r: dict[str, Any]) -> None:
+    ids = sorted({int(k) for row in r["rows"] for k in (*row["object_iou"], *row["object_recall"])})
+    print(
+        f"{r['name']} {r['cameras']} x {r['size']}, background learned from {r['learned_from']} "
+        f"in {r['learn_s']:.1f} s (load {r['load_avg']:.1f})"
+    )
+    per_object = [f"IoU {k}" for k in ids] + [f"rec {k}" for k in ids]
+    rows = [
+        {
+            "t": row["time"],
+            "light": row["light"],
+            "fg IoU": row["foreground_iou"],
+            "model": row["model_iou"],
+            **{f"IoU {k}": row["object_iou"].get(k) for k in ids},
+            **{f"rec {k}": row["object_recall"].get(k) for k in ids},
+            "prec": row["precision"],
+            "s/task": row["seconds"],
+            "CPU s": row["cpu_seconds"],
+        }
+        for row in r["rows"]
+    ]
+    columns = ["t", "light", "fg IoU", "model", "prec", *per_object, "s/task", "CPU s"]
+    print_rows("per task", columns, rows)
+    stats = [f"IoU {k} {m}" for k in ids for m in ("mean", "min")] + [f"rec {k}" for k in ids]
+    rows = [
+        {
+            "stretch": e["stretch"],
+            "tasks": e["tasks"],
+            "fg IoU": e["foreground_iou_mean"],
+            "model": e["model_iou_mean"],
+            **{f"IoU {k} {m}": e[f"iou_{k}_{m}"] for k in ids for m in ("mean", "min")},
+            **{f"rec {k}": e[f"recall_{k}_mean"] for k in ids},
+            "prec": e["precision_mean"],
+            "rec": e["recall_mean"],
+            "s/task": e["seconds_mean"],
+            "CPU s": e["cpu_seconds_mean"],
+        }
+        for e in r["summary"]
+    ]
+    print_rows(
+        "summary (means over tasks)",
+        ["stretch", "tasks", "fg IoU", "model", "prec", "rec", *stats, "s/task", "CPU s"],
+        rows,
+    )
 
 
 def main() -> None:
@@ -272,6 +473,13 @@ def main() -> None:
     ap.add_argument("--utrecht", action="store_true", help="utrecht4cam only")
     ap.add_argument("--time", type=int, default=200, help="utrecht4cam frame")
     ap.add_argument("--dense", default=None, help="utrecht4cam dense PLY for the silhouette figure")
+    ap.add_argument(
+        "--online", default=None, help="dataset folder or preset: the online scene stage vs truth"
+    )
+    ap.add_argument("--tasks", default=None, help="--online: timestamps A:B:STEP (default 40)")
+    ap.add_argument(
+        "--work", default="/tmp/edgerecon-bench", help="--online: where presets are written"
+    )
     ap.add_argument("--json", default=None, help="write the results to this file")
     args = ap.parse_args()
 
@@ -289,6 +497,10 @@ def main() -> None:
     if args.utrecht:
         r = run_utrecht(args.time, config, args.dense)
         print(json.dumps(r, indent=2))
+        results.append(r)
+    elif args.online:
+        r = run_online(args.online, config, args)
+        print_online(r)
         results.append(r)
     else:
         header = (

@@ -35,8 +35,7 @@ from edgerecon.dense import DenseConfig, reconstruct_dense
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import label_by_masks, prepare_task_views, reconstruct_foreground
 from edgerecon.quality import evaluate_clouds
-from edgerecon.runtime.engine import learn_scene_model
-from edgerecon.scene.foreground import RigForeground
+from edgerecon.runtime.engine import foreground_at
 from edgerecon.sparse import reconstruct_sparse
 
 
@@ -56,13 +55,7 @@ def synthetic_arc7(folder: Path, num_frames: int = 24) -> Path:
 def measure(root: Path, t: int, threshold: float | None) -> dict[str, Any]:
     ds = open_dataset(root)
     rig = ds.rig
-    scene = learn_scene_model(ds)
-    model = RigForeground.from_states(rig, scene.states)
-    with ds.open_frames() as src:
-        for k in range(max(0, t - 5), t):
-            model.segment(src.read(k))
-        frames = src.read(t)
-    fg = model.segment(frames)
+    frames, fg = foreground_at(ds, t)
     views = prepare_task_views(frames, rig, ReconstructionConfig())
     sparse = reconstruct_sparse(views)
     config = DenseConfig()

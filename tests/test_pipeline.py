@@ -7,7 +7,7 @@ import pytest
 
 from edgerecon.config import ReconstructionConfig
 from edgerecon.io.dataset import open_dataset
-from edgerecon.pipeline import reconstruct, reconstruct_split
+from edgerecon.pipeline import reconstruct, reconstruct_task
 from edgerecon.quality import evaluate_clouds
 from edgerecon.scene.foreground import RigForeground
 from edgerecon.synth import GroundTruth
@@ -61,7 +61,7 @@ def test_split_pipeline_labels_foreground_and_background(tiny, tiny_dataset):
     with ds.open_background() as bg:
         model = RigForeground.learn_from_framesets(ds.rig, bg.iter_frames())
     fg = model.segment(frames)
-    result = reconstruct_split(frames, ds.rig, fg)
+    result = reconstruct_task(frames, ds.rig, fg, sparse_scope="scene")
     merged = result.merged
     assert merged.labels is not None and "bg_version" in merged.attributes
     fg_pts = merged.select(merged.labels > 0)
@@ -90,9 +90,9 @@ def test_split_pipeline_with_empty_foreground(tiny):
     with ds.open_background() as bg:
         framesets = list(bg.iter_frames())
     model = RigForeground.learn_from_framesets(ds.rig, framesets)
-    empty = model.segment(framesets[0], update=False)  # the empty scene: nothing moves
+    empty = model.segment(framesets[0])  # the empty scene: nothing moves
     assert not any(m.any() for m in empty.masks if m is not None)
-    result = reconstruct_split(framesets[0], ds.rig, empty)
+    result = reconstruct_task(framesets[0], ds.rig, empty, sparse_scope="scene")
     assert result.foreground.is_empty and result.foreground.dense is None
     assert len(result.merged) == len(result.background) > 0
 

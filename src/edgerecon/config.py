@@ -48,14 +48,6 @@ class ReconstructionConfig:
                 )
             object.__setattr__(self, "camera_ids", ids)
 
-    @property
-    def is_golden(self) -> bool:
-        """True for the paper's golden configuration: r = 1 with all cameras."""
-        return self.scale == 1.0 and self.camera_ids is None
-
-    def with_task(self, scale: float, camera_ids: tuple[int, ...] | None) -> ReconstructionConfig:
-        return dataclasses.replace(self, scale=scale, camera_ids=camera_ids)
-
     def to_dict(self) -> dict[str, Any]:
         return {
             "scale": self.scale,

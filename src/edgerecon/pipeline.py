@@ -1,16 +1,19 @@
-"""One reconstruction task, composed from the stages: prepare views -> sparse -> dense.
+"""One reconstruction task, composed from the stages.
 
-This is the whole-scene pipeline (the paper's "original pipeline" when run with the golden
-configuration). The foreground/background pipeline and the online system build on the same
-stages (see :mod:`edgerecon.scene` and :mod:`edgerecon.runtime`).
+* :func:`reconstruct`: the whole-scene pipeline (prepare views -> sparse -> dense; the paper's
+  "original pipeline" when run with the golden configuration);
+* :func:`reconstruct_task`: the foreground/background task — masks, SfM, split, foreground
+  MVS, merge with a background. It is the one composition of a task: the online front-end
+  (:mod:`edgerecon.runtime.frontend`), ``reconstruct --split`` and the benchmarks call it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,14 +24,22 @@ from numpy.typing import NDArray
 from edgerecon import progress
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
-from edgerecon.geometry.camera import Rig
+from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.hull import hull_depth_range
 from edgerecon.scene.merge import merge_clouds
 from edgerecon.scene.split import SplitConfig, split_sparse
 from edgerecon.sparse import SparseReconstruction, reconstruct_sparse
-from edgerecon.types import BACKGROUND_LABEL, DataError, FrameSet, Mask, PointCloud, StageTimings
-from edgerecon.views import View, prepare_views, with_masks
+from edgerecon.types import (
+    BACKGROUND_LABEL,
+    DataError,
+    EdgereconError,
+    FrameSet,
+    Mask,
+    PointCloud,
+    StageTimings,
+)
+from edgerecon.views import View, mask_scale, prepare_views, with_masks
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +185,10 @@ class ForegroundReconstruction:
         return len(self.cloud) == 0
 
 
-def _dilate(mask: Mask, radius: int) -> Mask:
+def _dilate(mask: Mask, radius_px: int, camera: Camera) -> Mask:
+    """``mask`` of ``camera`` (any resolution, see ``mask_scale``) grown by ``radius_px``
+    pixels of the camera's frames."""
+    radius = round(radius_px * mask_scale(mask, camera)) if radius_px > 0 else 0
     if radius <= 0 or not mask.any():
         return mask
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
@@ -209,7 +223,7 @@ def foreground_views(
     """``views`` masked to the foreground ``masks`` (full resolution, per rig camera) grown by
     ``dilation_px``; a camera without a mask gets an empty one (nothing of it is foreground)."""
     grown = [
-        np.zeros((c.height, c.width), bool) if m is None else _dilate(m, dilation_px)
+        np.zeros((c.height, c.width), bool) if m is None else _dilate(m, dilation_px, c)
         for c, m in zip(rig, masks, strict=True)
     ]
     return with_masks(views, rig, grown)
@@ -249,7 +263,8 @@ def reconstruct_foreground(
         )
     with timings.stage("fg_prepare"):
         masks = [
-            None if m is None else _dilate(m, config.fg_mask_dilation_px) for m in foreground.masks
+            None if m is None else _dilate(m, config.fg_mask_dilation_px, c)
+            for c, m in zip(rig, foreground.masks, strict=True)
         ]
         # A camera without a mask (no frame for the back-end) contributes nothing.
         masks = [
@@ -299,7 +314,8 @@ def reconstruct_background(
     config = config or SplitPipelineConfig()
     if foreground_masks is not None:
         masks = [
-            None if m is None else ~_dilate(m, config.bg_mask_dilation_px) for m in foreground_masks
+            None if m is None else ~_dilate(m, config.bg_mask_dilation_px, c)
+            for c, m in zip(rig, foreground_masks, strict=True)
         ]
         views = with_masks(views, rig, masks)
     dense = reconstruct_dense(views, dense_config, sparse, up=rig.up)
@@ -316,6 +332,19 @@ def _empty_labelled_cloud() -> PointCloud:
     )
 
 
+#: Values of the ``sparse_scope`` of :func:`reconstruct_task`.
+SPARSE_SCOPES = ("foreground", "scene")
+
+#: The task's foreground: ready masks, or a callable that obtains them when the task needs
+#: them (the front-end waits for the back-end's there), adding its own stage timings.
+ForegroundSource = ForegroundResult | Callable[[StageTimings], ForegroundResult]
+
+
+class TaskCancelled(EdgereconError):
+    """Raised at a stage boundary of :func:`reconstruct_task` once its ``cancel`` event is
+    set (the task's watchdog gave up on it): nothing after that boundary runs."""
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SplitReconstructionResult:
     """One task through the FG/BG pipeline: merged cloud plus its parts."""
@@ -324,6 +353,9 @@ class SplitReconstructionResult:
     config: ReconstructionConfig
     camera_ids: tuple[int, ...]
     sparse: SparseReconstruction
+    """The task's SfM (of the foreground crops or of the whole frames: ``sparse_scope``)."""
+    masks: ForegroundResult
+    """The foreground masks, objects and hull the task used."""
     foreground: ForegroundReconstruction
     background: PointCloud
     """Background cloud (label 0) merged into ``merged``."""
@@ -343,55 +375,98 @@ class SplitReconstructionResult:
             "num_foreground_points": len(self.foreground.cloud),
             "num_background_points": len(self.background),
             "num_merged_points": len(self.merged),
-            "num_objects": int(labels.max()) if labels.size and labels.max() > 0 else 0,
+            "num_objects": num_objects(labels),
             "bg_version": self.bg_version,
             "seconds": self.timings.to_dict(),
             "total_seconds": round(self.timings.total, 6),
         }
 
 
-def reconstruct_split(
+def num_objects(labels: NDArray[np.int32]) -> int:
+    """Objects among sparse-point labels (0 background, k object, -1 unknown)."""
+    return int(labels.max()) if labels.size and labels.max() > 0 else 0
+
+
+def reconstruct_task(
     frames: FrameSet,
     rig: Rig,
-    foreground: ForegroundResult,
+    foreground: ForegroundSource,
     config: ReconstructionConfig | None = None,
     *,
     background: PointCloud | None = None,
     bg_version: int = 0,
     split_config: SplitPipelineConfig | None = None,
+    sparse_scope: str = "foreground",
+    cancel: threading.Event | None = None,
 ) -> SplitReconstructionResult:
-    """The FG/BG pipeline for one timestamp: sparse (whole images) -> split by the masks ->
-    foreground densified in its regions -> merged with ``background`` (densified here from
-    the rest of the images when not given: the first task, or ``reconstruct --split``)."""
+    """One reconstruction task, the one composition every caller uses (the online front-end,
+    ``reconstruct --split``, the benchmarks).
+
+    ``sparse_scope="foreground"``: the masks first, then SfM of the dilated foreground crops
+    (its cost follows the foreground's area); ``"scene"``: the paper's order, SfM of the
+    whole frames first (while the masks are computed elsewhere), then the split. Then the
+    foreground is densified in its regions and merged with ``background`` (densified here
+    from the rest of the images when None: a task on its own, as ``reconstruct --split``).
+    Stage timings: ``sfm``, what the foreground source adds (e.g. ``wait_masks``),
+    ``split``, ``fg_*``, ``bg_dense.*`` (only without ``background``), ``merge``.
+
+    ``cancel`` (set by a watchdog) stops the task at its next stage boundary
+    (:class:`TaskCancelled`).
+    """
+    if sparse_scope not in SPARSE_SCOPES:
+        raise ValueError(f"sparse_scope must be one of {SPARSE_SCOPES}, got {sparse_scope!r}")
     config = config or ReconstructionConfig()
+    split_config = split_config or SplitPipelineConfig()
     timings = StageTimings()
-    with timings.stage("prepare"):
-        views = prepare_task_views(frames, rig, config)
-    sparse = reconstruct_sparse(views, config.sparse_config)
-    timings.merge(sparse.timings, "sparse.")
-    fg = reconstruct_foreground(views, rig, sparse, foreground, config.dense_config, split_config)
-    timings.merge(fg.timings)
+
+    def checkpoint(stage: str) -> None:
+        if cancel is not None and cancel.is_set():
+            raise TaskCancelled(f"time {frames.time_index}: cancelled before {stage}")
+
+    def sfm(masks: Sequence[Mask | None] | None) -> tuple[list[View], SparseReconstruction]:
+        with timings.stage("sfm"):
+            views = prepare_task_views(frames, rig, config)
+            sfm_views = (
+                views
+                if masks is None
+                else foreground_views(views, rig, masks, split_config.fg_mask_dilation_px)
+            )
+            return views, reconstruct_sparse(sfm_views, config.sparse_config)
+
+    if sparse_scope == "scene":
+        views, sparse = sfm(None)
+        checkpoint("the masks")
+    fg = foreground if isinstance(foreground, ForegroundResult) else foreground(timings)
+    if sparse_scope == "foreground":
+        checkpoint("sfm")
+        views, sparse = sfm(fg.masks)
+    checkpoint("the foreground")
+    fg_rec = reconstruct_foreground(views, rig, sparse, fg, config.dense_config, split_config)
+    timings.merge(fg_rec.timings)
     if background is None:
-        bg_sparse = sparse.select(fg.labels == BACKGROUND_LABEL)
+        checkpoint("the background")
+        bg_sparse = sparse.select(fg_rec.labels == BACKGROUND_LABEL)
         bg_dense = reconstruct_background(
-            views, rig, config.dense_config, foreground.masks, bg_sparse, split_config
+            views, rig, config.dense_config, fg.masks, bg_sparse, split_config
         )
         timings.merge(bg_dense.timings, "bg_dense.")
         background = bg_dense.cloud
+    checkpoint("the merge")
     with timings.stage("merge"):
         merged = merge_clouds(
-            fg.cloud,
+            fg_rec.cloud,
             background,
             bg_version=bg_version,
             scene_scale=rig.scene_scale(),
-            hull=foreground.hull,
+            hull=fg.hull,
         )
     return SplitReconstructionResult(
         time_index=frames.time_index,
         config=config,
         camera_ids=tuple(v.camera_id for v in views),
         sparse=sparse,
-        foreground=fg,
+        masks=fg,
+        foreground=fg_rec,
         background=background,
         bg_version=bg_version,
         merged=merged,

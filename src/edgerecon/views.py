@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.types import DataError, FrameSet, Image, Mask
@@ -55,16 +56,51 @@ def resize_mask(mask: Mask, size: tuple[int, int]) -> Mask:
     return out.astype(bool)
 
 
+def resize_mask_smooth(mask: Mask, size: tuple[int, int]) -> Mask:
+    """Resize a mask to ``size`` = (width, height) with bilinear interpolation of the 0/1
+    values and a 0.5 threshold: smoother silhouettes than nearest neighbour when upsampling."""
+    mask = np.asarray(mask, dtype=bool)
+    if (mask.shape[1], mask.shape[0]) == tuple(size):
+        return mask
+    if size[0] <= mask.shape[1]:
+        return resize_mask(mask, size)
+    up = cv2.resize(mask.astype(np.uint8) * 255, tuple(size), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(up > 127)
+
+
+def mask_scale(mask: NDArray[np.generic], camera: Camera) -> float:
+    """Size of a per-camera mask relative to the camera's frames (mask width / frame width).
+
+    Masks and label images of a camera may be stored at any resolution with the frames'
+    aspect ratio (the scene stage works at a reduced working resolution); anything else is a
+    ``DataError`` naming the camera."""
+    h, w = mask.shape[:2]
+    s = w / camera.width
+    if h <= 0 or w <= 0 or abs(h - s * camera.height) > max(1.0, 0.01 * h):
+        raise DataError(
+            f"camera {camera.name!r}: mask is {w}x{h}, which is not the {camera.width}x"
+            f"{camera.height} frames' aspect ratio"
+        )
+    return s
+
+
 def undistort_mask(camera: Camera, mask: Mask, scale: float) -> Mask:
-    """Map a full-resolution mask of a (possibly distorted) camera to its view at ``scale``."""
+    """Map a mask of a (possibly distorted) camera, at full or at a reduced resolution (see
+    ``mask_scale``), to its undistorted view at ``scale``."""
+    s = mask_scale(mask, camera)
     if not camera.has_distortion:
         return resize_mask(mask, camera.scaled(scale).size)
     mx, my = camera.undistort_maps(scale)
+    if s != 1.0:
+        # The maps address full-resolution pixels; pixel centres scale as (x + 0.5) s - 0.5.
+        sy = mask.shape[0] / camera.height
+        mx = (mx + np.float32(0.5)) * np.float32(s) - np.float32(0.5)
+        my = (my + np.float32(0.5)) * np.float32(sy) - np.float32(0.5)
     out = cv2.remap(
         mask.astype(np.uint8) * 255,
         mx,
         my,
-        interpolation=cv2.INTER_NEAREST,
+        interpolation=cv2.INTER_LINEAR if s < 1.0 else cv2.INTER_NEAREST,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )
@@ -118,8 +154,9 @@ def prepare_views(
 
 
 def with_masks(views: Sequence[View], rig: Rig, masks: Sequence[Mask | None]) -> list[View]:
-    """The same views with full-resolution per-rig-camera ``masks`` mapped onto them (a None
-    mask keeps the whole view). Avoids undistorting the images again."""
+    """The same views with per-rig-camera ``masks`` (full or reduced resolution, see
+    ``mask_scale``) mapped onto them (a None mask keeps the whole view). Avoids undistorting
+    the images again."""
     out = []
     for view in views:
         m = masks[view.camera_id]
@@ -127,14 +164,9 @@ def with_masks(views: Sequence[View], rig: Rig, masks: Sequence[Mask | None]) ->
             out.append(dataclasses.replace(view, mask=None))
             continue
         cam = rig[view.camera_id]
-        if m.shape != (cam.height, cam.width):
-            raise DataError(
-                f"camera {cam.name!r}: mask is {m.shape[1]}x{m.shape[0]} but frames are "
-                f"{cam.width}x{cam.height}"
-            )
         scale = view.camera.width / cam.width
         mask = undistort_mask(cam, m, scale)
         if mask.shape != (view.camera.height, view.camera.width):
-            mask = resize_mask(mask, view.camera.size)
+            mask = resize_mask_smooth(mask, view.camera.size)
         out.append(dataclasses.replace(view, mask=mask))
     return out

@@ -89,3 +89,45 @@ def test_info_utrecht(capsys):
     # Cameras in the room's corners: wide baselines, 44 to 144 degrees apart.
     off = angles[~np.eye(4, dtype=bool)]
     assert off.min() > 40 and off.max() < 150
+
+
+def test_info_check_reports_every_unusable_frame(tmp_path, capsys):
+    rig = ring_rig(4, width=32, height_px=24, focal_px=30.0)
+    rng = np.random.default_rng(1)
+    cams = {}
+    for cam in rig:
+        for t in range(4):
+            path = tmp_path / "frames" / cam.name / f"{t:04d}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(path), rng.integers(0, 255, (24, 32, 3), dtype=np.uint8))
+        cams[cam.name] = f"frames/{cam.name}/{{index:04d}}.png"
+    write_dataset_descriptor(tmp_path, rig=rig, frames={"kind": "images", "cameras": cams})
+    frames = tmp_path / "frames"
+    assert main(["info", "--dataset", str(tmp_path), "--check", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["check"]["num_unusable"] == 0
+    (frames / "cam0" / "0001.png").write_bytes(b"")  # zero bytes
+    data = (frames / "cam1" / "0002.png").read_bytes()
+    (frames / "cam1" / "0002.png").write_bytes(data[: len(data) // 3])  # truncated
+    cv2.imwrite(str(frames / "cam2" / "0002.png"), np.zeros((12, 16, 3), np.uint8))  # size
+    (frames / "cam3" / "0001.png").unlink()  # missing
+    cv2.imwrite(str(frames / "cam3" / "0003.png"), np.zeros((24, 32, 3), np.uint8))  # black
+    cv2.imwrite(str(frames / "cam0" / "0003.png"), np.full((24, 32, 3), 255, np.uint8))
+    assert main(["info", "--dataset", str(tmp_path), "--check", "--json"]) == 3
+    check = json.loads(capsys.readouterr().out)["check"]
+    found = {(cam, p["time"]): p["problem"] for cam, ps in check["unusable"].items() for p in ps}
+    assert set(found) == {
+        ("cam0", 1),
+        ("cam1", 2),
+        ("cam2", 2),
+        ("cam3", 1),
+        ("cam3", 3),
+        ("cam0", 3),
+    }
+    assert "cannot be decoded" in found["cam0", 1] and "cannot be decoded" in found["cam1", 2]
+    assert "16x12" in found["cam2", 2] and "missing" in found["cam3", 1]
+    assert found["cam3", 3] == "black" and found["cam0", 3] == "saturated"
+    # Times 0 keeps 4 cameras, 1 keeps 2, 2 keeps 2, 3 keeps 2.
+    assert check["usable_timestamps"] == 1
+    assert main(["info", "--dataset", str(tmp_path), "--check"]) == 3
+    out = capsys.readouterr().out
+    assert "unusable frames" in out and "wrong size" in out and "6 unusable frames" in out

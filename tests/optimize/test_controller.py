@@ -291,6 +291,23 @@ def test_infeasible_deadline_runs_the_fastest_configuration_without_looping():
     assert ctrl.num_searches == 1
 
 
+def test_infeasible_deadline_is_reported_once(caplog):
+    import logging
+
+    ctrl = BisectionController(ControllerConfig(deadline_s=1.0), LOWEST, 5)
+    with caplog.at_level(logging.INFO, logger="edgerecon.optimize.controller"):
+        for restart in range(3):  # three searches (e.g. pi(N') refreshed by golden tasks)
+            if restart:
+                ctrl.set_cameras([0, 1, 2, 3, 4], LOWEST)
+            for _ in range(20):
+                ctrl.next_config()
+                ctrl.observe(3.0, 0.5)
+    said = [r for r in caplog.records if "no configuration met the deadline" in r.getMessage()]
+    assert len(said) == 3
+    assert [r.levelno for r in said] == [logging.WARNING, logging.INFO, logging.INFO]
+    assert not ctrl.feasible
+
+
 def test_set_deadline_and_cameras_restart_the_search():
     ctrl = BisectionController(ControllerConfig(deadline_s=10), LOWEST, 7)
     ctrl.next_config()

@@ -123,3 +123,27 @@ def test_config_validation():
         OnlineQualityConfig(threshold_rel=-1)
     with pytest.raises(ValueError, match="min_reference_points"):
         OnlineQualityConfig(min_reference_points=0)
+
+
+def test_silhouette_quality_known_answers() -> None:
+    """A cloud that fills one camera's silhouette scores 1; half of it, recall ~0.5; points
+    outside every silhouette lower precision; no foreground anywhere is uninformative."""
+    from edgerecon.geometry.camera import Camera
+    from edgerecon.quality.online import silhouette_quality
+
+    K = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    cam = Camera(name="c", width=64, height=48, K=K, R=np.eye(3), t=np.zeros(3))
+    mask = np.zeros((48, 64), bool)
+    mask[14:34, 22:42] = True
+    # One point per mask pixel, back-projected onto the plane z = 0.
+    ys, xs = np.nonzero(mask)
+    pts = cam.backproject(np.stack([xs, ys], axis=1).astype(float), np.full(len(xs), 4.0))
+    full = silhouette_quality(pts, [cam], [mask])
+    assert full.value == pytest.approx(1.0)
+    half = silhouette_quality(pts[xs < 32], [cam], [mask], splat_px=0)
+    assert half.recall == pytest.approx(0.5, abs=0.01) and half.precision == 1.0
+    far = cam.backproject(np.array([[5.0, 5.0]] * len(xs)), np.full(len(xs), 4.0))
+    mixed = silhouette_quality(np.vstack([pts, far]), [cam], [mask])
+    assert mixed.precision == pytest.approx(0.5, abs=0.01)
+    assert silhouette_quality(pts, [cam], [np.zeros_like(mask)]).value is None
+    assert silhouette_quality(np.zeros((0, 3)), [cam], [mask]).value == 0.0

@@ -7,7 +7,9 @@ import pytest
 from edgerecon.io.dataset import open_dataset
 from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
 from edgerecon.runtime.engine import learn_scene_model
-from edgerecon.runtime.ray_engine import keep_on_loopback
+from edgerecon.runtime.frontend import FixedController
+from edgerecon.runtime.ray_engine import RayEngine, connect, keep_on_loopback
+from edgerecon.types import EdgereconError
 
 keep_on_loopback()  # before Ray is imported: the cluster below listens on 127.0.0.1 only
 ray = pytest.importorskip("ray")
@@ -40,9 +42,7 @@ def tiny(tiny_dataset):
 
 
 def _config(**kw):
-    return RuntimeConfig(
-        deadline_s=20.0, masks_timeout_s=15.0, golden_timeout_s=30.0, background_updates=False, **kw
-    )
+    return RuntimeConfig(deadline_s=20.0, golden_timeout_s=30.0, background_updates=False, **kw)
 
 
 def test_roles_run_on_their_nodes_and_match_embedded(cluster, tiny, tmp_path):
@@ -74,25 +74,40 @@ def test_roles_run_on_their_nodes_and_match_embedded(cluster, tiny, tmp_path):
     )
     for a, b in zip(on_ray, embedded, strict=True):
         assert {k: getattr(a, k) for k in keys} == {k: getattr(b, k) for k in keys}
-    # Each actor sits on the node that offers its role's resource.
-    nodes = {n["NodeID"]: n["Resources"] for n in ray.nodes() if n["Alive"]}
-    actors = (
-        ray.util.state.list_actors(filters=[("state", "=", "ALIVE")])
-        if hasattr(ray.util, "state")
-        else []
+
+
+def test_each_role_runs_on_the_node_with_its_resource(cluster, tiny):
+    # Asked of the actors themselves (their runtime context), so it runs on any Ray version
+    # (the state API the old check needed is not in the installed Ray's ray.util namespace,
+    # and the check silently did nothing).
+    ds, scene = tiny
+    engine = RayEngine(
+        ds, _config(), FixedController(0.8, (0, 1, 2, 3, 4)), scene, address=cluster.address
     )
-    for actor in actors:
-        res = nodes[actor.node_id]
-        if "Frontend" in actor.class_name:
-            assert "frontend" in res
-        if "Backend" in actor.class_name:
-            assert "backend" in res
+    try:
+        placed = engine.node_ids()
+    finally:
+        engine.close()
+    nodes = {n["NodeID"]: n["Resources"] for n in ray.nodes() if n["Alive"]}
+    assert placed["frontend"] != placed["backend"]
+    assert "frontend" in nodes[placed["frontend"]] and "backend" not in nodes[placed["frontend"]]
+    assert "backend" in nodes[placed["backend"]] and "frontend" not in nodes[placed["backend"]]
+
+
+def test_no_cluster_at_the_address_is_a_clear_error():
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with pytest.raises(EdgereconError, match=f"no Ray cluster at --address 127.0.0.1:{port}"):
+        connect(f"127.0.0.1:{port}")
 
 
 def test_killing_the_backend_process_midrun(cluster, tiny, tmp_path):
     ds, scene = tiny
     config = _config(backend_retry_s=0.5)
-    opts = SessionOptions(frames=FrameRange(start=0, stop=5), fault=(2, "kill", 0.0))
+    opts = SessionOptions(frames=FrameRange(start=0, stop=5), faults=((2, "kill", 0.0),))
     summary, metrics = run_online(
         ds,
         config,
@@ -104,7 +119,8 @@ def test_killing_the_backend_process_midrun(cluster, tiny, tmp_path):
         scene=scene,
     )
     assert [m.status for m in metrics] == ["ok"] * 5
-    assert not metrics[0].degraded and not metrics[1].degraded
-    assert metrics[2].degraded
-    assert summary.degraded >= 1
+    # The masks are the front-end's: the tasks stay whole while the back-end is gone.
+    assert summary.degraded == 0
+    assert all(m.num_fg_points > 0 and m.online_fscore is not None for m in metrics)
+    assert metrics[-1].submitted, "the restarted actor serves again"
     assert len(list((tmp_path / "tasks").iterdir())) == 5

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from edgerecon.quality.masks import mask_iou
+from edgerecon.quality.masks import at_resolution, mask_iou
 from edgerecon.scene.background import BackgroundConfig, BackgroundModel, working_size
 from edgerecon.types import DataError
 from tests.scene._scenes import noisy, paint, square_mask, textured_background
@@ -89,8 +89,8 @@ def test_still_actor_is_not_absorbed(background: np.ndarray) -> None:
     model = _learn(background, rng, learning_rate=0.05)
     truth = square_mask(H, W, 50, 30, 40)
     frame_with_actor = paint(background, truth, (200, 60, 60))
-    # 300 frames = 12 s at 25 fps of an actor who does not move.
-    for _ in range(300):
+    # 100 updates = 50 s at the default update interval of an actor who does not move: held.
+    for _ in range(100):
         mask = model.apply(noisy(frame_with_actor, 3.0, rng))
     assert mask_iou(mask, truth) > 0.95
 
@@ -145,17 +145,69 @@ def test_state_round_trip_and_pickle(background: np.ndarray) -> None:
     np.testing.assert_array_equal(model.state.mean, clone.state.mean)
 
 
-def test_working_resolution_upsamples_mask() -> None:
+def test_working_resolution_bounds_the_pixels() -> None:
     bg = textured_background(240, 640)
     rng = np.random.default_rng(8)
     model = BackgroundModel.learn(
-        [noisy(bg, 2.0, rng) for _ in range(5)], BackgroundConfig(max_working_width=320)
+        [noisy(bg, 2.0, rng) for _ in range(5)], BackgroundConfig(working_pixels=40_000)
     )
-    assert model.working_size == (320, 120) == working_size((640, 240), 320)
+    # 640x240 = 153,600 px -> 40,000 allows 0.51: the exact half (38,400 px) is close enough.
+    assert model.working_size == (320, 120) == working_size((640, 240), 40_000)
+    assert working_size((640, 240), 60_000) == (400, 150)  # no integer factor close enough
+    assert working_size((640, 240), 200_000) == (640, 240)
     truth = square_mask(240, 640, 200, 60, 100)
     mask = model.apply(noisy(paint(bg, truth, (255, 0, 255)), 2.0, rng))
-    assert mask.shape == (240, 640)
-    assert mask_iou(mask, truth) > 0.93
+    assert mask.shape == (120, 320)  # masks stay at the working resolution
+    assert mask_iou(at_resolution(mask, truth.shape), truth) > 0.93
+
+
+def test_segment_never_changes_the_model(background: np.ndarray) -> None:
+    rng = np.random.default_rng(9)
+    model = _learn(background, rng)
+    before = model.state
+    frame = noisy(paint(background, square_mask(H, W, 40, 40, 30), (0, 0, 255)), 3.0, rng)
+    for _ in range(3):
+        model.segment(frame)
+    after = model.state
+    np.testing.assert_array_equal(before.mean, after.mean)
+    np.testing.assert_array_equal(before.var, after.var)
+    assert after.num_frames == before.num_frames == 0
+    model.update(frame)
+    assert model.num_frames == 1
+
+
+def test_ghost_of_a_departed_actor_is_repaired_but_a_stopped_one_is_held(
+    background: np.ndarray,
+) -> None:
+    """An actor present while the model is bootstrapped leaves: the uncovered background is
+    a ghost (its outline is in the model, not in the frame) and is learned at the first update;
+    a second actor who walked in and stopped is held."""
+    rng = np.random.default_rng(10)
+    sitter = square_mask(H, W, 20, 30, 35)
+    with_sitter = paint(background, sitter, (40, 200, 230))
+    model = BackgroundModel.learn(
+        [noisy(with_sitter, 3.0, rng) for _ in range(10)], BackgroundConfig(), camera="c"
+    )
+    # The sitter is background for the model: nothing is foreground.
+    assert model.segment(noisy(with_sitter, 3.0, rng)).foreground.mean() < 0.01
+    walker = square_mask(H, W, 100, 40, 30)
+    left = noisy(paint(background, walker, (200, 60, 60)), 3.0, rng)
+    seg = model.segment(left)
+    assert seg.foreground[sitter].mean() > 0.9  # the ghost, before repair
+    stats = model.update(left, seg)
+    assert stats.ghosts == 1 and stats.ghost_px >= 0.9 * sitter.sum()
+    after = model.segment(noisy(paint(background, walker, (200, 60, 60)), 3.0, rng))
+    assert after.foreground[sitter].mean() < 0.05  # repaired at once
+    assert mask_iou(after.foreground, walker) > 0.9  # the stopped walker is held
+    for _ in range(20):
+        model.apply(noisy(paint(background, walker, (200, 60, 60)), 3.0, rng))
+    assert (
+        mask_iou(
+            model.segment(noisy(paint(background, walker, (200, 60, 60)), 3.0, rng)).foreground,
+            walker,
+        )
+        > 0.9
+    )
 
 
 def test_bad_input_raises_data_error(background: np.ndarray) -> None:
@@ -175,7 +227,7 @@ def test_bad_input_raises_data_error(background: np.ndarray) -> None:
         ("learning_rate", 1.5),
         ("shadow_min_brightness", 0.0),
         ("min_gain", 1.5),
-        ("max_working_width", 4),
+        ("working_pixels", 4),
     ],
 )
 def test_config_validation_names_the_field(field: str, value: float) -> None:

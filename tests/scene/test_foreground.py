@@ -107,8 +107,8 @@ def test_states_round_trip(scene, segmented) -> None:  # type: ignore[no-untyped
     fg, _ = segmented
     clone = RigForeground.from_states(sc.rig, pickle.loads(pickle.dumps(fg.states())), fg.config)
     fs = FrameSet(time_index=0, images=frames[0].images)
-    a = fg.segment(fs, update=False)
-    b = clone.segment(fs, update=False)
+    a = fg.segment(fs)
+    b = clone.segment(fs)
     for ma, mb in zip(a.masks, b.masks, strict=True):
         np.testing.assert_array_equal(ma, mb)
 
@@ -118,7 +118,7 @@ def test_missing_camera_frame_and_bad_input(scene, segmented) -> None:  # type: 
     fg, _ = segmented
     images = list(frames[0].images)
     images[1] = None
-    res = fg.segment(FrameSet(time_index=0, images=tuple(images)), update=False)
+    res = fg.segment(FrameSet(time_index=0, images=tuple(images)))
     assert res.masks[1] is None and res.objects[1] is None and res.areas()[1] is None
     assert res.masks[0] is not None and res.masks[0].any()
     with pytest.raises(DataError, match="2 images for 5 cameras"):
@@ -127,3 +127,23 @@ def test_missing_camera_frame_and_bad_input(scene, segmented) -> None:  # type: 
         fg.set_occluders([None])
     with pytest.raises(ValueError, match="ForegroundConfig.hull"):
         ForegroundConfig(hull=None)  # type: ignore[arg-type]
+
+
+def test_reduced_frames_give_the_same_masks(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    """Frames reduced to the working size (what travels between nodes) segment and teach the
+    models exactly as the full frames do."""
+    sc, _, frames = scene
+    fg, _ = segmented
+    a = RigForeground.from_states(sc.rig, fg.states(), fg.config)
+    b = RigForeground.from_states(sc.rig, fg.states(), fg.config)
+    fs = FrameSet(time_index=0, images=frames[0].images)
+    small = a.reduce(fs)
+    assert all(
+        im.shape[1::-1] == m.working_size for im, m in zip(small.images, a.models, strict=True)
+    )
+    for ma, mb in zip(a.segment(fs).masks, b.segment(small).masks, strict=True):
+        np.testing.assert_array_equal(ma, mb)
+    a.update(fs)
+    b.update(small)
+    for sa, sb in zip(a.states(), b.states(), strict=True):
+        np.testing.assert_array_equal(sa.mean, sb.mean)

@@ -45,3 +45,17 @@ def distorted_renderer() -> Renderer:
 def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> DatasetSummary:
     out: Path = tmp_path_factory.mktemp("synth") / "demo"
     return write_dataset(preset_config("demo", **SMALL), out)
+
+
+#: The people-in-a-room preset, downscaled (full length: the scripts' stretches are intact).
+HD4_SMALL = {"width": 320, "height": 180}
+
+
+@pytest.fixture(scope="session")
+def hd4_scene() -> SynthScene:
+    return build_scene(preset_config("hd4", **HD4_SMALL))
+
+
+@pytest.fixture(scope="session")
+def hd4_renderer(hd4_scene: SynthScene) -> Renderer:
+    return Renderer(hd4_scene)

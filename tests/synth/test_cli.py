@@ -116,3 +116,22 @@ def test_evaluate_gt_errors(small_dataset, tmp_path, capsys):
     assert "--gt" in capsys.readouterr().err
     assert main(["evaluate", str(pred), "--gt", str(tmp_path)]) == 2
     assert "scene.json" in capsys.readouterr().err
+
+
+def test_synth_cli_people_in_a_room_preset(tmp_path, capsys):
+    out = tmp_path / "hd4"
+    args = ["synth", "--preset", "hd4", "--out", str(out), "--frames", "3", "--size", "96x54"]
+    assert main([*args, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["num_cameras"] == 4 and report["background_frames"] == 0
+    assert report["image_size"] == [96, 54]
+    # Three frames: only the seated actor's stretch falls inside (the others are clipped away).
+    assert report["stretches"]["seated"] == [{"actor": 3, "start": 0, "stop": 3}]
+    assert report["stretches"]["still"] == [] and report["stretches"]["dimming"] == []
+    gt = GroundTruth.open(out)
+    assert gt.stretches == report["stretches"] and gt.illumination(2) == 1.0
+    assert not (out / "background").exists()
+    # The table form lists the stretches.
+    assert main([*args, "--overwrite"]) == 0
+    text = capsys.readouterr().out
+    assert "stretches" in text and "seated" in text

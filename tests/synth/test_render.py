@@ -41,18 +41,26 @@ def _reproject(renderer: Renderer, frame, i: int, j: int):
     return np.linalg.norm(back - p[sel], axis=1), np.linalg.norm(Xj - X[sel], axis=1), sel, q, p
 
 
-@pytest.mark.parametrize("which", ["pinhole", "distorted"])
+@pytest.mark.parametrize("which", ["pinhole", "distorted", "hd4"])
 def test_ground_truth_depth_reprojects_to_the_same_surface_point(
-    which, small_renderer, small_frame, distorted_renderer
+    which, small_renderer, small_frame, distorted_renderer, hd4_renderer
 ):
-    renderer = small_renderer if which == "pinhole" else distorted_renderer
-    frame = small_frame if which == "pinhole" else distorted_renderer.render(2)
-    assert renderer.scene.rig[0].has_distortion == (which == "distorted")
-    for i, j in [(0, 1), (1, 2), (3, 4)]:
+    renderer = {"pinhole": small_renderer, "distorted": distorted_renderer, "hd4": hd4_renderer}[
+        which
+    ]
+    # hd4: 4 cameras 90 degrees apart, phone-like distortion, all three actors, lights dimmed.
+    frame = {"pinhole": small_frame, "distorted": distorted_renderer.render(2)}.get(
+        which
+    ) or hd4_renderer.render(212)
+    assert renderer.scene.rig[0].has_distortion == (which != "pinhole")
+    pairs = [(0, 1), (1, 2), (2, 3), (3, 0)] if which == "hd4" else [(0, 1), (1, 2), (3, 4)]
+    for i, j in pairs:
         err_px, err_m, sel, _, _ = _reproject(renderer, frame, i, j)
         assert sel.sum() > 10_000  # neighbours share most of the scene
         assert np.median(err_px) < 1e-3
-        assert np.percentile(err_px, 95) < 0.05
+        # The check interpolates depth bilinearly (exact on planes only): the actors' curved
+        # surfaces seen 90 degrees apart at 320x180 (hd4) reproject within ~0.3 px.
+        assert np.percentile(err_px, 95) < (0.1 if which == "hd4" else 0.05)
         assert np.percentile(err_px, 99) < 0.5
         assert np.median(err_m) < 1e-5
 
@@ -88,13 +96,17 @@ def test_background_depth_is_exact_on_every_surface(small_renderer, small_scene)
                 assert np.minimum(side, cap).max() < 5e-5
 
 
-def test_masks_and_depth_agree(small_renderer, small_frame):
-    for k in range(len(small_frame.images)):
-        mask, depth = small_frame.masks[k], small_frame.depths[k]
-        bg = small_renderer.background_depth(k)
+@pytest.mark.parametrize("which", ["demo", "hd4"])
+def test_masks_and_depth_agree(which, small_renderer, small_frame, hd4_renderer):
+    renderer, frame, ids = small_renderer, small_frame, {0, 1, 2}
+    if which == "hd4":  # the still actor, the seated one on its chair, the one who left
+        renderer, frame, ids = hd4_renderer, hd4_renderer.render(100), {0, 1, 3}
+    for k in range(len(frame.images)):
+        mask, depth = frame.masks[k], frame.depths[k]
+        bg = renderer.background_depth(k)
         fg = mask > 0
         assert fg.mean() > 0.005  # the actors are in view of every camera
-        assert set(np.unique(mask)) <= {0, 1, 2}
+        assert set(np.unique(mask)) == ids if which == "hd4" else set(np.unique(mask)) <= ids
         # Actors are in front of the background; elsewhere the depth is the background's.
         assert np.all(depth[fg] < bg[fg])
         assert np.array_equal(depth[~fg], bg[~fg])

@@ -68,7 +68,3 @@ def _fmt(v: Any) -> str:
         x = float(v)
         return f"{x:.4g}" if abs(x) < 1e4 else f"{x:,.0f}"
     return str(v)
-
-
-def parse_float_list(text: str) -> list[float]:
-    return [float(x) for x in text.replace(",", " ").split()]

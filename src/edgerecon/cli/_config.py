@@ -97,7 +97,7 @@ def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, 
         over["background_updates"] = False
     # Options that mirror a RuntimeConfig field: typed ones win, else the file, else the
     # option's default.
-    for dest in ("sparse_scope", "background_scale"):
+    for dest in ("sparse_scope", "background_scale", "online_quality"):
         if hasattr(args, dest) and (given(args, dest) or dest not in rt):
             over[dest] = getattr(args, dest)
     runtime = build(RuntimeConfig, rt, where="runtime", overrides=over)

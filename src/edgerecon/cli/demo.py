@@ -17,10 +17,13 @@ from pathlib import Path
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.cli._config import load_config, online_configs, run_options_table, write_effective
 from edgerecon.cli.run import (
+    EXIT_OK,
+    EXIT_TASKS_FAILED,
     add_online_arguments,
     build_options,
     live_printer,
     num_tasks,
+    parse_fixed,
     print_summary,
 )
 from edgerecon.configfile import section
@@ -110,12 +113,9 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.frames is None:
         args.frames = f"0:{dataset.num_frames}"
-    options = build_options(args, dataset, threshold)
-    fixed = None
-    if args.fixed is not None:
-        from edgerecon.cli.reconstruct import parse_cameras
-
-        fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
+    # The run folder is the demo's own work folder: a new demo replaces the last one.
+    options = build_options(args, dataset, threshold, overwrite=True)
+    fixed = parse_fixed(args, dataset)
     with live_printer(not args.json, num_tasks(args, dataset)) as on_task:
         summary, metrics = run_online(
             dataset,
@@ -147,9 +147,10 @@ def run(args: argparse.Namespace) -> int:
         "total_s": round(time.perf_counter() - t0, 2),
     }
     (out / "demo.json").write_text(json.dumps(result, indent=2) + "\n")
+    code = EXIT_TASKS_FAILED if summary.failed else EXIT_OK
     if args.json:
         emit_json(result)
-        return 0
+        return code
     print_summary(f"demo: {dataset.name}, deadline {deadline:.2f} s", summary)
     print_table(
         "original vs optimized pipeline (per task)",
@@ -163,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
         f"merged clouds in {out / 'run' / 'tasks'}; metrics in "
         f"{out / 'run' / 'metrics.jsonl'}; total {result['total_s']:.0f} s"
     )
-    return 0
+    return code
 
 
 def _scene_matches(scene_dir: Path, config: dict[str, object]) -> bool:

@@ -1,4 +1,5 @@
-"""``edgerecon info``: what a dataset holds (rig, baselines, frames)."""
+"""``edgerecon info``: what a dataset holds (rig, baselines, frames); ``--check`` decodes every
+frame and reports the unusable ones."""
 
 from __future__ import annotations
 
@@ -9,8 +10,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.config import MIN_CAMERAS
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
+from edgerecon.progress import track
+from edgerecon.quality.frames import FrameCheckConfig, frame_defects
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,6 +26,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "rate, the unit, and whether a background clip and ground truth exist.",
     )
     p.add_argument("--dataset", required=True, metavar="DIR", help="dataset folder")
+    p.add_argument(
+        "--check",
+        action="store_true",
+        help="decode every frame of every camera and report the unusable ones (missing, "
+        "zero-byte, truncated, does not decode, wrong size, black, saturated, textureless); "
+        "exit code 3 when there are any",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -89,12 +100,52 @@ def describe(ds: Dataset) -> dict[str, Any]:
     }
 
 
+def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[str, Any]:
+    """Decode every frame of every camera: per camera, the unusable frames and why (what
+    ``run`` would leave out), and how many timestamps keep at least 3 usable cameras."""
+    names = ds.rig.names
+    bad: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
+    usable_times = 0
+    with ds.open_frames(missing="skip_camera") as source:
+        counts = source.frame_counts
+        for t in track(range(source.num_frames), "checking frames"):
+            frames, problems = source.check(t)
+            defects = frame_defects(frames, config)
+            for name, defect in zip(names, defects, strict=True):
+                problem = problems.get(name) or defect
+                if problem:
+                    bad[name].append({"time": t, "problem": problem})
+            usable_times += (
+                sum(
+                    d is None and name not in problems
+                    for name, d in zip(names, defects, strict=True)
+                )
+                >= MIN_CAMERAS
+            )
+    longest = max(counts.values())
+    for name, n in counts.items():
+        if n < longest:  # a truncated video (or fewer image files): frames past its end
+            bad[name].append(
+                {"time": n, "problem": f"only {n} frames decode ({longest} for another camera)"}
+            )
+    return {
+        "frames": ds.num_frames,
+        "frame_counts": counts,
+        "usable_timestamps": usable_times,
+        "unusable": {n: v for n, v in bad.items() if v},
+        "num_unusable": sum(len(v) for v in bad.values()),
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     ds = open_dataset(args.dataset)
     info = describe(ds)
+    if args.check:
+        info["check"] = check_frames(ds)
+    code = 3 if args.check and info["check"]["num_unusable"] else 0
     if args.json:
         emit_json(info)
-        return 0
+        return code
     unit = ds.rig.unit
     fps = "unknown" if ds.fps is None else f"{ds.fps:g}"
     console.print(f"[bold]{ds.name}[/] ({ds.layout}) at {ds.root}")
@@ -141,4 +192,39 @@ def run(args: argparse.Namespace) -> int:
         ["camera", *names],
         [[n, *[f"{a:.1f}" for a in row]] for n, row in zip(names, angles, strict=True)],
     )
-    return 0
+    if args.check:
+        _print_check(info["check"])
+    return code
+
+
+def _print_check(check: dict[str, Any]) -> None:
+    rows = []
+    for name, problems in check["unusable"].items():
+        kinds: dict[str, list[int]] = {}
+        for p in problems:
+            kind = str(p["problem"])
+            kinds.setdefault(kind if len(kind) < 20 else _kind(kind), []).append(p["time"])
+        for kind, times in kinds.items():
+            shown = ", ".join(str(t) for t in times[:8]) + (" ..." if len(times) > 8 else "")
+            rows.append([name, kind, len(times), shown])
+    if rows:
+        print_table("unusable frames", ["camera", "problem", "frames", "times"], rows)
+    console.print(
+        f"frame check: {check['num_unusable']} unusable frames; "
+        f"{check['usable_timestamps']} of {check['frames']} timestamps keep >= 3 usable cameras"
+    )
+
+
+def _kind(problem: str) -> str:
+    """A short name for a frame problem message."""
+    for key, name in (
+        ("missing", "missing"),
+        ("cannot be decoded", "does not decode"),
+        ("does not decode", "does not decode"),
+        ("ends or is corrupt", "truncated video"),
+        ("only", "truncated"),
+        ("calibration says", "wrong size"),
+    ):
+        if key in problem:
+            return name
+    return problem[:40]

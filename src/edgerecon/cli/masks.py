@@ -1,11 +1,11 @@
 """``edgerecon masks``: foreground masks, objects and visual hull of one timestamp, for
 inspection.
 
-Learns each camera's background model (from the dataset's background clip, or from frames
-spread over the stream), lets it adapt on ``--warmup`` frames before T, segments frame T and
-writes per camera ``<cam>_mask.png`` (0/255), ``<cam>_overlay.png`` (the frame with the
-foreground tinted, foreground removed by the hull consistency in red, object ROIs boxed) and
-``masks.json``; with ``--hull-ply`` also the coloured visual-hull surface (``hull.ply``).
+The background models are the ones the online system has at time T (one definition for
+every command: :mod:`edgerecon.scene.stream`). Segments frame T and writes per camera
+``<cam>_mask.png`` (0/255, upsampled from the working resolution to the frame's),
+``<cam>_overlay.png`` (the frame with the foreground tinted, foreground removed by the hull
+consistency in red, object ROIs boxed) and ``masks.json``; with ``--hull-ply`` also the coloured visual-hull surface (``hull.ply``).
 Synthetic datasets with ground truth also get the mask IoU per camera.
 """
 
@@ -24,9 +24,10 @@ from edgerecon.cli._config import add_config_flag, load_config
 from edgerecon.configfile import build, section
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, write_ply
-from edgerecon.progress import track
-from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
+from edgerecon.quality.masks import at_resolution
+from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult
 from edgerecon.scene.hull import hull_cloud
+from edgerecon.scene.stream import dataset_scene_at
 from edgerecon.types import DataError, FrameSet, Image
 
 #: Object colours in overlays (BGR).
@@ -45,43 +46,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time", "-t", type=int, default=0, help="frame index (default 0)")
     p.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder")
     p.add_argument(
-        "--warmup",
-        type=int,
-        default=10,
-        help="frames before --time the background models adapt on (default 10)",
-    )
-    p.add_argument(
-        "--learn-frames",
-        type=int,
-        default=30,
-        help="without a background clip: frames spread over the stream to learn from (default 30)",
-    )
-    p.add_argument(
         "--no-hull", action="store_true", help="skip the visual-hull consistency of the masks"
     )
     p.add_argument("--hull-ply", action="store_true", help="also write the visual hull (hull.ply)")
     add_config_flag(p)
     add_json_flag(p)
     p.set_defaults(func=run)
-
-
-def learn_foreground(
-    dataset: Dataset, config: ForegroundConfig, learn_frames: int = 30
-) -> tuple[RigForeground, str]:
-    """Background models from the dataset's background clip, or else from ``learn_frames``
-    frames spread evenly over the stream (a per-pixel median over a long span ignores actors
-    who keep moving; one who never moves becomes background: use a clip then)."""
-    background = dataset.open_background()
-    if background is not None:
-        with background:
-            framesets = list(track(background.iter_frames(), "reading background clip"))
-        return RigForeground.learn_from_framesets(dataset.rig, framesets, config), "background clip"
-    with dataset.open_frames() as source:
-        n = source.num_frames
-        step = max(1, n // max(1, learn_frames))
-        framesets = list(track(source.iter_frames(0, n, step), "reading frames to learn from"))
-    what = f"{len(framesets)} frames of the stream (every {step})"
-    return RigForeground.learn_from_framesets(dataset.rig, framesets, config), what
 
 
 def overlay(image: Image, result: ForegroundResult, camera_id: int) -> Image:
@@ -92,13 +62,18 @@ def overlay(image: Image, result: ForegroundResult, camera_id: int) -> Image:
     final = result.masks[camera_id]
     if seg is None or model is None or final is None:
         return out
-    rejected = model & ~final
+    # Masks are at the scene stage's working resolution; the overlay is at the frame's.
+    shape = image.shape[:2]
+    rejected = at_resolution(model & ~final, shape)
     out[rejected] = (0.4 * out[rejected] + (0, 0, 150)).astype(np.uint8)
+    labels = at_resolution(seg.labels, shape)
+    sx, sy = shape[1] / seg.labels.shape[1], shape[0] / seg.labels.shape[0]
     for obj in seg.objects:
         color = np.array(_PALETTE[(obj.id - 1) % len(_PALETTE)], np.float64)
-        sel = seg.labels == obj.id
+        sel = labels == obj.id
         out[sel] = (0.5 * out[sel] + 0.5 * color).astype(np.uint8)
-        x, y, w, h = obj.roi
+        x0, y0, w0, h0 = obj.roi
+        x, y, w, h = round(x0 * sx), round(y0 * sy), round(w0 * sx), round(h0 * sy)
         cv2.rectangle(out, (x, y), (x + w - 1, y + h - 1), tuple(int(c) for c in color), 1)
         cv2.putText(
             out, str(obj.id), (x + 2, y + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1
@@ -122,9 +97,11 @@ def _ground_truth_scores(dataset: Dataset, result: ForegroundResult) -> list[flo
     gt = GroundTruth.open(dataset.root)
     scores: list[float | None] = []
     for cam, mask in zip(dataset.rig, result.masks, strict=True):
-        scores.append(
-            None if mask is None else mask_iou(mask, gt.object_mask(cam.name, result.time_index))
-        )
+        if mask is None:
+            scores.append(None)
+            continue
+        truth = gt.object_mask(cam.name, result.time_index)
+        scores.append(mask_iou(at_resolution(mask, truth.shape), truth))
     return scores
 
 
@@ -134,8 +111,6 @@ def run(args: argparse.Namespace) -> int:
         raise DataError(
             f"--time {args.time} is outside the dataset's frames 0..{dataset.num_frames - 1}"
         )
-    if args.warmup < 0 or args.learn_frames < 1:
-        raise DataError("--warmup must be >= 0 and --learn-frames >= 1")
     rig = dataset.rig
     # The scene model's settings are the online system's: [runtime.foreground] of --config.
     config = build(
@@ -145,13 +120,12 @@ def run(args: argparse.Namespace) -> int:
         overrides={"hull_consistency": False} if args.no_hull else None,
     )
     t0 = time.perf_counter()
-    model, learned_from = learn_foreground(dataset, config, args.learn_frames)
+    tracker = dataset_scene_at(dataset, args.time, config, progress=not args.json)
+    learned_from = tracker.learned_from
     learn_s = time.perf_counter() - t0
     with dataset.open_frames() as source:
-        start = max(0, args.time - args.warmup)
-        model.warm_up(source.iter_frames(start, args.time))
         frames: FrameSet = source.read(args.time)
-    result = model.segment(frames)
+    result = tracker.segment(frames)
     out = Path(args.out)
     cameras: list[dict[str, Any]] = []
     ious = _ground_truth_scores(dataset, result)
@@ -162,7 +136,9 @@ def run(args: argparse.Namespace) -> int:
         if mask is None or image is None or seg is None:
             cameras.append({"camera": cam.name, "available": False})
             continue
-        _write_png(out / f"{cam.name}_mask.png", mask.astype(np.uint8) * 255)
+        _write_png(
+            out / f"{cam.name}_mask.png", at_resolution(mask, image.shape).astype(np.uint8) * 255
+        )
         _write_png(out / f"{cam.name}_overlay.png", overlay(image, result, i))
         model_mask = result.model_masks[i]
         entry: dict[str, Any] = {
@@ -183,6 +159,9 @@ def run(args: argparse.Namespace) -> int:
         "time": args.time,
         "background_model": learned_from,
         "learn_seconds": round(learn_s, 3),
+        "background_updates": tracker.updates,
+        "ghosts_repaired": tracker.ghosts,
+        "working_size": list(result.cameras[0].size) if result.cameras else None,
         "timings": result.timings.to_dict(),
         "cameras": cameras,
         "hull": None

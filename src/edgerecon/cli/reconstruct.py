@@ -206,31 +206,29 @@ def _run_split(
     config: ReconstructionConfig,
     cfg: dict[str, Any],
 ) -> tuple[dict[str, Any], Any]:
-    from edgerecon.pipeline import SplitPipelineConfig, reconstruct_split, warm_up
-    from edgerecon.runtime.engine import learn_scene_model
-    from edgerecon.scene.foreground import ForegroundConfig, RigForeground
+    from edgerecon.pipeline import SplitPipelineConfig, reconstruct_task, warm_up
+    from edgerecon.scene.foreground import ForegroundConfig
     from edgerecon.scene.merge import write_merged
+    from edgerecon.scene.stream import dataset_scene_at
 
     rig = dataset.rig
     rt = section(cfg, "runtime")
     fg_config = build(ForegroundConfig, section(rt, "foreground"), where="runtime.foreground")
     split_config = build(SplitPipelineConfig, section(rt, "split"), where="runtime.split")
-    warmup_frames = int(rt.get("warmup_frames", 30))
-    scene = learn_scene_model(dataset, fg_config, warmup_frames)  # a phase
-    model = RigForeground.from_states(rig, scene.states, fg_config)
-    before = list(range(max(0, args.time - 5), args.time))
-    with progress.phase(f"decode the frames up to time {args.time}"), dataset.open_frames() as src:
-        # Let the model see a few frames before T (it adapts, as it would online).
-        framesets = [src.read(t) for t in [*before, args.time]]
-    with progress.phase(f"adapt the background model ({len(before)} frames before T)"):
-        for fs in framesets[:-1]:
-            model.segment(fs)
-    frames = framesets[-1]
+    with progress.phase(f"learn the background model up to time {args.time}"):
+        # The background models as the online system has them at T (edgerecon.scene.stream).
+        tracker = dataset_scene_at(dataset, args.time, fg_config, progress=not args.json)
+    with progress.phase(f"decode the frames of time {args.time}"), dataset.open_frames() as src:
+        frames = src.read(args.time)
     with progress.phase("foreground masks"):
-        foreground = model.segment(frames)
+        foreground = tracker.segment(frames)
     warm_up()
     with progress.phase("reconstruct"):
-        result = reconstruct_split(frames, rig, foreground, config, split_config=split_config)
+        # Whole-frame SfM: the background is densified here from the points labelled
+        # background.
+        result = reconstruct_task(
+            frames, rig, foreground, config, split_config=split_config, sparse_scope="scene"
+        )
     out = Path(args.out)
     with progress.phase("write the outputs"):
         write_merged(out, result.merged, unit=rig.unit, up=rig.up)
@@ -238,26 +236,20 @@ def _run_split(
         write_effective(
             out,
             "reconstruct --split",
-            {
-                "reconstruction": config,
-                "runtime": {
-                    "warmup_frames": warmup_frames,
-                    "foreground": fg_config,
-                    "split": split_config,
-                },
-            },
+            {"reconstruction": config, "runtime": {"foreground": fg_config, "split": split_config}},
         )
     summary = {
         "dataset": str(dataset.root),
         "unit": rig.unit,
         "cameras": [rig[i].name for i in result.camera_ids],
-        "background_model": scene.learned_from,
+        "background_model": tracker.learned_from,
+        "background_updates": tracker.updates,
         "foreground_area": foreground.areas(),
         **result.summary(),
     }
     return summary, (
         f"{dataset.name} t={args.time} r={config.scale:g} foreground/background split "
-        f"(background model: {scene.learned_from})",
+        f"(background model: {tracker.learned_from})",
         [*result.timings.seconds.items(), ("total", result.timings.total)],
         f"sparse: {result.sparse.num_points:,} ({summary['num_sparse_foreground']:,} foreground)"
         f"   foreground: {len(result.foreground.cloud):,}   background: "

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
-from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.cli._common import add_json_flag, console, emit_json, error_console, print_table
 from edgerecon.cli._config import (
     add_config_flag,
     load_config,
@@ -17,9 +21,27 @@ from edgerecon.cli._config import (
 from edgerecon.cli._live import TaskDisplay
 from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.io.dataset import open_dataset
+from edgerecon.pipeline import SPARSE_SCOPES
 from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetrics
-from edgerecon.runtime.config import SPARSE_SCOPES
+from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.online import run_online
+from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted
+
+#: Exit codes of ``run`` (and ``demo``), documented in the README and ``run --help``.
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+EXIT_TASKS_FAILED = 3
+EXIT_INTERRUPTED = 130
+
+EXIT_CODES_HELP = f"""exit codes:
+  {EXIT_OK}    every task was recorded ok (degraded and empty tasks included)
+  {EXIT_BAD_INPUT}    bad input or refused before any work (options, dataset, --out in use
+       by another run, not empty without --resume/--overwrite, a different dataset),
+       or the outputs could not be written (the committed tasks stay: --resume)
+  {EXIT_TASKS_FAILED}    the run finished but some tasks failed (see metrics.jsonl; summary.json
+       is written)
+  {EXIT_INTERRUPTED}  interrupted (Ctrl-C or SIGTERM): summary.json is written and the command
+       to continue (--resume) is printed"""
 
 
 def add_online_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,22 +89,46 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         help="the back-end never rebuilds the background",
     )
     p.add_argument(
+        "--background-scale",
+        type=float,
+        default=1.0,
+        metavar="R",
+        help="image scale of the back-end's background rebuilds, in (0, 1] (default 1)",
+    )
+    p.add_argument(
         "--sparse-scope",
         choices=SPARSE_SCOPES,
         default="foreground",
-        help="foreground: SfM of the foreground masks only, after they arrive (default); "
+        help="foreground: SfM of the foreground masks only (default); "
         "scene: the paper's SfM of the whole frames, then the split",
+    )
+    p.add_argument(
+        "--online-quality",
+        choices=ONLINE_QUALITIES,
+        default="silhouette",
+        help="the controller's quality estimate: silhouette (the task's dense foreground "
+        "against every camera's masks, default) or golden (the paper's: foreground sparse "
+        "points against the back-end's golden reference)",
     )
     p.add_argument("--no-clouds", action="store_true", help="do not write per-task clouds")
     p.add_argument(
-        "--resume", action="store_true", help="continue after the last task recorded in --out"
+        "--resume",
+        action="store_true",
+        help="continue the run in --out after its last committed task (same dataset, same "
+        "--frames start and step; a new --deadline restarts the configuration search)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run files in a non-empty --out (refused otherwise)",
     )
     p.add_argument(
         "--inject-fault",
+        action="append",
         default=None,
         metavar="TASK:KIND[:SECONDS]",
-        help="drill: before task TASK, make the back-end stall (KIND=stall), crash "
-        "(crash) or, with Ray, kill its process (kill)",
+        help="drill (repeatable): before task TASK, make the back-end stall for SECONDS "
+        "(KIND=stall, default 30 s), crash (crash) or, with Ray, kill its process (kill)",
     )
 
 
@@ -91,8 +137,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "run",
         help="run the online system (front-end + back-end) on a dataset",
         description="Reconstruct a stream task by task within a deadline: the optimizer picks "
-        "the image scale and cameras, the back-end computes masks, golden references and "
-        "backgrounds. Writes metrics.jsonl, per-task merged clouds and summary.json.",
+        "the image scale and cameras, the front-end computes the masks, the back-end rebuilds "
+        "the background. Writes metrics.jsonl, per-task merged clouds and summary.json. A task "
+        "that fails (any stage raises, or it runs past the watchdog of max(10 x deadline, "
+        "30 s)) is recorded and the run goes on.",
+        epilog=EXIT_CODES_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--dataset", required=True, help="dataset folder")
     p.add_argument("--out", "-o", required=True, help="output folder")
@@ -101,13 +151,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def parse_fault(text: str | None) -> tuple[int, str, float] | None:
-    if not text:
-        return None
+def parse_faults(texts: list[str] | None) -> tuple[tuple[int, str, float], ...]:
+    return tuple(parse_fault(t) for t in texts or ())
+
+
+def parse_fault(text: str) -> tuple[int, str, float]:
     parts = text.split(":")
-    if len(parts) not in (2, 3) or parts[1] not in ("stall", "crash", "kill"):
-        raise ValueError(f"--inject-fault must be TASK:stall|crash|kill[:SECONDS], got {text!r}")
-    return int(parts[0]), parts[1], float(parts[2]) if len(parts) == 3 else 30.0
+    usage = f"--inject-fault must be TASK:{'|'.join(FAULT_KINDS)}[:SECONDS], got {text!r}"
+    if len(parts) not in (2, 3) or parts[1] not in FAULT_KINDS:
+        raise ValueError(usage)
+    try:
+        return int(parts[0]), parts[1], float(parts[2]) if len(parts) == 3 else 30.0
+    except ValueError:
+        raise ValueError(usage) from None
 
 
 def task_row(m: TaskMetrics) -> list[Any]:
@@ -125,7 +181,9 @@ def task_row(m: TaskMetrics) -> list[Any]:
         "yes" if m.deadline_met else "NO",
         f_on,
         f_off,
-        f"v{m.bg_version}" + (" degraded" if m.degraded else ""),
+        f"{m.background_version}"
+        + (" degraded" if m.degraded else "")
+        + (" empty" if m.frame_defects and m.num_cameras < 3 else ""),
     ]
 
 
@@ -174,21 +232,22 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("avg. F-score of FG (vs ground truth)", f(s.avg_offline_fscore)),
         ("# backgrounds pushed", s.backgrounds_pushed),
         ("# configuration search steps", s.search_steps),
-        ("tasks / failed / degraded", f"{s.tasks} / {s.failed} / {s.degraded}"),
+        ("tasks / failed / degraded / empty", f"{s.tasks} / {s.failed} / {s.degraded} / {s.empty}"),
+        ("background at the end (epoch.counter)", f"v{s.bg_version[0]}.{s.bg_version[1]}"),
         ("frames dropped (newest policy)", s.frames_dropped),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
     print_table(title, ["metric", "value"], rows)
     if s.stage_means_s:
         print_table(
-            "critical path per task (mean seconds)",
+            "stages per task (mean seconds; wait_golden is after the critical path)",
             ["stage", "seconds"],
             sorted(s.stage_means_s.items(), key=lambda kv: -kv[1]),
         )
 
 
 def build_options(
-    args: argparse.Namespace, dataset: Any, gt_threshold: float | None
+    args: argparse.Namespace, dataset: Any, gt_threshold: float | None, *, overwrite: bool = False
 ) -> SessionOptions:
     return SessionOptions(
         frames=FrameRange.parse(args.frames) if args.frames else FrameRange(),
@@ -196,19 +255,71 @@ def build_options(
         write_clouds=not args.no_clouds,
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,
         resume=args.resume,
-        fault=parse_fault(args.inject_fault),
+        overwrite=args.overwrite or (overwrite and not args.resume),
+        faults=parse_faults(args.inject_fault),
     )
+
+
+def parse_fixed(
+    args: argparse.Namespace, dataset: Any
+) -> tuple[float, tuple[int, ...] | None] | None:
+    """``--fixed`` and ``--cameras`` (checked against the rig by ``run_online``)."""
+    if args.fixed is None:
+        if args.cameras is not None:
+            raise ValueError("--cameras chooses the cameras of --fixed: give --fixed SCALE too")
+        return None
+    return args.fixed, parse_cameras(args.cameras, dataset.rig)
+
+
+def resume_command(args: argparse.Namespace) -> str:
+    """The command line that continues this run."""
+    words = ["edgerecon", "run", "--dataset", args.dataset, "--out", args.out]
+    words += ["--deadline", f"{args.deadline:g}"]
+    for flag, value in (
+        ("--frames", args.frames),
+        ("--engine", None if args.engine == "embedded" else args.engine),
+        ("--address", args.address),
+        ("--policy", None if args.policy == "all" else args.policy),
+        ("--fixed", None if args.fixed is None else f"{args.fixed:g}"),
+        ("--cameras", args.cameras),
+        ("--sparse-scope", None if args.sparse_scope == "foreground" else args.sparse_scope),
+    ):
+        if value is not None:
+            words += [flag, str(value)]
+    if args.background_scale != 1.0:
+        words += ["--background-scale", f"{args.background_scale:g}"]
+    words += ["--no-background-updates"] if args.no_background_updates else []
+    words += ["--no-clouds"] if args.no_clouds else []
+    return shlex.join([*words, "--resume"])
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM stops a run as Ctrl-C does (summary written, --resume printed)."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
     config, controller_config = online_configs(args, load_config(args))
-    fixed = None
-    if args.fixed is not None:
-        fixed = (args.fixed, parse_cameras(args.cameras, dataset.rig))
+    args.deadline = config.deadline_s  # (from --config too) the resume command repeats it
+    fixed = parse_fixed(args, dataset)
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))
-    with live_printer(not args.json, num_tasks(args, dataset)) as on_task:
-        summary, metrics = run_online(
+    code = run_and_report(
+        args,
+        lambda on_task: run_online(
             dataset,
             config,
             options,
@@ -218,12 +329,47 @@ def run(args: argparse.Namespace) -> int:
             fixed=fixed,
             controller_config=controller_config,
             on_task=on_task,
-        )
+            command=resume_command(args).removesuffix(" --resume"),
+        ),
+        title=f"{dataset.name}: online run, deadline {config.deadline_s:g} s",
+        total=num_tasks(args, dataset),
+    )
     effective = {"runtime": config, "controller": controller_config, "run": run_options_table(args)}
     write_effective(args.out, "run", effective)
+    return code
+
+
+def run_and_report(
+    args: argparse.Namespace, start: Any, *, title: str, total: int | None = None
+) -> int:
+    """Run ``start(on_task)`` (-> summary, metrics) inside the live display, print or emit
+    the result and return the exit code (see ``EXIT_CODES_HELP``)."""
+    try:
+        with sigterm_as_interrupt(), live_printer(not args.json, total) as on_task:
+            summary, metrics = start(on_task)
+    except RunInterrupted as stop:
+        error_console.print(
+            f"[yellow]interrupted after {stop.summary.tasks} tasks[/] (summary.json written); "
+            f"continue with:\n  {resume_command(args)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+        if args.json:
+            emit_json(
+                {"summary": stop.summary.to_dict(), "tasks": [m.to_dict() for m in stop.metrics]}
+            )
+        return EXIT_INTERRUPTED
     if args.json:
         emit_json({"summary": summary.to_dict(), "tasks": [m.to_dict() for m in metrics]})
     else:
-        print_summary(f"{dataset.name}: online run, deadline {config.deadline_s:g} s", summary)
+        print_summary(title, summary)
         console.print(f"outputs in {args.out}")
-    return 0
+    if summary.failed:
+        error_console.print(
+            f"[red]{summary.failed} of {summary.tasks} tasks failed[/] (reasons in "
+            f"{args.out}/metrics.jsonl)",
+            highlight=False,
+            soft_wrap=True,
+        )
+        return EXIT_TASKS_FAILED
+    return EXIT_OK

@@ -114,6 +114,14 @@ def run(args: argparse.Namespace) -> int:
         ],
     )
     print_table("time per stage", ["stage", "seconds"], summary.timings.seconds.items())
+    rows = [
+        [kind, item.get("actor", "-"), f"{item['start']}..{item['stop'] - 1}"]
+        + ([item["min_level"]] if "min_level" in item else ["-"])
+        for kind, items in summary.stretches.items()
+        for item in items
+    ]
+    if rows:
+        print_table("stretches (frames)", ["kind", "actor", "frames", "min light"], rows)
     console.print(
         f"read it with: GroundTruth.open({str(summary.path)!r}) or "
         f"edgerecon evaluate PRED.ply --gt {summary.path} --time T"

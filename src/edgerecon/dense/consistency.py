@@ -19,18 +19,6 @@ from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap
 
 
-def backproject_depth(
-    camera: Camera, depth: DepthMap, rows: NDArray[np.intp], cols: NDArray[np.intp]
-) -> NDArray[np.float64]:
-    """(N, 3) world points of the pixels (rows, cols) of an undistorted depth map."""
-    Kinv = np.linalg.inv(camera.K)
-    z = depth[rows, cols].astype(np.float64)
-    x = (Kinv[0, 0] * cols + Kinv[0, 1] * rows + Kinv[0, 2]) * z
-    y = (Kinv[1, 1] * rows + Kinv[1, 2]) * z
-    Xc = np.stack([x, y, z], axis=1)
-    return (Xc - camera.t) @ camera.R
-
-
 def support_counts(
     depths: Mapping[int, DepthMap],
     cameras: Mapping[int, Camera],
@@ -144,19 +132,3 @@ def _sample(
     fy = np.pad(my[:, 0], (0, pad), constant_values=-1e6).reshape(rows, _SAMPLE_WIDTH)
     out = cv2.remap(image, fx, fy, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return np.asarray(out, np.float32).reshape(-1)[:n, None]
-
-
-def agrees(
-    points3D: NDArray[np.float64], camera: Camera, depth: DepthMap, rel_tol: float
-) -> NDArray[np.bool_]:
-    """(N,) True where ``depth`` (of ``camera``) confirms the point's depth within rel_tol."""
-    uv, z = camera.project(points3D)
-    with np.errstate(invalid="ignore"):
-        c = np.rint(uv[:, 0])
-        r = np.rint(uv[:, 1])
-        inside = (z > 0) & (c >= 0) & (c < camera.width) & (r >= 0) & (r < camera.height)
-    ok = np.zeros(len(points3D), dtype=bool)
-    idx = np.nonzero(inside)[0]
-    d = depth[r[idx].astype(np.intp), c[idx].astype(np.intp)].astype(np.float64)
-    ok[idx] = (d > 0) & (np.abs(d - z[idx]) <= rel_tol * z[idx])
-    return ok

@@ -89,13 +89,6 @@ def point_weights(
     return out, weights
 
 
-def score_sources(
-    ref: Camera, cameras: Sequence[Camera], ref_index: int, samples: NDArray[np.float64]
-) -> list[SourceScore]:
-    """Scores of every other camera as a source for ``cameras[ref_index]`` = ``ref``."""
-    return point_weights(ref, cameras, ref_index, samples)[0]
-
-
 def select_sources(
     scores: Sequence[SourceScore],
     max_sources: int,

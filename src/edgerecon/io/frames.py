@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Literal
 import cv2
 import numpy as np
 
-from edgerecon.types import CalibrationError, DataError, FrameSet, Image
+from edgerecon.types import CalibrationError, DataError, EdgereconError, FrameSet, Image
 
 if TYPE_CHECKING:
     from edgerecon.geometry.camera import Rig
@@ -470,6 +470,16 @@ class FrameSource(ABC):
         """The frames of time index ``t`` (random access)."""
 
     @abstractmethod
+    def check(self, t: int) -> tuple[FrameSet, dict[str, str]]:
+        """Frame set ``t`` (unusable frames None) and camera -> what is wrong with its frame;
+        never raises for a bad frame."""
+
+    @property
+    @abstractmethod
+    def frame_counts(self) -> dict[str, int]:
+        """Frames of each camera."""
+
+    @abstractmethod
     def iter_frames(
         self, start: int = 0, stop: int | None = None, step: int = 1
     ) -> Iterator[FrameSet]:
@@ -556,6 +566,11 @@ class _PerCameraSource(FrameSource):
         """(width, height) of each camera's frames."""
         return {r.camera: r.size for r in self._readers}
 
+    @property
+    def frame_counts(self) -> dict[str, int]:
+        """Frames of each camera (the source has the smallest count)."""
+        return {r.camera: r.num_frames for r in self._readers}
+
     def stats(self) -> dict[str, int]:
         """Decoder work so far: frames decoded, frames skipped with ``grab()``, and rewinds
         (a read before the current stream position restarts that video from its start)."""
@@ -607,6 +622,31 @@ class _PerCameraSource(FrameSource):
 
     def read(self, t: int) -> FrameSet:
         return self._read(self._check_index(t))
+
+    def check(self, t: int) -> tuple[FrameSet, dict[str, str]]:
+        """Frame set ``t`` with every camera's frame decoded, and what is wrong with the
+        unusable ones (camera -> missing, does not decode, truncated video, wrong size);
+        those are None in the frame set. Never raises for a bad frame."""
+        t = self._check_index(t)
+        images: list[Image | None] = []
+        problems: dict[str, str] = {}
+        for reader in self._readers:
+            try:
+                image = reader.read(t)
+                if self._rig is not None:
+                    h, w = image.shape[:2]
+                    check_frame_size(self._rig, reader.camera, (w, h), reader.frame_location(t))
+            except (_FrameUnavailable, EdgereconError) as exc:
+                problems[reader.camera] = str(exc)
+                images.append(None)
+                continue
+            images.append(image)
+        fs = FrameSet(
+            time_index=t,
+            images=tuple(images),
+            timestamp_s=None if self._fps is None else t / self._fps,
+        )
+        return fs, problems
 
     def iter_frames(
         self, start: int = 0, stop: int | None = None, step: int = 1

@@ -54,15 +54,20 @@ _NUMPY_TO_PLY = {
 }
 
 
-def atomic_write_bytes(path: str | os.PathLike[str], write: Any) -> Path:
+def atomic_write_bytes(path: str | os.PathLike[str], write: Any, *, sync: bool = False) -> Path:
     """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it onto
-    ``path`` so readers never see a partial file."""
+    ``path`` so readers never see a partial file. The file is 0644 less the umask (a
+    temporary file is 0600); ``sync`` flushes it to disk before the rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
+            if sync:
+                f.flush()
+                os.fsync(f.fileno())
+            os.fchmod(f.fileno(), 0o644 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -70,8 +75,17 @@ def atomic_write_bytes(path: str | os.PathLike[str], write: Any) -> Path:
     return path
 
 
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    return atomic_write_bytes(path, lambda f: f.write(text.encode("utf-8")))
+def atomic_write_text(path: str | os.PathLike[str], text: str, *, sync: bool = False) -> Path:
+    return atomic_write_bytes(path, lambda f: f.write(text.encode("utf-8")), sync=sync)
+
+
+def _read_umask() -> int:
+    mask = os.umask(0o022)  # read once at import (setting it is not thread-safe)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
 
 
 @dataclass(frozen=True, kw_only=True)

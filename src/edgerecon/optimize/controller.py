@@ -191,6 +191,8 @@ class _State:
     solutions: list[Solution] = field(default_factory=list)
     chosen: Solution | None = None
     feasible: bool = True
+    infeasible_reported: bool = False
+    """The user was told once that no configuration meets the deadline."""
     r_star: float = 1.0
     n_star: int = 0
     r_searched: float = 1.0
@@ -531,13 +533,17 @@ class BisectionController:
             s.feasible = False
             s.chosen = None
             s.r_star, s.n_star = c.r_min, c.min_cameras
-            logger.warning(
+            # Once per run (re-searches find the same): the deadline is below what this
+            # device can do; the fastest configuration is the one closest to it.
+            logger.log(
+                logging.INFO if s.infeasible_reported else logging.WARNING,
                 "no configuration met the deadline of %.3fs: running the fastest one "
                 "(r=%.2f, N'=%d)",
                 c.deadline_s,
                 s.r_star,
                 s.n_star,
             )
+            s.infeasible_reported = True
         else:
             s.feasible = True
             s.chosen = best

@@ -27,13 +27,41 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from edgerecon.geometry.camera import Camera
+from edgerecon.views import resize_mask_smooth
 
 LabelMask = NDArray[np.integer[Any]] | NDArray[np.bool_]
 
 
+def at_resolution(pred: NDArray[Any], shape: tuple[int, ...]) -> NDArray[Any]:
+    """A predicted mask or label image (e.g. at the scene stage's working resolution) brought
+    to the ``(H, W)`` of a ground-truth mask: boolean masks are resized smoothly (bilinear,
+    0.5 threshold), label images by nearest neighbour. Same shape: returned as is."""
+    m = np.asarray(pred)
+    h, w = int(shape[0]), int(shape[1])
+    if m.shape[:2] == (h, w):
+        return m
+    if m.dtype == bool:
+        return resize_mask_smooth(m, (w, h))
+    return np.asarray(cv2.resize(m.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST))
+
+
+def _fit(pred: NDArray[Any], shape: tuple[int, ...]) -> NDArray[Any]:
+    """``pred`` at ``shape`` when it is a reduced-resolution mask of the same aspect ratio."""
+    m = np.asarray(pred)
+    if m.ndim != 2 or m.shape == shape[:2]:
+        return m
+    h, w = shape[:2]
+    if abs(m.shape[0] / h - m.shape[1] / w) > 0.01 + 1.0 / min(m.shape):
+        return m  # not the same aspect: let the caller's shape check say so
+    return at_resolution(m, shape)
+
+
 def mask_iou(pred: NDArray[Any], gt: NDArray[Any]) -> float:
-    """IoU of the non-zero pixels of two masks of the same shape (both empty: 1.0)."""
-    p, g = _binary(pred), _binary(gt)
+    """IoU of the non-zero pixels of two masks (both empty: 1.0). A prediction at a reduced
+    resolution with the truth's aspect ratio is first brought to the truth's
+    (``at_resolution``)."""
+    g = _binary(gt)
+    p = _binary(_fit(pred, g.shape))
     if p.shape != g.shape:
         raise ValueError(f"mask shapes differ: predicted {p.shape}, ground truth {g.shape}")
     union = int(np.count_nonzero(p | g))
@@ -101,7 +129,8 @@ class MaskScore:
 
 
 def _counts(pred: NDArray[Any], gt: NDArray[Any], match: str) -> _Counts:
-    p, g = _labels(pred), _labels(gt)
+    g = _labels(gt)
+    p = _labels(_fit(pred, g.shape))
     if p.shape != g.shape:
         raise ValueError(f"mask shapes differ: predicted {p.shape}, ground truth {g.shape}")
     if match not in ("hungarian", "identity"):
@@ -175,7 +204,7 @@ def score_masks(
     pred: LabelMask, gt_labels: LabelMask, *, match: Literal["hungarian", "identity"] = "hungarian"
 ) -> MaskScore:
     """Score a predicted mask (bool foreground or int object ids) against ground-truth object
-    ids of the same shape."""
+    ids of the same shape (or a reduced-resolution prediction, see ``mask_iou``)."""
     return _score([_counts(pred, gt_labels, match)])
 
 

@@ -1,13 +1,19 @@
-"""The back-end role: masks for every task, the golden reference, background rebuilds.
+"""The back-end role: the golden reference and background rebuilds.
 
 Per task (in arrival order, always the newest first: a stale queued task is dropped), the
-back-end's *task thread* segments the frames with its background models and publishes the
-masks, then reconstructs the golden configuration's sparse cloud (r = 1, all cameras), splits
-it with the same masks and publishes its foreground points — the reference of the front-end's
-online quality estimate. A separate *background thread*, at a lower OS priority, rebuilds the
+front-end hands the back-end the frames with the foreground it computed (:class:`TaskWork`;
+the masks are computed once, by the front-end, which needs them first). When the online
+quality is the paper's golden estimate, the back-end's *task thread* reconstructs the golden
+configuration's sparse cloud (r = 1, all cameras) on the same masks and publishes its
+foreground points. A separate *background thread*, at a lower OS priority, rebuilds the
 background (dense MVS of the latest frames outside the foreground, or of the empty scene when
 the dataset has a background clip) whenever the task thread is idle, and pushes each finished
 background to the front-end with a version number. The front-end never waits for it.
+
+Every background carries a :class:`BgVersion` (the epoch the front-end gave this back-end,
+and a counter). A stage that raises on a timestamp publishes a failed reply (the front-end
+records why) and the back-end goes on with the next one; ``ping`` reports how long the
+current task has been running, so an engine can restart a back-end stuck on one.
 
 The class is plain Python (usable without any cluster); the Ray engine wraps it in an actor.
 """
@@ -28,8 +34,14 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_background
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.messages import BackgroundUpdate, GoldenReply, MasksReply
-from edgerecon.scene.foreground import RigForeground
+from edgerecon.runtime.messages import (
+    BackgroundUpdate,
+    BgVersion,
+    GoldenReply,
+    TaskWork,
+    describe_exception,
+)
+from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.split import split_sparse
 from edgerecon.sparse import reconstruct_sparse
 from edgerecon.types import FrameSet, Mask
@@ -53,20 +65,19 @@ class BackEnd:
         self,
         rig: Rig,
         config: RuntimeConfig,
-        foreground: RigForeground,
         *,
         push: PushFn | None = None,
         initial_background: FrameSet | None = None,
+        epoch: int = 1,
     ) -> None:
         self.rig = rig
         self.config = config
-        self._fg = foreground
         self._push = push
         self._lock = threading.Condition()
-        self._model_lock = threading.Lock()
-        self._pending: FrameSet | None = None
+        self._pending: TaskWork | None = None
         self._busy = False
-        self._masks: OrderedDict[int, MasksReply] = OrderedDict()
+        self._task_started = 0.0
+        self.epoch = epoch
         self._golden: OrderedDict[int, GoldenReply] = OrderedDict()
         self._latest: tuple[FrameSet, tuple[Mask | None, ...]] | None = None
         self._initial_background = initial_background
@@ -99,21 +110,14 @@ class BackEnd:
         for th in self._threads:
             th.join(timeout)
 
-    def set_push(self, push: PushFn | None) -> None:
-        self._push = push
-
     # ------------------------------------------------------------------ requests
-    def submit(self, frames: FrameSet) -> None:
+    def submit(self, work: TaskWork) -> None:
         """Queue a task; a task still waiting is replaced (only the newest matters)."""
         with self._lock:
             if self._pending is not None:
                 self.stats["dropped"] += 1
-            self._pending = frames
+            self._pending = work
             self._lock.notify_all()
-
-    def masks(self, time_index: int, timeout: float) -> MasksReply | None:
-        """The masks of ``time_index``, waiting up to ``timeout`` seconds (None if not ready)."""
-        return self._wait(self._masks, time_index, timeout)
 
     def golden(self, time_index: int, timeout: float) -> GoldenReply | None:
         """The golden reference of ``time_index``, waiting up to ``timeout`` (None if not ready)."""
@@ -125,8 +129,10 @@ class BackEnd:
             return {
                 "alive": self._crashed is None and all(t.is_alive() for t in self._threads),
                 "busy": self._busy or self._pending is not None,
+                "task_age_s": time.monotonic() - self._task_started if self._busy else 0.0,
+                "epoch": self.epoch,
                 "stalled": time.monotonic() < self._stall_until,
-                "bg_version": self._bg_version,
+                "bg_version": [self.epoch, self._bg_version],
                 "error": self._crashed,
                 **self.stats,
             }
@@ -169,15 +175,16 @@ class BackEnd:
                     self._lock.wait(0.5)
                 if self._stop or self._crashed is not None:
                     return
-                frames, self._pending = self._pending, None
+                work, self._pending = self._pending, None
                 self._busy = True
-            assert frames is not None  # the wait above ends only with a pending task
+                self._task_started = time.monotonic()
+            assert work is not None  # the wait above ends only with a pending task
             try:
-                self._serve(frames)
+                self._serve(work)
             except BackendFault:
                 return
-            except Exception as exc:  # a bad frame must not kill the node
-                logger.exception("back-end: task %d failed: %s", frames.time_index, exc)
+            except Exception as exc:  # a bug outside the stages must not kill the node either
+                logger.exception("back-end: task %d failed: %s", work.frames.time_index, exc)
             finally:
                 with self._lock:
                     self._busy = False
@@ -193,21 +200,33 @@ class BackEnd:
                     return
                 self._lock.wait(min(wait, 0.5))
 
-    def _serve(self, frames: FrameSet) -> None:
+    def _serve(self, work: TaskWork) -> None:
+        """Keep the frames for the background rebuilds, then (when asked) the golden
+        reference of one timestamp; a stage that raises publishes a failed reply (a bad frame
+        must not kill the node)."""
+        frames, fg = work.frames, work.foreground
+        t = frames.time_index
         self._check_faults()
-        t0 = time.perf_counter()
-        with self._model_lock:
-            fg = self._fg.segment(frames)
-        self._publish(
-            self._masks,
-            frames.time_index,
-            MasksReply(
-                time_index=frames.time_index, foreground=fg, seconds=time.perf_counter() - t0
-            ),
-        )
-        with self._lock:
-            self._latest = (frames, fg.masks)
-        self._check_faults()
+        if all(im is not None for im in frames.images):
+            # Backgrounds are rebuilt from complete frame sets only (no camera left out).
+            with self._lock:
+                self._latest = (frames, fg.masks)
+        if work.golden:
+            try:
+                self._publish(self._golden, t, self._golden_reference(frames, fg))
+            except Exception as exc:
+                error = f"golden reference: {describe_exception(exc)}"
+                logger.error("back-end: time %d: %s", t, error)
+                self._publish(
+                    self._golden,
+                    t,
+                    GoldenReply(
+                        time_index=t, fg_points3D=None, num_points=0, seconds=0.0, error=error
+                    ),
+                )
+        self.stats["tasks"] += 1
+
+    def _golden_reference(self, frames: FrameSet, fg: ForegroundResult) -> GoldenReply:
         t1 = time.perf_counter()
         golden = ReconstructionConfig(sparse_config=self.config.sparse)
         views = prepare_task_views(frames, self.rig, golden)
@@ -222,17 +241,12 @@ class BackEnd:
             self.rig.cameras,
             fg.label_images(),
         )
-        self._publish(
-            self._golden,
-            frames.time_index,
-            GoldenReply(
-                time_index=frames.time_index,
-                fg_points3D=sparse.points3D[split.foreground],
-                num_points=sparse.num_points,
-                seconds=time.perf_counter() - t1,
-            ),
+        return GoldenReply(
+            time_index=frames.time_index,
+            fg_points3D=sparse.points3D[split.foreground],
+            num_points=sparse.num_points,
+            seconds=time.perf_counter() - t1,
         )
-        self.stats["tasks"] += 1
 
     # ------------------------------------------------------------------ background thread
     def _bg_loop(self) -> None:
@@ -281,26 +295,22 @@ class BackEnd:
         dense = reconstruct_background(
             views, self.rig, self.config.background_dense, masks, sparse, self.config.split
         )
-        with self._model_lock:
-            states = tuple(self._fg.states())
         with self._lock:
             self._bg_version += 1
-            version = self._bg_version
+            version = BgVersion(self.epoch, self._bg_version)
         seconds = time.perf_counter() - t0
         self.stats["backgrounds"] += 1
         self.stats["background_seconds"] += seconds
         logger.info(
-            "back-end: background v%d from time %d: %d points in %.1f s",
+            "back-end: background %s from time %d: %d points in %.1f s",
             version,
             frames.time_index,
             len(dense.cloud),
             seconds,
         )
-        update = BackgroundUpdate(
-            version=version, cloud=dense.cloud, seconds=seconds, model_states=states
-        )
+        update = BackgroundUpdate(version=version, cloud=dense.cloud, seconds=seconds)
         if self._push is not None:
             try:
                 self._push(update)
             except Exception as exc:  # the front-end may be gone; keep serving
-                logger.warning("back-end: pushing background v%d failed: %s", version, exc)
+                logger.warning("back-end: pushing background %s failed: %s", version, exc)

@@ -9,12 +9,13 @@ import numpy as np
 
 from edgerecon.dense import DenseConfig
 from edgerecon.geometry.camera import Rig
-from edgerecon.pipeline import SplitPipelineConfig
+from edgerecon.pipeline import SPARSE_SCOPES, SplitPipelineConfig
+from edgerecon.quality.frames import FrameCheckConfig
 from edgerecon.scene.foreground import ForegroundConfig
 from edgerecon.sparse import SparseConfig
 
-#: Values of ``RuntimeConfig.sparse_scope``.
-SPARSE_SCOPES = ("foreground", "scene")
+#: Values of ``RuntimeConfig.online_quality``.
+ONLINE_QUALITIES = ("silhouette", "golden")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,12 +29,27 @@ class RuntimeConfig:
     x the rig's median camera distance."""
     eval_threshold_rel: float = 0.005
     """d relative to the rig's median camera distance (4 m rig -> 2 cm) when not given."""
-    masks_timeout_s: float | None = None
-    """How long the front-end waits for the back-end's masks before computing them itself
-    (degraded task); None = half the deadline, at least 1 s."""
+    online_quality: str = "silhouette"
+    """The online quality estimate the controller feeds on: "silhouette" = the task's dense
+    foreground against every camera's foreground masks, computed by the front-end right
+    after the critical path (``quality.online.silhouette_quality``; Pearson 0.83-0.95 with
+    the offline foreground F); "golden" = the paper's: the task's foreground sparse points
+    against the golden configuration's, which the back-end reconstructs for every task
+    (Pearson 0.2-0.5 on wide-baseline rigs, and late references degrade tasks)."""
     golden_timeout_s: float | None = None
     """How long the front-end waits, after publishing a task's cloud, for the back-end's
     golden reference of the online estimate; None = the deadline, at least 2 s."""
+    task_timeout_s: float | None = None
+    """Watchdog of every task (front-end and back-end): a task still running after this many
+    seconds is abandoned and recorded as failed, and a back-end busy on one task that long
+    is restarted; None = max(``watchdog_factor`` x the deadline, ``watchdog_min_s``)."""
+    watchdog_factor: float = 10.0
+    """The default watchdog as a multiple of the deadline."""
+    watchdog_min_s: float = 30.0
+    """The default watchdog's floor, seconds (a golden task may take several deadlines)."""
+    frame_check: FrameCheckConfig = field(default_factory=FrameCheckConfig)
+    """Which frames are unusable (black, saturated, textureless): such cameras are left out
+    of the task, and a task left with fewer than 3 cameras gives an empty result."""
     backend_retry_s: float = 2.0
     """While the back-end is lost, how often the front-end checks whether it is back."""
     background_updates: bool = True
@@ -43,20 +59,15 @@ class RuntimeConfig:
     background_scale: float = 1.0
     """Image scale of background rebuilds (the back-end has time: golden by default)."""
     background_nice: int = 10
-    """OS niceness of the background-rebuild thread (Linux), so that masks and golden
-    references for the current task are served first."""
-    warmup_frames: int = 30
-    """Frames of the stream that train the background model when the dataset has no
-    background clip."""
+    """OS niceness of the background-rebuild thread (Linux), so that the current task's
+    work (and golden references) is served first."""
     sparse: SparseConfig = field(default_factory=SparseConfig)
     """Sparse stage of both roles."""
     sparse_scope: str = "foreground"
-    """What the sparse stage of both roles (the task's SfM and the golden reference) covers:
-    "foreground" = only the dilated foreground masks, so the front-end first waits for the
-    back-end's masks, then runs SfM on the masked crops (its cost follows the foreground's
-    area; the split, the online estimate and pi(N') need nothing else); "scene" = the
-    paper's order: SfM of the whole frames, in parallel with the back-end's masks, then
-    the split."""
+    """What the sparse stage of the task (and of the golden reference) covers: "foreground"
+    = only the dilated foreground masks, so the front-end segments first, then runs SfM on
+    the masked crops (its cost follows the foreground's area; the split and pi(N') need
+    nothing else); "scene" = the paper's order: SfM of the whole frames, then the split."""
     dense: DenseConfig = field(default_factory=DenseConfig)
     """Foreground MVS on the front-end."""
     background_dense: DenseConfig = field(default_factory=DenseConfig)
@@ -67,7 +78,12 @@ class RuntimeConfig:
     def __post_init__(self) -> None:
         if not (self.deadline_s > 0 and math.isfinite(self.deadline_s)):
             raise ValueError(f"RuntimeConfig.deadline_s must be > 0, got {self.deadline_s!r}")
-        for name in ("eval_threshold", "masks_timeout_s", "golden_timeout_s"):
+        if self.online_quality not in ONLINE_QUALITIES:
+            raise ValueError(
+                f"RuntimeConfig.online_quality must be one of {ONLINE_QUALITIES}, "
+                f"got {self.online_quality!r}"
+            )
+        for name in ("eval_threshold", "golden_timeout_s", "task_timeout_s"):
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"RuntimeConfig.{name} must be > 0 or None, got {v!r}")
@@ -80,8 +96,11 @@ class RuntimeConfig:
                 f"RuntimeConfig.sparse_scope must be one of {SPARSE_SCOPES}, "
                 f"got {self.sparse_scope!r}"
             )
-        if self.warmup_frames < 1:
-            raise ValueError(f"RuntimeConfig.warmup_frames must be >= 1, got {self.warmup_frames}")
+        if not (self.watchdog_factor >= 1 and self.watchdog_min_s > 0):
+            raise ValueError(
+                "RuntimeConfig.watchdog_factor must be >= 1 and watchdog_min_s > 0, got "
+                f"{self.watchdog_factor}, {self.watchdog_min_s}"
+            )
 
     def eval_threshold_for(self, rig: Rig) -> float:
         """The online (and offline) F-score threshold d for ``rig``, in its units."""
@@ -90,12 +109,11 @@ class RuntimeConfig:
         return self.eval_threshold_rel * median_camera_distance(rig)
 
     @property
-    def masks_wait_s(self) -> float:
-        return (
-            self.masks_timeout_s
-            if self.masks_timeout_s is not None
-            else max(1.0, 0.5 * self.deadline_s)
-        )
+    def watchdog_s(self) -> float:
+        """Seconds after which a task is abandoned (see ``task_timeout_s``)."""
+        if self.task_timeout_s is not None:
+            return self.task_timeout_s
+        return max(self.watchdog_factor * self.deadline_s, self.watchdog_min_s)
 
     @property
     def golden_wait_s(self) -> float:

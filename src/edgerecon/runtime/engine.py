@@ -2,86 +2,173 @@
 the Ray engine (:mod:`edgerecon.runtime.ray_engine`) runs each as an actor on its own node.
 
 Both drive the same :class:`FrontEnd` / :class:`BackEnd` classes through the same
-:class:`BackendLink` health logic, so a task gives the same result on either engine.
+:class:`BackendLink` health logic and :func:`run_frontend_task`, so a task gives the same
+result on either engine; :class:`Engine` is what the session may call.
 
-Back-end health: after a task whose masks did not arrive in time, the back-end is *lost*:
-the front-end neither submits to it nor waits for it (tasks run degraded: local masks, no
-online estimate) and checks every ``backend_retry_s`` seconds whether it answers again and is
-idle; then it is used again from the next task on.
+Back-end health: when the back-end cannot take a task (the transport fails) or, with the
+golden online estimate, does not deliver the reference in time, it is *lost*: the front-end
+stops submitting to it (tasks still run whole: the masks are the front-end's own; the
+background stops advancing, and golden-estimate tasks run degraded) and checks every
+``backend_retry_s`` seconds whether it answers again and is idle; then it is used again from
+the next task on.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 from edgerecon import progress
+from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.pipeline import warm_up
 from edgerecon.runtime.backend import BackEnd
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.frontend import FixedController, FrontEnd, TaskOutput
-from edgerecon.runtime.messages import BackgroundUpdate, GoldenReply, MasksReply, TaskPlan
+from edgerecon.runtime.frontend import (
+    FixedController,
+    FrontEnd,
+    FrontEndState,
+    TaskOutput,
+    too_few_cameras,
+)
+from edgerecon.runtime.messages import GoldenReply, TaskPlan, TaskWork
 from edgerecon.scene.background import BackgroundState
-from edgerecon.scene.foreground import ForegroundConfig, RigForeground
-from edgerecon.types import FrameSet
+from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
+from edgerecon.scene.stream import SceneTracker, bootstrap_scene, dataset_scene_at
+from edgerecon.types import FrameSet, PointCloud
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SceneModel:
-    """What both roles start from: the background models and, when the dataset has a clip of
-    the empty scene, one frame set of it for the first background reconstruction."""
+    """What the roles start from: the background models at the first task (and where that
+    is on their update schedule) and, when the dataset has a clip of the empty scene, one
+    frame set of it for the first background reconstruction."""
 
     states: tuple[BackgroundState, ...]
+    step: int
+    """Update step of the models' schedule (time indices)."""
+    next_update: int
+    """The next scheduled update the models have not learned."""
     initial_background: FrameSet | None
     learned_from: str
-    """"background clip" or "first N frames"."""
+    """What the models were bootstrapped from (the clip, or frames of the stream)."""
     seconds: float
+
+    def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
+        """Live background models (a copy: the snapshot stays as it is)."""
+        return SceneTracker(
+            foreground=RigForeground.from_states(rig, self.states, config),
+            step=self.step,
+            next_update=self.next_update,
+            learned_from=self.learned_from,
+        )
 
 
 @progress.phase("learn the background model")
 def learn_scene_model(
     dataset: Dataset,
     foreground: ForegroundConfig | None = None,
-    warmup_frames: int = 30,
+    start: int = 0,
 ) -> SceneModel:
-    """Learn the per-camera background models from the dataset's background clip, or from the
-    first ``warmup_frames`` frames of the stream (the per-pixel median ignores actors that
-    move)."""
+    """The background models as they are at time index ``start`` (the first task): the
+    bootstrap of :mod:`edgerecon.scene.stream` (background clip, or frames spread over the
+    stream's first second), then the scheduled updates before ``start``."""
     t0 = time.perf_counter()
-    source = dataset.open_background()
-    if source is not None:
-        with source:
-            framesets = list(source.iter_frames())
-        fg = RigForeground.learn_from_framesets(dataset.rig, framesets, foreground)
-        first = framesets[len(framesets) // 2]
-        initial = FrameSet(time_index=-1, images=first.images)
-        what = "background clip"
-    else:
-        with dataset.open_frames() as frames:
-            stop = min(frames.num_frames, warmup_frames)
-            framesets = list(frames.iter_frames(0, stop))
-        fg = RigForeground.learn_from_framesets(dataset.rig, framesets, foreground)
-        initial = None
-        what = f"first {len(framesets)} frames"
+    clip = dataset.open_background()
+    try:
+        with dataset.open_frames() as source:
+            tracker = bootstrap_scene(dataset.rig, source, dataset.fps, foreground, clip=clip)
+            tracker.catch_up(source, start)
+            initial = None
+            if clip is not None:
+                initial = FrameSet(time_index=-1, images=clip.read(clip.num_frames // 2).images)
+    finally:
+        if clip is not None:
+            clip.close()
     return SceneModel(
-        states=tuple(fg.states()),
+        states=tuple(tracker.foreground.states()),
+        step=tracker.step,
+        next_update=tracker.next_update,
         initial_background=initial,
-        learned_from=what,
+        learned_from=tracker.learned_from,
         seconds=time.perf_counter() - t0,
     )
 
 
-class Controller(Protocol):
-    def next_config(self) -> Any: ...
-    def observe(self, time_s: float, quality: float | None = None) -> None: ...
-    def to_dict(self) -> dict[str, Any]: ...
+def foreground_at(
+    dataset: Dataset, t: int, config: ForegroundConfig | None = None
+) -> tuple[FrameSet, ForegroundResult]:
+    """The frames of time ``t`` and their foreground as the online system computes it (for
+    the offline commands and the benchmarks)."""
+    tracker = dataset_scene_at(dataset, t, config)
+    with dataset.open_frames() as source:
+        frames = source.read(t)
+    return frames, tracker.segment(frames)
+
+
+class Engine(Protocol):
+    """What an engine offers the session: where the two roles run is its business."""
+
+    name: str
+
+    def plan(self, time_index: int) -> TaskPlan:
+        """The controller's configuration for the next task."""
+        ...
+
+    def pending_updates(self, time_index: int) -> list[int]:
+        """Time indices whose frames the scheduled background updates need before the task
+        of ``time_index`` (the session reads them and passes them to :meth:`run_task`)."""
+        ...
+
+    def run_task(
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        task: int,
+        defects: Mapping[str, str],
+        updates: Sequence[FrameSet] = (),
+    ) -> TaskOutput:
+        """Run one task; never raises for a failed task (its record says why)."""
+        ...
+
+    def state(self) -> FrontEndState:
+        """The front-end's part of the run state, for ``state.json``."""
+        ...
+
+    def status(self) -> dict[str, Any]:
+        """Health and counters (backgrounds received, outages, restarts)."""
+        ...
+
+    def inject_backend_fault(self, kind: str, seconds: float = 0.0) -> None:
+        """Drills: ``stall`` / ``crash`` (both engines), ``kill`` (Ray: the actor's process)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class BackendClient(Protocol):
+    """The front-end's calls to a back-end, wherever it runs (None replies: late or lost)."""
+
+    def submit(self, work: TaskWork) -> None: ...
+    def golden(self, time_index: int, timeout: float) -> GoldenReply | None: ...
+
+
+def restart_reason(status: Mapping[str, Any] | None, watchdog_s: float) -> str | None:
+    """Why a back-end must be replaced (dead, or stuck on one task past the watchdog), or
+    None when it is fine."""
+    if status is None:
+        return "does not answer"
+    if not status.get("alive"):
+        return f"died ({status.get('error')})"
+    if float(status.get("task_age_s", 0.0)) > watchdog_s:
+        return f"stuck on one task for {status['task_age_s']:.0f} s (watchdog {watchdog_s:.0f} s)"
+    return None
 
 
 class BackendLink:
@@ -99,15 +186,20 @@ class BackendLink:
         self.outages = 0
 
     def usable(self) -> bool:
-        """Whether to submit the next task to the back-end (checks a lost back-end at most
-        every ``retry_s``)."""
-        if not self.lost:
-            return True
+        """Whether to submit the next task to the back-end. A healthy back-end is pinged at
+        most every ``retry_s`` too (nothing waits on it for the task itself, so a dead one
+        would otherwise go unnoticed and the background stop advancing); a lost one is
+        checked as often whether it is back."""
         now = time.monotonic()
         if now < self._next_check:
-            return False
+            return not self.lost
         self._next_check = now + self.retry_s
         status = self._ping()
+        if not self.lost:
+            if status is None:  # dead or stuck: the engine is bringing up a new one
+                self.mark_lost("does not answer its health check")
+                return False
+            return True
         if (
             status is not None
             and status.get("alive")
@@ -129,12 +221,78 @@ class BackendLink:
         self._next_check = time.monotonic() + self.retry_s
 
 
+def start_frontend(
+    dataset: Dataset,
+    config: RuntimeConfig,
+    controller: BisectionController | FixedController,
+    scene: SceneModel,
+    restored: FrontEndState | None,
+    background: PointCloud | None,
+) -> FrontEnd:
+    """The front-end role in this process, its kernels loaded off the clock (the first task
+    must not pay for it), restored from a run state when resuming."""
+    warm_up()
+    return FrontEnd(
+        dataset.rig,
+        config,
+        controller,
+        scene.tracker(dataset.rig, config.foreground),
+        restored=restored,
+        background=background,
+    )
+
+
+def run_frontend_task(
+    frontend: FrontEnd,
+    link: BackendLink,
+    backend: BackendClient | None,
+    frames: FrameSet,
+    plan: TaskPlan,
+    task: int,
+    defects: Mapping[str, str],
+    updates: Sequence[FrameSet] = (),
+) -> TaskOutput:
+    """One task on the front-end with the back-end's help while it is usable (the same on
+    every engine: only ``backend``'s transport differs)."""
+    t = frames.time_index
+    use = backend is not None and not too_few_cameras(frames) and link.usable()
+    submitted = False
+
+    def submit(work: TaskWork) -> None:
+        nonlocal use, submitted
+        if not use or backend is None:
+            return
+        try:
+            backend.submit(work)
+            submitted = True
+        except Exception as exc:  # the transport failed: a lost back-end
+            link.mark_lost(f"submit failed: {type(exc).__name__}")
+            use = False
+
+    def golden(timeout: float) -> GoldenReply | None:
+        if not submitted or backend is None:
+            return None
+        reply = backend.golden(t, timeout)
+        if reply is None:
+            link.mark_lost(f"no golden reference for time {t} within {timeout:.1f} s")
+        return reply
+
+    out = frontend.run_task(
+        frames, plan, submit, golden, task=task, defects=defects, updates=updates
+    )
+    out.metrics.submitted = submitted
+    if not use and out.metrics.degraded:
+        out.metrics.degraded_reason = f"back-end lost ({link.lost_reason})"
+    return out
+
+
 class EmbeddedEngine:
     """Both roles in this process: the front-end runs on the caller's thread, the back-end on
     its own threads (background rebuilds at a lower OS priority). No set-up needed.
 
-    A back-end that crashes is restarted by the engine (as a node that rejoins would be) once
-    the front-end's next health check finds it dead.
+    A back-end that crashes, or is stuck on one task past the watchdog, is replaced by a new
+    one (as a node that rejoins would be) with the next epoch and the newest model snapshot,
+    once the front-end's next health check finds it.
     """
 
     name = "embedded"
@@ -145,33 +303,36 @@ class EmbeddedEngine:
         config: RuntimeConfig,
         controller: BisectionController | FixedController,
         scene: SceneModel,
+        *,
+        restored: FrontEndState | None = None,
+        background: PointCloud | None = None,
     ) -> None:
         self.dataset = dataset
         self.config = config
         self.scene = scene
-        warm_up()  # off the clock: the first task must not pay for loading the kernels
-        self.frontend = FrontEnd(dataset.rig, config, controller, model_states=scene.states)
-        self.backend = self._new_backend(scene.initial_background)
+        self.frontend = start_frontend(dataset, config, controller, scene, restored, background)
+        self.backend = self._new_backend()
         self.link = BackendLink(self._ping, config.backend_retry_s)
         self.backend_restarts = 0
 
-    def _new_backend(self, initial_background: FrameSet | None) -> BackEnd:
-        fg = RigForeground.from_states(self.dataset.rig, self.scene.states, self.config.foreground)
+    def _new_backend(self) -> BackEnd:
+        start = self.frontend.register_backend()
         return BackEnd(
             self.dataset.rig,
             self.config,
-            fg,
             push=self.frontend.push_background,
-            initial_background=initial_background,
+            initial_background=self.scene.initial_background if start.first else None,
+            epoch=start.epoch,
         ).start()
 
     def _ping(self) -> dict[str, Any] | None:
         status = self.backend.ping()
-        if not status["alive"]:
-            # The node is gone: bring up a fresh one (it re-learns from the model snapshot).
-            logger.warning("embedded back-end died (%s): restarting it", status.get("error"))
+        reason = restart_reason(status, self.config.watchdog_s)
+        if reason is not None:
+            # The node is gone or stuck: bring up a fresh one (from the newest snapshot).
+            logger.warning("embedded back-end %s: restarting it", reason)
             self.backend.stop(timeout=1.0)
-            self.backend = self._new_backend(None)
+            self.backend = self._new_backend()
             self.backend_restarts += 1
             return None
         return status
@@ -179,39 +340,30 @@ class EmbeddedEngine:
     def plan(self, time_index: int) -> TaskPlan:
         return self.frontend.next_plan(time_index)
 
-    def run_task(self, frames: FrameSet, plan: TaskPlan, task: int) -> TaskOutput:
-        t = frames.time_index
-        backend = self.backend if self.link.usable() else None
-        if backend is not None:
-            backend.submit(frames)
+    def pending_updates(self, time_index: int) -> list[int]:
+        return self.frontend.pending_updates(time_index)
 
-        def masks(timeout: float) -> MasksReply | None:
-            if backend is None:
-                return None
-            reply = backend.masks(t, timeout)
-            if reply is None:
-                self.link.mark_lost(f"no masks for time {t} within {timeout:.1f} s")
-            return reply
+    def run_task(
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        task: int,
+        defects: Mapping[str, str],
+        updates: Sequence[FrameSet] = (),
+    ) -> TaskOutput:
+        client = _LocalBackend(self.backend)
+        return run_frontend_task(
+            self.frontend, self.link, client, frames, plan, task, defects, updates
+        )
 
-        def golden(timeout: float) -> GoldenReply | None:
-            return None if backend is None else backend.golden(t, timeout)
-
-        out = self.frontend.process(frames, plan, masks, golden, task=task)
-        if backend is None:
-            out.metrics.degraded_reason = f"back-end lost ({self.link.lost_reason})"
-        return out
-
-    def controller_state(self) -> dict[str, Any]:
-        return self.frontend.controller.to_dict()
-
-    def push_background(self, update: BackgroundUpdate) -> None:
-        self.frontend.push_background(update)
+    def state(self) -> FrontEndState:
+        return self.frontend.state()
 
     def status(self) -> dict[str, Any]:
         return {
             "engine": self.name,
             "backgrounds_received": self.frontend.backgrounds_received,
-            "bg_version": self.frontend.bg_version,
+            "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,
             "backend": self.backend.ping(),
@@ -221,4 +373,17 @@ class EmbeddedEngine:
         self.backend.inject_fault(kind, seconds)
 
     def close(self) -> None:
-        self.backend.stop()
+        self.backend.stop(timeout=5.0)
+
+
+class _LocalBackend:
+    """:class:`BackendClient` of a back-end in this process."""
+
+    def __init__(self, backend: BackEnd) -> None:
+        self._backend = backend
+
+    def submit(self, work: TaskWork) -> None:
+        self._backend.submit(work)
+
+    def golden(self, time_index: int, timeout: float) -> GoldenReply | None:
+        return self._backend.golden(time_index, timeout)

@@ -1,11 +1,23 @@
 """The front-end role: each task's critical path, the online evaluation, the optimizer.
 
-Per task: SfM with the optimizer's configuration (r, pi(N')) while the back-end computes the
-masks; then the sparse split with the masks it receives (or computes itself when the back-end
-is lost), foreground MVS in the foreground regions only, and the merge with the newest
-background it holds. The critical path ends when the merged cloud is ready; then the front-end
-scores the task's foreground sparse cloud against the back-end's golden reference (the online
-quality estimate) and feeds (T, Q) to the controller.
+Per task the front-end runs the one composition of a task (:func:`pipeline.reconstruct_task`)
+with the optimizer's configuration (r, pi(N')), the foreground it computes itself (the scene
+stage: :meth:`FrontEnd.obtain_foreground`, a few tens of milliseconds at the working
+resolution; the front-end owns the background models and applies their scheduled updates,
+see :mod:`edgerecon.scene.stream`) and the newest background it holds. Once the foreground is
+known it hands the frames and masks to the back-end (golden reference, background rebuilds).
+The critical path ends when the merged cloud is ready; then the front-end estimates the
+task's quality (by default from its own dense foreground and the masks,
+:func:`~edgerecon.quality.online.silhouette_quality`; or against the back-end's golden
+reference, the paper's estimate) and feeds (T, Q) to the controller.
+
+The front-end owns the run's state that must survive a restart (:class:`FrontEndState`): the
+controller, where pi(N') came from, the background version it holds and the back-end epochs
+it handed out. The background models need no saving: they are a function of the stream
+(:mod:`edgerecon.scene.stream`) and a resumed run rebuilds them.
+
+Every task runs under a watchdog (:meth:`FrontEnd.run_task`): an exception in any stage, or a
+task still running after ``RuntimeConfig.watchdog_s``, gives a failed record, never a dead run.
 
 Plain Python, usable without a cluster; the Ray engine wraps it in an actor.
 """
@@ -15,8 +27,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -25,26 +37,27 @@ from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
-from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_foreground
-from edgerecon.quality.online import OnlineQualityConfig, online_quality
+from edgerecon.pipeline import TaskCancelled, num_objects, reconstruct_task
+from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
+    BgVersion,
     GoldenReply,
-    MasksReply,
     TaskMetrics,
     TaskPlan,
+    TaskWork,
+    describe_exception,
 )
-from edgerecon.scene.background import BackgroundState
-from edgerecon.scene.foreground import ForegroundResult, RigForeground
-from edgerecon.scene.merge import merge_clouds
-from edgerecon.sparse import reconstruct_sparse
+from edgerecon.scene.foreground import ForegroundResult
+from edgerecon.scene.stream import SceneTracker
 from edgerecon.types import FrameSet, PointCloud, StageTimings
 
 logger = logging.getLogger(__name__)
 
+#: Hands a task's work to the back-end (never raises: a transport failure marks it lost).
+SubmitFn = Callable[[TaskWork], None]
 #: Waits for a reply: ``provider(timeout_s)`` returns the reply or None (late or unavailable).
-MasksProvider = Callable[[float], MasksReply | None]
 GoldenProvider = Callable[[float], GoldenReply | None]
 
 #: Fewer sparse points than this and camera selection also uses the dense foreground points.
@@ -53,11 +66,79 @@ _MIN_SELECTION_POINTS = 200
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class TaskOutput:
-    """What a task publishes: its merged cloud and its metrics."""
+    """What a task publishes: its metrics and, unless it failed, its clouds."""
 
     metrics: TaskMetrics
-    merged: PointCloud
-    foreground: PointCloud
+    merged: PointCloud | None
+    foreground: PointCloud | None
+    background: PointCloud | None = None
+    """The background the front-end holds, when it changed since the last task that
+    published one (the session saves it for ``--resume``)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrontEndState:
+    """The front-end's part of the run state (JSON-able; saved after every task)."""
+
+    controller: dict[str, Any]
+    pi_source: dict[str, Any] | None = None
+    """Where pi(N') came from: ``{"task", "time_index", "rows"}`` of the golden task whose
+    visibility it was computed from (None: not computed yet, or a fixed configuration)."""
+    bg_version: BgVersion = field(default_factory=BgVersion)
+    backend_epoch: int = 0
+    """The last back-end epoch handed out."""
+    backgrounds_received: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "controller": self.controller,
+            "pi_source": self.pi_source,
+            "bg_version": self.bg_version.to_list(),
+            "backend_epoch": self.backend_epoch,
+            "backgrounds_received": self.backgrounds_received,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> FrontEndState:
+        return cls(
+            controller=dict(d["controller"]),
+            pi_source=d.get("pi_source"),
+            bg_version=BgVersion.from_list(d.get("bg_version", 0)),
+            backend_epoch=int(d.get("backend_epoch", 0)),
+            backgrounds_received=int(d.get("backgrounds_received", 0)),
+        )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class BackendStart:
+    """What a (re)starting back-end gets from the front-end (:meth:`FrontEnd.register_backend`)."""
+
+    epoch: int
+    first: bool
+    """The first back-end of this front-end (it may start from the empty-scene clip)."""
+
+
+@dataclass
+class TaskGuard:
+    """The watchdog's handle on a running task."""
+
+    cancel: threading.Event = field(default_factory=threading.Event)
+    committed: bool = False
+    """The task fed the controller: it is going to finish."""
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Job:
+    """One task's inputs on the front-end."""
+
+    frames: FrameSet
+    plan: TaskPlan
+    submit: SubmitFn
+    golden: GoldenProvider
+    task: int
+    updates: tuple[FrameSet, ...] = ()
+    """Frames of the scheduled background updates due before this task (the session reads
+    them; ``FrontEnd.pending_updates``)."""
 
 
 class FixedController:
@@ -79,8 +160,16 @@ class FixedController:
     def set_camera_mapping(self, mapping: Any, restart: bool = False) -> None:
         del mapping, restart
 
+    def set_deadline(self, deadline_s: float) -> None:
+        del deadline_s
+
     def to_dict(self) -> dict[str, Any]:
         return {"format": "edgerecon-fixed", "scale": self.scale, "camera_ids": list(self.ids)}
+
+
+def too_few_cameras(frames: FrameSet) -> bool:
+    """Whether ``frames`` has fewer usable cameras than a task needs."""
+    return len(frames.available) < MIN_CAMERAS
 
 
 class FrontEnd:
@@ -91,43 +180,82 @@ class FrontEnd:
         rig: Rig,
         config: RuntimeConfig,
         controller: BisectionController | FixedController,
+        scene: SceneTracker | None = None,
         *,
-        model_states: Sequence[BackgroundState] | None = None,
+        restored: FrontEndState | None = None,
+        background: PointCloud | None = None,
     ) -> None:
         self.rig = rig
         self.config = config
         self.controller = controller
-        self._local_fg: RigForeground | None = None
+        self.scene = scene
+        self._scene_lock = threading.Lock()
         self._lock = threading.Lock()
-        self._background = PointCloud.empty()
-        self._bg_version = 0
-        self._bg_states: tuple[BackgroundState, ...] | None = (
-            None if model_states is None else tuple(model_states)
-        )
-        self._mapping_ready = isinstance(controller, FixedController)
+        self._commit = threading.Lock()
+        self._background = PointCloud.empty() if background is None else background
+        self._bg_version = BgVersion()
+        self._bg_published = BgVersion()
+        self._backend_epoch = 0
+        self._backends_registered = 0
+        self.pi_source: dict[str, Any] | None = None
         self.backgrounds_received = 0
+        if restored is not None:
+            self.pi_source = restored.pi_source
+            self._backend_epoch = restored.backend_epoch
+            self.backgrounds_received = restored.backgrounds_received
+            if background is not None:
+                self._bg_version = self._bg_published = restored.bg_version
         self.eval_threshold = config.eval_threshold_for(rig)
 
+    # ------------------------------------------------------------------ run state
+    def state(self) -> FrontEndState:
+        with self._lock:
+            return FrontEndState(
+                controller=self.controller.to_dict(),
+                pi_source=self.pi_source,
+                bg_version=self._bg_version,
+                backend_epoch=self._backend_epoch,
+                backgrounds_received=self.backgrounds_received,
+            )
+
+    def register_backend(self) -> BackendStart:
+        """A back-end (re)starts: its epoch (the next one), and whether it is the first."""
+        with self._lock:
+            self._backend_epoch += 1
+            self._backends_registered += 1
+            return BackendStart(epoch=self._backend_epoch, first=self._backends_registered == 1)
+
     # ------------------------------------------------------------------ background pushes
-    def push_background(self, update: BackgroundUpdate) -> int:
+    def push_background(self, update: BackgroundUpdate) -> BgVersion:
         """Take a newer background (older or duplicate versions are ignored). Returns the
         version now held."""
         with self._lock:
             if update.version > self._bg_version:
                 self._background = update.cloud
                 self._bg_version = update.version
-                if update.model_states is not None:
-                    self._bg_states = update.model_states
                 self.backgrounds_received += 1
+            else:
+                logger.info(
+                    "front-end: ignoring background %s (holding %s)",
+                    update.version,
+                    self._bg_version,
+                )
             return self._bg_version
 
     @property
-    def bg_version(self) -> int:
+    def bg_version(self) -> BgVersion:
         return self._bg_version
 
-    def background(self) -> tuple[PointCloud, int]:
+    def background(self) -> tuple[PointCloud, BgVersion]:
         with self._lock:
             return self._background, self._bg_version
+
+    def _background_to_publish(self) -> PointCloud | None:
+        with self._lock:
+            if self._bg_version == self._bg_published:
+                return None
+            self._bg_published = self._bg_version
+            return self._background
 
     # ------------------------------------------------------------------ planning
     def next_plan(self, time_index: int) -> TaskPlan:
@@ -137,118 +265,233 @@ class FrontEnd:
             time_index=time_index, scale=float(cfg.scale), camera_ids=ids, phase=str(cfg.phase)
         )
 
+    # ------------------------------------------------------------------ the scene stage
+    def _tracker(self) -> SceneTracker:
+        if self.scene is None:
+            raise RuntimeError("this front-end was built without background models")
+        return self.scene
+
+    def pending_updates(self, time_index: int) -> list[int]:
+        """Time indices of the scheduled background updates still to apply before the task
+        of ``time_index`` (the session reads those frames for :meth:`run_task`)."""
+        return [] if self.scene is None else self.scene.pending(time_index)
+
+    def obtain_foreground(
+        self, frames: FrameSet, updates: Sequence[FrameSet], timings: StageTimings
+    ) -> ForegroundResult:
+        """The task's foreground: the scheduled background updates due before it (usually
+        none or one: one per ``update_interval_s`` of stream time), then the segmentation at
+        the working resolution. The masks are computed once, here, where they are needed
+        first; the back-end gets them with the frames."""
+        scene = self._tracker()
+        if updates:
+            with timings.stage("scene_update"):
+                for u in updates:
+                    scene.learn(u)
+        with timings.stage("scene"):
+            return scene.segment(frames)
+
     # ------------------------------------------------------------------ the task
-    def process(
+    def run_task(
         self,
         frames: FrameSet,
         plan: TaskPlan,
-        masks: MasksProvider,
+        submit: SubmitFn,
         golden: GoldenProvider,
         *,
         task: int = 0,
+        defects: Mapping[str, str] | None = None,
+        updates: Sequence[FrameSet] = (),
     ) -> TaskOutput:
-        """Run one task (critical path, then online evaluation and the optimizer step)."""
-        timings = StageTimings()
-        start = time.perf_counter()
-        cfg = ReconstructionConfig(
-            scale=plan.scale, camera_ids=plan.camera_ids, sparse_config=self.config.sparse
+        """Run one task (critical path, then online evaluation and the optimizer step) under
+        the watchdog: never raises (a failed task is a record). ``defects``: cameras the
+        session left out (unusable frames), name -> defect; ``updates``: the frames of
+        :meth:`pending_updates`."""
+        guard = TaskGuard()
+        box: dict[str, Any] = {}
+        job = _Job(
+            frames=frames,
+            plan=plan,
+            submit=submit,
+            golden=golden,
+            task=task,
+            updates=tuple(updates),
         )
-        scene_sfm = self.config.sparse_scope == "scene"
-        if scene_sfm:  # the paper's order: SfM of the whole frames while masks are computed
-            with timings.stage("sfm"):
-                views = prepare_task_views(frames, self.rig, cfg)
-                sparse = reconstruct_sparse(views, self.config.sparse)
-        degraded, reason = False, ""
-        with timings.stage("wait_masks"):
-            reply = masks(self.config.masks_wait_s)
-        if reply is None:
-            degraded, reason = True, "no masks from the back-end"
-            with timings.stage("local_masks"):
-                fg = self._local_foreground(frames)
-        else:
-            fg = reply.foreground
-            # Back to normal: the next outage starts from the back-end's newest snapshot.
-            self._local_fg = None
-        if not scene_sfm:  # SfM of the foreground only
-            with timings.stage("sfm"):
-                views = prepare_task_views(frames, self.rig, cfg)
-                sparse = reconstruct_sparse(
-                    foreground_views(
-                        views, self.rig, fg.masks, self.config.split.fg_mask_dilation_px
-                    ),
-                    self.config.sparse,
-                )
-        fg_rec = reconstruct_foreground(
-            views, self.rig, sparse, fg, self.config.dense, self.config.split
-        )
-        for name, seconds in fg_rec.timings.seconds.items():
-            timings.add(name, seconds)
-        background, bg_version = self.background()
-        with timings.stage("merge"):
-            merged = merge_clouds(
-                fg_rec.cloud,
-                background,
-                bg_version=bg_version,
-                scene_scale=self.rig.scene_scale(),
-                hull=fg.hull,
-            )
-        critical = time.perf_counter() - start
 
-        # ---- after the critical path: online evaluation and the optimizer step
+        def work() -> None:
+            try:
+                box["out"] = self._process(job, dict(defects or {}), guard)
+            except BaseException as exc:  # recorded below, whatever it is
+                box["exc"] = exc
+
+        limit = self.config.watchdog_s
+        worker = threading.Thread(target=work, name=f"task-{task}", daemon=True)
+        worker.start()
+        worker.join(limit)
+        with self._commit:
+            if worker.is_alive() and not guard.committed:
+                guard.cancel.set()  # it stops at its next stage boundary, publishing nothing
+                # The configuration took that long: the controller learns it.
+                self.controller.observe(limit, None)
+                error = f"watchdog: still running after {limit:.1f} s (abandoned)"
+                logger.error("task %d (time %d): %s", task, frames.time_index, error)
+                return self._failed(frames, task, error)
+        worker.join()  # committed: only the metrics are left to build
+        if "exc" in box:
+            exc = box["exc"]
+            error = describe_exception(exc)
+            logger.error("task %d (time %d) failed: %s", task, frames.time_index, error)
+            logger.debug("traceback", exc_info=exc)
+            return self._failed(frames, task, error)
+        out: TaskOutput = box["out"]
+        return out
+
+    def _failed(self, frames: FrameSet, task: int, error: str) -> TaskOutput:
+        m = TaskMetrics.failed(
+            task=task, time_index=frames.time_index, error=error, deadline_s=self.config.deadline_s
+        )
+        return TaskOutput(metrics=m, merged=None, foreground=None)
+
+    def _process(self, job: _Job, defects: dict[str, str], guard: TaskGuard) -> TaskOutput:
+        frames, plan, golden, task = job.frames, job.plan, job.golden, job.task
+        if defects and too_few_cameras(frames):
+            return self._empty(job, defects)
+        start = time.perf_counter()
+        background, bg_version = self.background()
+        want_golden = self.config.online_quality == "golden"
+        segmented: list[ForegroundResult] = []
+
+        def foreground(timings: StageTimings) -> ForegroundResult:
+            with self._scene_lock:
+                fg = self.obtain_foreground(frames, job.updates, timings)
+            segmented.append(fg)
+            job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
+            return fg
+
+        result = reconstruct_task(
+            frames,
+            self.rig,
+            foreground,
+            ReconstructionConfig(
+                scale=plan.scale,
+                camera_ids=plan.camera_ids,
+                sparse_config=self.config.sparse,
+                dense_config=self.config.dense,
+            ),
+            background=background,
+            bg_version=bg_version.counter,
+            split_config=self.config.split,
+            sparse_scope=self.config.sparse_scope,
+            cancel=guard.cancel,
+        )
+        critical = time.perf_counter() - start
+        timings = result.timings
+        fg_rec = result.foreground
+
+        # ---- after the critical path: online evaluation, the optimizer step and, when the
+        # task's frame is on the update schedule, its background update (due for the next
+        # task; it reuses this task's segmentation)
+        fg = segmented[0]
+        degraded, reason = False, ""
         quality: float | None = None
-        if not degraded:
-            ref = golden(self.config.golden_wait_s)
-            if ref is None:
-                reason = "no golden reference from the back-end"
+        if want_golden:
+            with timings.stage("wait_golden"):
+                ref = golden(self.config.golden_wait_s)
+            if ref is None or ref.fg_points3D is None:
+                degraded = True
+                reason = (
+                    f"no golden reference within {self.config.golden_wait_s:.1f} s"
+                    if ref is None
+                    else f"back-end golden reference: {ref.error}"
+                )
             else:
                 quality = online_quality(
                     fg_rec.fg_sparse.points3D,
                     ref.fg_points3D,
                     OnlineQualityConfig(threshold=self.eval_threshold),
                 ).value
-        if plan.phase == "golden" and not self._mapping_ready:
-            self._set_mapping(sparse.visibility_matrix(len(self.rig)), fg_rec.cloud)
-        self.controller.observe(critical, quality)
+        else:
+            with timings.stage("online_quality"):
+                quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
+        with timings.stage("scene_update_after"), self._scene_lock:
+            self._tracker().learn(frames, fg)
+        with self._commit:
+            if guard.cancel.is_set():
+                raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")
+            if plan.phase == "golden" and not isinstance(self.controller, FixedController):
+                # Every golden task refreshes pi(N') (a golden re-search included).
+                vis = result.sparse.visibility_matrix(len(self.rig))
+                self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
+            self.controller.observe(critical, quality)
+            guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
-        metrics = TaskMetrics(
-            task=task,
-            time_index=frames.time_index,
-            status="ok",
-            phase=plan.phase,
-            scale=plan.scale,
-            num_cameras=len(views),
-            camera_ids=[v.camera_id for v in views],
+        return self._output(
+            job,
+            bg_version,
+            result.merged,
+            fg_rec.cloud,
+            camera_ids=list(result.camera_ids),
             critical_path_s=round(critical, 6),
             stages=timings.to_dict(),
-            deadline_s=self.config.deadline_s,
             deadline_met=critical <= self.config.deadline_s,
             online_fscore=quality,
-            bg_version=bg_version,
             degraded=degraded,
             degraded_reason=reason,
-            num_sparse=sparse.num_points,
+            frame_defects=defects,
+            num_sparse=result.sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
-            num_fg_points=len(fg_rec.cloud),
+            num_objects=num_objects(labels),
+        )
+
+    def _empty(self, job: _Job, defects: dict[str, str]) -> TaskOutput:
+        """A task whose frames are unusable: no foreground, the background alone."""
+        background, bg_version = self.background()
+        return self._output(
+            job,
+            bg_version,
+            background,
+            PointCloud.empty(),
+            camera_ids=job.frames.available,
+            deadline_met=True,
+            frame_defects=defects,
+        )
+
+    def _output(
+        self,
+        job: _Job,
+        bg_version: BgVersion,
+        merged: PointCloud,
+        foreground: PointCloud,
+        **fields: Any,
+    ) -> TaskOutput:
+        """An ok task's output; ``fields`` are the metrics that differ between tasks."""
+        metrics = TaskMetrics(
+            task=job.task,
+            time_index=job.frames.time_index,
+            status="ok",
+            phase=job.plan.phase,
+            scale=job.plan.scale,
+            num_cameras=len(fields["camera_ids"]),
+            deadline_s=self.config.deadline_s,
+            bg_version=bg_version.counter,
+            bg_epoch=bg_version.epoch,
+            num_fg_points=len(foreground),
             num_merged_points=len(merged),
-            num_objects=int(labels.max()) if labels.size and labels.max() > 0 else 0,
             search_steps=int(getattr(self.controller, "total_search_steps", 0)),
             wall_time=time.time(),
+            **fields,
         )
-        return TaskOutput(metrics=metrics, merged=merged, foreground=fg_rec.cloud)
+        return TaskOutput(
+            metrics=metrics,
+            merged=merged,
+            foreground=foreground,
+            background=self._background_to_publish(),
+        )
 
-    def _local_foreground(self, frames: FrameSet) -> ForegroundResult:
-        """Masks computed on the front-end (degraded mode), with the newest snapshot of the
-        background models it holds (the initial one, or one pushed with a background)."""
-        if self._local_fg is None:
-            if self._bg_states is None:
-                raise RuntimeError("no masks from the back-end and no background model snapshot")
-            self._local_fg = RigForeground.from_states(
-                self.rig, self._bg_states, self.config.foreground
-            )
-        return self._local_fg.segment(frames)
-
-    def _set_mapping(self, visibility: np.ndarray, fg_cloud: PointCloud) -> None:
-        """pi(N') from the golden task: its sparse visibility, topped up with the dense
+    def _set_mapping(
+        self, visibility: np.ndarray, fg_cloud: PointCloud, task: int, time_index: int
+    ) -> None:
+        """pi(N') from a golden task: its sparse visibility, topped up with the dense
         foreground's visibility when the sparse cloud is thin (wide-baseline rigs)."""
         vis = visibility
         if len(vis) < _MIN_SELECTION_POINTS and len(fg_cloud):
@@ -261,5 +504,10 @@ class FrontEnd:
             sizes=range(len(self.rig), MIN_CAMERAS - 1, -1),
         )
         self.controller.set_camera_mapping(mapping)
-        self._mapping_ready = True
-        logger.info("front-end: camera mapping pi(N') from %d visibility rows", len(vis))
+        self.pi_source = {"task": task, "time_index": time_index, "rows": len(vis)}
+        logger.info(
+            "front-end: camera mapping pi(N') from task %d (time %d): %d visibility rows",
+            task,
+            time_index,
+            len(vis),
+        )

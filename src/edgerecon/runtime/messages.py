@@ -6,15 +6,45 @@ cheaply and travels through Ray's object store unchanged.
 
 from __future__ import annotations
 
+import time
+import traceback
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundResult
-from edgerecon.types import PointCloud
+from edgerecon.types import FrameSet, PointCloud
+
+
+@dataclass(frozen=True, order=True)
+class BgVersion:
+    """Version of a background cloud: (back-end epoch, counter). Every back-end the run
+    starts (the first one, an embedded restart, a Ray actor restart, a resumed run) gets the
+    next epoch from the front-end, which owns the count; each back-end counts its rebuilds
+    from 1. Versions order as tuples, so a new back-end's first background is newer than
+    anything an earlier one made, and a late push from a dead back-end is older."""
+
+    epoch: int = 0
+    counter: int = 0
+
+    def __str__(self) -> str:
+        return f"v{self.epoch}.{self.counter}" if self else "v0"
+
+    def __bool__(self) -> bool:
+        return self.counter > 0
+
+    def to_list(self) -> list[int]:
+        return [self.epoch, self.counter]
+
+    @classmethod
+    def from_list(cls, v: Any) -> BgVersion:
+        """From ``[epoch, counter]`` (or a plain counter: a state written before epochs)."""
+        if isinstance(v, int):
+            return cls(0, v)
+        epoch, counter = v
+        return cls(int(epoch), int(counter))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -29,12 +59,17 @@ class TaskPlan:
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
-class MasksReply:
-    """The back-end's foreground of one timestamp."""
+class TaskWork:
+    """What the front-end hands the back-end for one task, once its scene stage is done: the
+    frames and their foreground (masks, objects, hull at the working resolution), for the
+    golden reference and the background rebuilds. The back-end never segments: the masks
+    are computed once, by the front-end that needs them first."""
 
-    time_index: int
+    frames: FrameSet
     foreground: ForegroundResult
-    seconds: float
+    golden: bool
+    """Whether the front-end wants the golden reference of this task (online quality
+    "golden")."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -43,24 +78,23 @@ class GoldenReply:
     of the online quality estimate)."""
 
     time_index: int
-    fg_points3D: NDArray[np.float64]
+    fg_points3D: NDArray[np.float64] | None
+    """None when the back-end failed on this timestamp (see ``error``)."""
     num_points: int
     """All sparse points of the golden reconstruction (foreground and background)."""
     seconds: float
+    error: str = ""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class BackgroundUpdate:
     """A background cloud rebuilt by the back-end in its idle time, pushed to the front-end."""
 
-    version: int
-    """1, 2, ... in the order the back-end finished them."""
+    version: BgVersion
+    """(epoch of the back-end that built it, 1, 2, ... in the order it finished them)."""
     cloud: PointCloud
     seconds: float
     """Time the rebuild took on the back-end."""
-    model_states: tuple[BackgroundState, ...] | None = None
-    """Snapshot of the background models, so the front-end can compute masks itself if the
-    back-end is lost (degraded mode)."""
 
 
 @dataclass(kw_only=True)
@@ -88,11 +122,20 @@ class TaskMetrics:
     offline_fscore: float | None = None
     """Foreground F-score against ground truth (synthetic scenes, when evaluated)."""
     bg_version: int = 0
-    """Background version merged into this task's cloud (0 = none yet)."""
+    """Background merged into this task's cloud: the counter of :class:`BgVersion` (0 =
+    none yet)."""
+    bg_epoch: int = 0
+    """... and its back-end epoch: (bg_epoch, bg_version) never decreases over a run."""
     degraded: bool = False
-    """True when the back-end did not serve this task (masks computed locally, no online
-    quality estimate)."""
+    """True when the back-end did not serve this task in time (masks computed locally, or no
+    golden reference: no online quality estimate)."""
     degraded_reason: str = ""
+    submitted: bool = False
+    """The frames went to the back-end (its background models learned from them)."""
+    frame_defects: dict[str, str] = field(default_factory=dict)
+    """Cameras left out of this task because their frame is unusable: name -> "black",
+    "saturated" or "textureless". With fewer than 3 cameras left the task is empty (no
+    foreground; the merged cloud is the background alone)."""
     num_sparse: int = 0
     num_sparse_fg: int = 0
     num_fg_points: int = 0
@@ -101,8 +144,25 @@ class TaskMetrics:
     search_steps: int = 0
     """Configuration-search steps taken by the controller so far."""
     error: str = ""
+    """Why the task failed (status "failed"): the stage's exception, or the watchdog."""
     wall_time: float = 0.0
     """Unix time when the task finished."""
+
+    @property
+    def background_version(self) -> BgVersion:
+        return BgVersion(self.bg_epoch, self.bg_version)
+
+    @classmethod
+    def failed(cls, *, task: int, time_index: int, error: str, deadline_s: float) -> TaskMetrics:
+        """The record of a task that produced nothing."""
+        return cls(
+            task=task,
+            time_index=time_index,
+            status="failed",
+            error=error,
+            deadline_s=deadline_s,
+            wall_time=time.time(),
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -111,3 +171,15 @@ class TaskMetrics:
     def from_dict(cls, d: dict[str, Any]) -> TaskMetrics:
         names = set(cls.__dataclass_fields__)
         return cls(**{k: v for k, v in d.items() if k in names})
+
+
+def describe_exception(exc: BaseException) -> str:
+    """``"Type: message (in function, file:line)"`` of the innermost edgerecon frame: the
+    reason a failed task records."""
+    where = ""
+    for frame in reversed(traceback.extract_tb(exc.__traceback__)):
+        if "edgerecon" in frame.filename:
+            short = frame.filename.split("edgerecon/", 1)[-1]
+            where = f" (in {frame.name}, {short}:{frame.lineno})"
+            break
+    return f"{type(exc).__name__}: {exc}{where}"

@@ -1,8 +1,22 @@
-"""``run_online``: assemble the online system (controller, scene model, engine, session)."""
+"""``run_online``: assemble the online system (output folder, run state, controller, scene
+model, engine, session).
+
+Everything that can be checked is checked before any heavy work (learning the background
+models, warming up the kernels, starting Ray): the options against the dataset, the output
+folder (writable, not locked by another run, empty unless ``--overwrite``, or holding a run
+of this dataset and frame range for ``--resume``).
+
+``--resume`` restores the run state together (:class:`~edgerecon.runtime.state.RunState`):
+the controller (a new ``--deadline`` is applied to it and the configuration search
+restarts), pi(N') and where it came from, the background cloud and its version, the last
+back-end epoch (the new back-end counts on from the next one); the background models are
+rebuilt from the stream up to the next task (they are a function of the stream alone,
+:mod:`edgerecon.scene.stream`), so the resumed run segments the next frame as an
+uninterrupted run would.
+"""
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -11,13 +25,20 @@ from typing import Any
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.engine import EmbeddedEngine, SceneModel, learn_scene_model
+from edgerecon.runtime.engine import (
+    EmbeddedEngine,
+    Engine,
+    SceneModel,
+    learn_scene_model,
+)
 from edgerecon.runtime.frontend import FixedController
-from edgerecon.runtime.messages import BackgroundUpdate, TaskMetrics
-from edgerecon.runtime.session import STATE_FORMAT, RunSummary, Session, SessionOptions
-from edgerecon.types import EdgereconError
+from edgerecon.runtime.messages import TaskMetrics
+from edgerecon.runtime.session import RunSummary, Session, SessionOptions
+from edgerecon.runtime.state import DatasetIdentity, OutputFolder
 
 logger = logging.getLogger(__name__)
+
+ENGINES = ("embedded", "ray")
 
 
 def make_controller(
@@ -29,15 +50,59 @@ def make_controller(
     saved_state: dict[str, Any] | None = None,
 ) -> BisectionController | FixedController:
     """The optimizer (Algorithm 1) or, with ``fixed=(scale, camera_ids)``, one configuration
-    for every task (None camera ids = all)."""
+    for every task (None camera ids = all). A saved controller takes ``config``'s deadline
+    (a changed one restarts its search)."""
     n = len(dataset.rig)
     if fixed is not None:
         scale, ids = fixed
         return FixedController(scale, tuple(range(n)) if ids is None else tuple(ids))
     if saved_state is not None and saved_state.get("format") == "edgerecon-controller":
-        return BisectionController.from_dict(saved_state)
+        ctrl = BisectionController.from_dict(saved_state)
+        if ctrl.config.deadline_s != config.deadline_s:
+            logger.warning(
+                "--resume with a new deadline (%.3g s, was %.3g s): the configuration search "
+                "restarts",
+                config.deadline_s,
+                ctrl.config.deadline_s,
+            )
+            ctrl.set_deadline(config.deadline_s)
+        return ctrl
     cc = controller_config or ControllerConfig(deadline_s=config.deadline_s)
     return BisectionController(cc, None, n)
+
+
+def check_options(
+    dataset: Dataset,
+    options: SessionOptions,
+    *,
+    engine: str = "embedded",
+    fixed: tuple[float, tuple[int, ...] | None] | None = None,
+) -> None:
+    """Every option against the dataset, before any work (``ValueError`` naming it)."""
+    if engine not in ENGINES:
+        raise ValueError(f"--engine must be one of {ENGINES}, got {engine!r}")
+    fr = options.frames
+    if not fr.indices(dataset.num_frames):
+        raise ValueError(
+            f"--frames {fr.start}:{'' if fr.stop is None else fr.stop}:{fr.step} selects no "
+            f"timestamp of {dataset.name} (frames 0..{dataset.num_frames - 1})"
+        )
+    if any(kind == "kill" for _, kind, _ in options.faults) and engine != "ray":
+        raise ValueError(
+            "--inject-fault TASK:kill kills the back-end actor's process: it needs "
+            "--engine ray (use stall or crash with the embedded engine)"
+        )
+    if fixed is not None:
+        scale, ids = fixed
+        if not 0 < scale <= 1:
+            raise ValueError(f"--fixed must be a scale in (0, 1], got {scale:g}")
+        if ids is not None:
+            n = len(dataset.rig)
+            if len(set(ids)) != len(ids) or not all(0 <= i < n for i in ids) or len(ids) < 3:
+                raise ValueError(
+                    f"--cameras must name at least 3 distinct cameras of the rig (ids 0..{n - 1} "
+                    f"or names {', '.join(dataset.rig.names)}), got {list(ids)}"
+                )
 
 
 def run_online(
@@ -53,41 +118,77 @@ def run_online(
     scene: SceneModel | None = None,
     on_task: Callable[[TaskMetrics], None] | None = None,
     on_ready: Callable[[SceneModel], None] | None = None,
+    command: str = "",
 ) -> tuple[RunSummary, list[TaskMetrics]]:
-    """Run the online system on ``dataset`` and return its summary and per-task metrics."""
-    out = Path(out_dir)
-    saved = None
-    if options.resume and (out / "state.json").exists():
-        state = json.loads((out / "state.json").read_text())
-        if state.get("format") != STATE_FORMAT:
-            raise EdgereconError(f"{out / 'state.json'}: not an edgerecon run state")
-        saved = state.get("controller")
-    controller = make_controller(
-        dataset, config, fixed=fixed, controller_config=controller_config, saved_state=saved
-    )
-    scene = scene or learn_scene_model(dataset, config.foreground, config.warmup_frames)
-    if on_ready is not None:
-        on_ready(scene)
-    if engine == "embedded":
-        eng: Any = EmbeddedEngine(dataset, config, controller, scene)
-    elif engine == "ray":
-        from edgerecon.runtime.ray_engine import RayEngine
-
-        eng = RayEngine(dataset, config, controller, scene, address=address)
-    else:
-        raise EdgereconError(f"unknown engine {engine!r}: use 'embedded' or 'ray'")
-    try:
-        session = Session(dataset, eng, options, out, deadline_s=config.deadline_s, on_task=on_task)
-        if options.resume:
-            previous = session.previous_background()
-            if previous is not None:
-                cloud, version = previous
-                eng.push_background(BackgroundUpdate(version=version, cloud=cloud, seconds=0.0))
-        summary = session.run()
-        status = eng.status()
-        summary.backgrounds_pushed = max(
-            summary.backgrounds_pushed, int(status.get("backgrounds_received", 0))
+    """Run the online system on ``dataset`` and return its summary and per-task metrics
+    (:class:`~edgerecon.runtime.session.RunInterrupted` after Ctrl-C, summary written)."""
+    check_options(dataset, options, engine=engine, fixed=fixed)
+    fr = options.frames
+    with OutputFolder(out_dir).acquire(command) as folder:
+        saved = folder.prepare(
+            resume=options.resume,
+            overwrite=options.overwrite,
+            identity=DatasetIdentity.of(dataset),
+            frames=(fr.start, fr.stop, fr.step),
         )
-        return summary, session.metrics
-    finally:
-        eng.close()
+        previous = [] if saved is None else folder.read_metrics(saved.tasks_done)
+        controller = make_controller(
+            dataset,
+            config,
+            fixed=fixed,
+            controller_config=controller_config,
+            saved_state=None if saved is None else saved.frontend.controller,
+        )
+        if scene is None:
+            # The background models as they are at the first task still to run (the one
+            # stream definition of edgerecon.scene.stream: a resumed run continues with the
+            # models an uninterrupted run would have).
+            done = {m.time_index for m in previous}
+            todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
+            scene = learn_scene_model(dataset, config.foreground, todo[0] if todo else 0)
+        if on_ready is not None:
+            on_ready(scene)
+        restored = None if saved is None else saved.frontend
+        background = None if saved is None else folder.read_background()
+        if saved is not None:
+            logger.warning(
+                "resuming after %d tasks (background %s, back-end epoch %d)",
+                saved.tasks_done,
+                saved.frontend.bg_version,
+                saved.frontend.backend_epoch,
+            )
+        eng: Engine
+        if engine == "ray":
+            from edgerecon.runtime.ray_engine import RayEngine
+
+            eng = RayEngine(
+                dataset,
+                config,
+                controller,
+                scene,
+                address=address,
+                restored=restored,
+                background=background,
+            )
+        else:
+            eng = EmbeddedEngine(
+                dataset, config, controller, scene, restored=restored, background=background
+            )
+        try:
+            session = Session(
+                dataset,
+                eng,
+                options,
+                folder,
+                deadline_s=config.deadline_s,
+                frame_check=config.frame_check,
+                previous=previous,
+                on_task=on_task,
+            )
+            summary = session.run()
+            return summary, session.metrics
+        finally:
+            eng.close()
+
+
+__all__ = ["ENGINES", "check_options", "make_controller", "run_online"]

@@ -6,27 +6,43 @@ resources, so that on real hardware
     device A:              edgerecon run --engine ray --address auto ...
 
 is all it takes. Without ``--address`` the engine starts a private single-node Ray instance
-bound to 127.0.0.1 that offers both resources (same code path, one machine).
+bound to 127.0.0.1 that offers both resources (same code path, one machine); its processes
+die with the driver, kill -9 included (:mod:`edgerecon.runtime.ray_reaper`). An address where
+no cluster answers is an :class:`EdgereconError` within seconds (:func:`connect`).
 
 Frames travel through the object store once per task: the driver puts them, the front-end
 and the back-end read the same object. Actors reserve no CPU (``num_cpus=0``: a pinned actor
 that holds a CPU for its lifetime starves later tasks on small nodes) and are threaded so the
-back-end can push backgrounds while the front-end is busy. The back-end actor restarts when its
-process dies; the front-end notices through :class:`BackendLink` and uses it again.
+back-end can push backgrounds while the front-end is busy. The actors are thin shells: all
+logic lives in the roles and in :func:`~edgerecon.runtime.engine.run_frontend_task`, shared
+with the embedded engine. The back-end actor restarts when its process dies (and is killed
+for a restart when its task thread died or is stuck past the watchdog); a (re)started actor
+gets its epoch from the front-end, which notices through :class:`BackendLink` and uses it
+again.
 """
 
 from __future__ import annotations
 
 import logging
+import socket
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.engine import BackendLink, SceneModel
-from edgerecon.runtime.frontend import FixedController, TaskOutput
-from edgerecon.runtime.messages import TaskPlan
-from edgerecon.types import EdgereconError, FrameSet
+from edgerecon.runtime.engine import (
+    BackendLink,
+    SceneModel,
+    restart_reason,
+    run_frontend_task,
+    start_frontend,
+)
+from edgerecon.runtime.frontend import FixedController, FrontEndState, TaskOutput
+from edgerecon.runtime.messages import TaskPlan, TaskWork
+from edgerecon.runtime.ray_reaper import start_reaper
+from edgerecon.scene.foreground import RigForeground
+from edgerecon.types import EdgereconError, FrameSet, PointCloud
 
 logger = logging.getLogger(__name__)
 
@@ -72,30 +88,31 @@ def _ray() -> Any:
 
 
 class _BackendActor:
-    """Actor shell around :class:`BackEnd` (thin: all logic lives in the role class)."""
+    """Actor shell around :class:`BackEnd` (thin: all logic lives in the role class). A
+    (re)started actor asks the front-end for its epoch."""
 
     def __init__(
         self, dataset: Dataset, config: RuntimeConfig, scene: SceneModel, frontend: Any
     ) -> None:
         from edgerecon.runtime.backend import BackEnd
-        from edgerecon.scene.foreground import RigForeground
 
-        fg = RigForeground.from_states(dataset.rig, scene.states, config.foreground)
+        start = _ray().get(frontend.register_backend.remote())
         self._frontend = frontend
         self.backend = BackEnd(
-            dataset.rig, config, fg, push=self._push, initial_background=scene.initial_background
+            dataset.rig,
+            config,
+            push=self._push,
+            initial_background=scene.initial_background if start.first else None,
+            epoch=start.epoch,
         ).start()
 
     def _push(self, update: Any) -> None:
         # Fire and forget: the front-end takes it between (or during) tasks.
         self._frontend.push_background.remote(update)
 
-    def submit(self, frames_ref: list[Any]) -> None:
-        ray = _ray()
-        self.backend.submit(ray.get(frames_ref[0]))
-
-    def masks(self, time_index: int, timeout: float) -> Any:
-        return self.backend.masks(time_index, timeout)
+    def submit(self, frames_ref: list[Any], foreground: Any, golden: bool) -> None:
+        frames = _ray().get(frames_ref[0])
+        self.backend.submit(TaskWork(frames=frames, foreground=foreground, golden=golden))
 
     def golden(self, time_index: int, timeout: float) -> Any:
         return self.backend.golden(time_index, timeout)
@@ -103,87 +120,112 @@ class _BackendActor:
     def ping(self) -> dict[str, Any]:
         return self.backend.ping()
 
+    def node_id(self) -> str:
+        return str(_ray().get_runtime_context().get_node_id())
+
     def inject_fault(self, kind: str, seconds: float = 0.0) -> None:
         self.backend.inject_fault(kind, seconds)
 
 
-class _FrontendActor:
-    """Actor shell around :class:`FrontEnd`; it talks to the back-end actor directly."""
+class _RemoteBackend:
+    """:class:`BackendClient` over the back-end actor for one task (the frames travel as one
+    object-store reference); a failed or late call is None and marks the back-end lost."""
 
-    def __init__(
-        self, dataset: Dataset, config: RuntimeConfig, controller: Any, scene: SceneModel
-    ) -> None:
-        from edgerecon.pipeline import warm_up
-        from edgerecon.runtime.frontend import FrontEnd
+    def __init__(self, actor: Any, frames_ref: Any, link: BackendLink) -> None:
+        self._actor = actor
+        self._ref = frames_ref
+        self._link = link
 
-        warm_up()  # in this process, before the first task is timed
-        self.frontend = FrontEnd(dataset.rig, config, controller, model_states=scene.states)
-        self.config = config
-        self.backend: Any = None
-        self.link = BackendLink(self._ping, config.backend_retry_s)
-
-    def set_backend(self, backend: Any) -> None:
-        self.backend = backend
-
-    def _ping(self) -> dict[str, Any] | None:
-        ray = _ray()
-        try:
-            return ray.get(self.backend.ping.remote(), timeout=_RPC_GRACE_S)
-        except ray.exceptions.RayError:
-            return None
-        except TimeoutError:
-            return None
+    def submit(self, work: TaskWork) -> None:
+        # The frames are in the object store already; the foreground (masks at the working
+        # resolution) travels with the call.
+        self._actor.submit.remote([self._ref], work.foreground, work.golden)
 
     def _call(self, method: Any, *args: Any, timeout: float) -> Any:
         ray = _ray()
         try:
             return ray.get(method.remote(*args), timeout=timeout + _RPC_GRACE_S)
         except (ray.exceptions.RayError, TimeoutError) as exc:
-            self.link.mark_lost(f"{type(exc).__name__}")
+            self._link.mark_lost(type(exc).__name__)
             return None
+
+    def golden(self, time_index: int, timeout: float) -> Any:
+        return self._call(self._actor.golden, time_index, timeout, timeout=timeout)
+
+
+class _FrontendActor:
+    """Actor shell around :class:`FrontEnd`; it talks to the back-end actor directly."""
+
+    def __init__(
+        self,
+        dataset: Dataset,
+        config: RuntimeConfig,
+        controller: Any,
+        scene: SceneModel,
+        restored: Any,
+        background: Any,
+    ) -> None:
+        self.frontend = start_frontend(dataset, config, controller, scene, restored, background)
+        self.config = config
+        self.backend: Any = None
+        self.link = BackendLink(self._ping, config.backend_retry_s)
+        self.backend_restarts = 0
+
+    def set_backend(self, backend: Any) -> None:
+        self.backend = backend
+
+    def register_backend(self) -> Any:
+        return self.frontend.register_backend()
+
+    def _ping(self) -> dict[str, Any] | None:
+        ray = _ray()
+        try:
+            status = ray.get(self.backend.ping.remote(), timeout=_RPC_GRACE_S)
+        except (ray.exceptions.RayError, TimeoutError):
+            return None  # its process is gone: Ray restarts it (max_restarts=-1)
+        reason = restart_reason(status, self.config.watchdog_s)
+        if reason is not None:
+            logger.warning("Ray back-end %s: restarting its actor", reason)
+            ray.kill(self.backend, no_restart=False)
+            self.backend_restarts += 1
+            return None
+        return status
 
     def plan(self, time_index: int) -> TaskPlan:
         return self.frontend.next_plan(time_index)
 
-    def push_background(self, update: Any) -> int:
+    def push_background(self, update: Any) -> Any:
         return self.frontend.push_background(update)
 
-    def run_task(self, frames_ref: list[Any], plan: TaskPlan, task: int) -> TaskOutput:
-        ray = _ray()
-        frames: FrameSet = ray.get(frames_ref[0])
-        t = frames.time_index
-        use = self.backend is not None and self.link.usable()
-        if use:
-            try:
-                self.backend.submit.remote(frames_ref)
-            except ray.exceptions.RayError as exc:
-                self.link.mark_lost(type(exc).__name__)
-                use = False
+    def pending_updates(self, time_index: int) -> list[int]:
+        return self.frontend.pending_updates(time_index)
 
-        def masks(timeout: float) -> Any:
-            if not use:
-                return None
-            reply = self._call(self.backend.masks, t, timeout, timeout=timeout)
-            if reply is None:
-                self.link.mark_lost(f"no masks for time {t} within {timeout:.1f} s")
-            return reply
+    def run_task(
+        self,
+        frames_ref: list[Any],
+        plan: TaskPlan,
+        task: int,
+        defects: dict[str, str],
+        updates: list[FrameSet],
+    ) -> TaskOutput:
+        frames: FrameSet = _ray().get(frames_ref[0])
+        client = _RemoteBackend(self.backend, frames_ref[0], self.link)
+        return run_frontend_task(
+            self.frontend, self.link, client, frames, plan, task, defects, updates
+        )
 
-        def golden(timeout: float) -> Any:
-            return self._call(self.backend.golden, t, timeout, timeout=timeout) if use else None
+    def state(self) -> Any:
+        return self.frontend.state()
 
-        out = self.frontend.process(frames, plan, masks, golden, task=task)
-        if not use:
-            out.metrics.degraded_reason = f"back-end lost ({self.link.lost_reason})"
-        return out
-
-    def controller_state(self) -> dict[str, Any]:
-        return self.frontend.controller.to_dict()
+    def node_id(self) -> str:
+        return str(_ray().get_runtime_context().get_node_id())
 
     def status(self) -> dict[str, Any]:
         return {
             "backgrounds_received": self.frontend.backgrounds_received,
-            "bg_version": self.frontend.bg_version,
+            "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
+            "backend_restarts": self.backend_restarts,
             "backend": self._ping(),
         }
 
@@ -202,24 +244,14 @@ class RayEngine:
         *,
         address: str | None = None,
         num_cpus: int | None = None,
+        restored: FrontEndState | None = None,
+        background: PointCloud | None = None,
     ) -> None:
-        if _is_loopback(address):
-            keep_on_loopback()
+        self.config = config
+        self._started_ray = connect(address, num_cpus) is not None
+        # A private instance dies with this process, kill -9 included (see ray_reaper).
+        self._reaper = start_reaper() if self._started_ray and not address else None
         ray = _ray()
-        self._started_ray = False
-        if not ray.is_initialized():
-            if address:
-                ray.init(address=address, log_to_driver=True)
-            else:
-                # A private local instance: both roles on this machine, loopback only.
-                ray.init(
-                    num_cpus=num_cpus,
-                    resources={"frontend": 1, "backend": 1},
-                    include_dashboard=False,
-                    _node_ip_address="127.0.0.1",
-                    log_to_driver=True,
-                )
-            self._started_ray = True
         resources = ray.cluster_resources()
         for role in ("frontend", "backend"):
             if resources.get(role, 0) < 1:
@@ -230,9 +262,11 @@ class RayEngine:
         front_cls = ray.remote(_FrontendActor)
         back_cls = ray.remote(_BackendActor)
         self._scene_ref = ray.put(scene)
+        # The models' working sizes (to reduce update frames before they travel).
+        self._sizes = RigForeground.from_states(dataset.rig, scene.states, config.foreground)
         self.frontend = front_cls.options(
             num_cpus=0, resources={"frontend": 1}, max_concurrency=4
-        ).remote(dataset, config, controller, self._scene_ref)
+        ).remote(dataset, config, controller, self._scene_ref, restored, background)
         self.backend = back_cls.options(
             num_cpus=0,
             resources={"backend": 1},
@@ -244,25 +278,46 @@ class RayEngine:
         ray.get(self.backend.ping.remote())  # wait until the back-end has started
 
     def plan(self, time_index: int) -> TaskPlan:
-        ray = _ray()
-        return ray.get(self.frontend.plan.remote(time_index))
+        return _ray().get(self.frontend.plan.remote(time_index))
 
-    def run_task(self, frames: FrameSet, plan: TaskPlan, task: int) -> TaskOutput:
+    def pending_updates(self, time_index: int) -> list[int]:
+        return list(_ray().get(self.frontend.pending_updates.remote(time_index)))
+
+    def run_task(
+        self,
+        frames: FrameSet,
+        plan: TaskPlan,
+        task: int,
+        defects: Mapping[str, str],
+        updates: Sequence[FrameSet] = (),
+    ) -> TaskOutput:
         ray = _ray()
         ref = ray.put(frames)
-        return ray.get(self.frontend.run_task.remote([ref], plan, task))
+        # Update frames travel reduced to the background models' working size (a few
+        # percent of a full-HD frame set's bytes).
+        small = [self._reduce(u) for u in updates]
+        # The front-end's watchdog answers first; this bound is for a front-end gone silent.
+        limit = self.config.watchdog_s + 2 * _RPC_GRACE_S
+        return ray.get(
+            self.frontend.run_task.remote([ref], plan, task, dict(defects), small), timeout=limit
+        )
 
-    def controller_state(self) -> dict[str, Any]:
-        ray = _ray()
-        return ray.get(self.frontend.controller_state.remote())
+    def _reduce(self, frames: FrameSet) -> FrameSet:
+        return self._sizes.reduce(frames)
 
-    def push_background(self, update: Any) -> None:
+    def state(self) -> FrontEndState:
+        return _ray().get(self.frontend.state.remote())
+
+    def node_ids(self) -> dict[str, str]:
+        """The Ray node each role's actor runs on."""
         ray = _ray()
-        ray.get(self.frontend.push_background.remote(update))
+        return {
+            "frontend": ray.get(self.frontend.node_id.remote()),
+            "backend": ray.get(self.backend.node_id.remote()),
+        }
 
     def status(self) -> dict[str, Any]:
-        ray = _ray()
-        return {"engine": self.name, **ray.get(self.frontend.status.remote())}
+        return {"engine": self.name, **_ray().get(self.frontend.status.remote())}
 
     def inject_backend_fault(self, kind: str, seconds: float = 0.0) -> None:
         """``"kill"`` kills the back-end's process (Ray restarts it); ``"stall"``/``"crash"``
@@ -282,3 +337,54 @@ class RayEngine:
                 pass
         if self._started_ray:
             ray.shutdown()
+        if self._reaper is not None:
+            self._reaper.kill()
+            self._reaper.wait()
+
+
+def _check_reachable(address: str, hint: str) -> None:
+    """A HOST:PORT nobody listens on fails in a second here, not after Ray's minute of
+    retries."""
+    if address == "auto" or "://" in address:
+        return
+    host, _, port = address.rpartition(":")
+    if not port.isdigit():
+        raise EdgereconError(f"--address must be HOST:PORT or auto, got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]") or "127.0.0.1", int(port)), timeout=3.0).close()
+    except OSError as exc:
+        raise EdgereconError(f"no Ray cluster at --address {address}: {hint} ({exc})") from None
+
+
+def connect(address: str | None, num_cpus: int | None = None) -> Any:
+    """Connect to the Ray cluster at ``address``, or start a private one on 127.0.0.1 that
+    offers both roles; returns the ray module when this call started or joined a cluster
+    (None when this process was already connected). No cluster at ``address`` is an
+    :class:`EdgereconError` saying how to start one."""
+    if _is_loopback(address):
+        keep_on_loopback()
+    hint = (
+        "start one first (ray start --head --node-ip-address=IP "
+        "--resources='{\"frontend\": 1}', see the README), or leave out --address for a "
+        "private local instance"
+    )
+    if address:
+        _check_reachable(address, hint)
+    ray = _ray()
+    if ray.is_initialized():
+        return None
+    if address:
+        try:
+            ray.init(address=address, log_to_driver=True)
+        except ConnectionError as exc:
+            raise EdgereconError(f"no Ray cluster at --address {address}: {hint} ({exc})") from None
+    else:
+        # A private local instance: both roles on this machine, loopback only.
+        ray.init(
+            num_cpus=num_cpus,
+            resources={"frontend": 1, "backend": 1},
+            include_dashboard=False,
+            _node_ip_address="127.0.0.1",
+            log_to_driver=True,
+        )
+    return ray

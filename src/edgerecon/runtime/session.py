@@ -9,16 +9,24 @@ Frame policy (frames can arrive faster than tasks finish):
   arrived and drops the older ones (counted in the summary as ``frames_dropped``). This is
   what a live deployment does: the user always sees the most recent state of the scene.
 
-Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn file):
+Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn file; 0644):
 
 * ``metrics.jsonl``: one JSON line per task (:class:`TaskMetrics`), failed tasks included;
 * ``tasks/<time>/merged.ply``: the merged cloud of each task (label and ``bg_version`` per point);
-* ``background.ply``: the newest background the front-end has merged;
-* ``state.json``: the controller's state and progress, for ``--resume``;
-* ``summary.json``: the run's summary (the paper's Table III).
+* ``background.ply``: the newest background cloud the front-end holds (the background itself,
+  as the back-end built it);
+* ``state.json``: the run state (:class:`~edgerecon.runtime.state.RunState`), written last for
+  each task: the commit point of ``--resume``;
+* ``summary.json``: the run's summary (the paper's Table III), also after Ctrl-C;
+* ``.lock``: held while the run lives (who holds it).
 
-``--resume`` continues after the last task recorded in ``metrics.jsonl`` with the saved
-controller state and background.
+Frames are checked before a task starts (:mod:`edgerecon.quality.frames`): a black,
+saturated or textureless frame's camera is left out of the task; a task left with fewer than
+3 cameras gives an empty result (no foreground, the background alone). One warning when
+frames become unusable, one line when they recover.
+
+``--resume`` continues after the last committed task with the saved run state and
+background (see :mod:`edgerecon.runtime.online`).
 """
 
 from __future__ import annotations
@@ -26,24 +34,26 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from edgerecon.config import MIN_CAMERAS
 from edgerecon.io.dataset import Dataset
-from edgerecon.io.ply import atomic_write_text, read_ply, write_ply
+from edgerecon.io.frames import FrameSource
+from edgerecon.io.ply import atomic_write_text, write_ply
+from edgerecon.quality.frames import FrameCheckConfig, frame_defects, without_defective
 from edgerecon.quality.metrics import fscore
-from edgerecon.runtime.messages import TaskMetrics
-from edgerecon.types import BACKGROUND_LABEL, EdgereconError
+from edgerecon.runtime.engine import Engine
+from edgerecon.runtime.frontend import TaskOutput
+from edgerecon.runtime.messages import TaskMetrics, describe_exception
+from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
+from edgerecon.types import EdgereconError, FrameSet
 
 logger = logging.getLogger(__name__)
-
-STATE_FORMAT = "edgerecon-run-state"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -93,12 +103,28 @@ class SessionOptions:
     """When the dataset has ground truth: score each task's foreground against it at this
     distance (rig units) — the offline F-score. None = no offline scoring."""
     resume: bool = False
-    fault: tuple[int, str, float] | None = None
-    """Drill: (task number, fault kind, seconds) injected into the back-end before that task."""
+    """Continue the run in the output folder (same dataset, same frame start and step)."""
+    overwrite: bool = False
+    """Replace the run files of a non-empty output folder (refused otherwise)."""
+    faults: tuple[tuple[int, str, float], ...] = ()
+    """Drills: (task number, fault kind, seconds) injected into the back-end before that
+    task."""
 
     def __post_init__(self) -> None:
         if self.policy not in ("all", "newest"):
             raise ValueError(f"policy must be 'all' or 'newest', got {self.policy!r}")
+        if self.resume and self.overwrite:
+            raise ValueError("--resume and --overwrite exclude each other")
+        for task, kind, seconds in self.faults:
+            if task < 0 or kind not in FAULT_KINDS or not seconds >= 0:
+                raise ValueError(
+                    f"--inject-fault: TASK >= 0, KIND in {FAULT_KINDS}, SECONDS >= 0; got "
+                    f"{task}:{kind}:{seconds}"
+                )
+
+
+#: Back-end faults a drill can inject (``kill``: the Ray engine only).
+FAULT_KINDS = ("stall", "crash", "kill")
 
 
 @dataclass
@@ -108,6 +134,8 @@ class RunSummary:
     tasks: int = 0
     failed: int = 0
     degraded: int = 0
+    empty: int = 0
+    """Tasks whose frames were unusable (fewer than 3 usable cameras): no foreground."""
     frames_dropped: int = 0
     avg_scale: float = math.nan
     avg_cameras: float = math.nan
@@ -120,10 +148,18 @@ class RunSummary:
     avg_online_fscore: float | None = None
     avg_offline_fscore: float | None = None
     backgrounds_pushed: int = 0
+    """Backgrounds the front-end took over the whole run (resumes included)."""
+    bg_version: list[int] = field(default_factory=lambda: [0, 0])
+    """(back-end epoch, counter) of the newest background held at the end."""
+    backend_restarts: int = 0
     search_steps: int = 0
     stage_means_s: dict[str, float] = field(default_factory=dict)
+    """Mean seconds per stage over the ok tasks (``wait_golden`` comes after the critical
+    path)."""
     engine: str = ""
     wall_s: float = 0.0
+    interrupted: bool = False
+    """The run was stopped (Ctrl-C, SIGTERM) before its last task: ``--resume`` goes on."""
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -133,53 +169,47 @@ class RunSummary:
         return d
 
 
+class RunInterrupted(KeyboardInterrupt):
+    """The run was stopped by a signal; its summary is written and ``--resume`` goes on."""
+
+    def __init__(self, summary: RunSummary, metrics: list[TaskMetrics]) -> None:
+        super().__init__(f"interrupted after {summary.tasks} tasks")
+        self.summary = summary
+        self.metrics = metrics
+
+
 class Session:
     """Runs tasks on an engine and keeps the run's files (see module docstring)."""
 
     def __init__(
         self,
         dataset: Dataset,
-        engine: Any,
+        engine: Engine,
         options: SessionOptions,
-        out_dir: str | Path,
+        folder: OutputFolder,
         *,
         deadline_s: float,
+        frame_check: FrameCheckConfig | None = None,
+        previous: list[TaskMetrics] | None = None,
         on_task: Callable[[TaskMetrics], None] | None = None,
     ) -> None:
         self.dataset = dataset
         self.engine = engine
         self.options = options
-        self.out = Path(out_dir)
+        self.folder = folder
+        self.out = folder.path
         self.deadline_s = deadline_s
+        self.frame_check = frame_check or FrameCheckConfig()
         self.on_task = on_task
-        self.metrics: list[TaskMetrics] = []
+        self.metrics: list[TaskMetrics] = list(previous or [])
+        self.identity = DatasetIdentity.of(dataset)
         self.frames_dropped = 0
+        self._defects: dict[str, str] = {}
         self._gt: Any = None
-        self._bg_written = 0
         if options.ground_truth_threshold is not None and dataset.ground_truth is not None:
             from edgerecon.synth import GroundTruth
 
             self._gt = GroundTruth.open(dataset.root)
-
-    # ------------------------------------------------------------------ resume
-    def load_previous(self) -> set[int]:
-        """Metrics of earlier runs in ``out_dir`` (for ``--resume``); returns the timestamps
-        already done."""
-        path = self.out / "metrics.jsonl"
-        if not path.exists():
-            return set()
-        done = set()
-        for line in path.read_text().splitlines():
-            if not line.strip():
-                continue
-            try:
-                m = TaskMetrics.from_dict(json.loads(line))
-            except (json.JSONDecodeError, TypeError):
-                logger.warning("%s: skipping an unreadable line", path)
-                continue
-            self.metrics.append(m)
-            done.add(m.time_index)
-        return done
 
     # ------------------------------------------------------------------ the loop
     def _schedule(self, indices: list[int], done: set[int]) -> Iterator[int]:
@@ -198,101 +228,148 @@ class Session:
             pos = newest + 1
 
     def run(self) -> RunSummary:
+        """Run every task not yet committed; Ctrl-C writes the summary and raises
+        :class:`RunInterrupted`."""
         wall0 = time.perf_counter()
-        self.out.mkdir(parents=True, exist_ok=True)
-        done = self.load_previous() if self.options.resume else set()
-        if not self.options.resume:
-            for name in ("metrics.jsonl", "state.json", "summary.json"):
-                (self.out / name).unlink(missing_ok=True)
         indices = self.options.frames.indices(self.dataset.num_frames)
-        if not indices:
-            raise EdgereconError(
-                f"--frames selects no timestamp of {self.dataset.name} "
-                f"({self.dataset.num_frames} frames)"
-            )
-        task = len(self.metrics)
-        with self.dataset.open_frames(missing="skip_camera") as source:
-            for t in self._schedule(indices, done):
-                if self.options.fault is not None and self.options.fault[0] == task:
-                    _, kind, seconds = self.options.fault
-                    logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
-                    self.engine.inject_backend_fault(kind, seconds)
-                m = self._run_one(source, t, task)
-                self.metrics.append(m)
-                self._append_metrics(m)
-                self._save_state(task)
-                if self.on_task is not None:
-                    self.on_task(m)
-                task += 1
+        done = {m.time_index for m in self.metrics}
+        try:
+            with self.dataset.open_frames(missing="skip_camera") as source:
+                for t in self._schedule(indices, done):
+                    self._task(source, t, len(self.metrics))
+        except KeyboardInterrupt:
+            summary = self._finish(wall0, interrupted=True)
+            raise RunInterrupted(summary, self.metrics) from None
+        return self._finish(wall0, interrupted=False)
+
+    def _finish(self, wall0: float, *, interrupted: bool) -> RunSummary:
         summary = self.summarise()
+        summary.interrupted = interrupted
         summary.wall_s = round(time.perf_counter() - wall0, 3)
+        try:
+            status = self.engine.status()
+            summary.backgrounds_pushed = int(status.get("backgrounds_received", 0))
+            summary.bg_version = list(status.get("bg_version", [0, 0]))
+            summary.backend_restarts = int(status.get("backend_restarts", 0))
+        except Exception as exc:  # the summary is written even when an engine is gone
+            logger.warning("engine status unavailable for the summary: %s", exc)
         atomic_write_text(self.out / "summary.json", json.dumps(summary.to_dict(), indent=2) + "\n")
         return summary
 
-    def _run_one(self, source: Any, t: int, task: int) -> TaskMetrics:
-        try:
-            frames = source.read(t)
-            plan = self.engine.plan(t)
-            out = self.engine.run_task(frames, plan, task)
-        except EdgereconError as exc:
-            logger.error("task %d (time %d) failed: %s", task, t, exc)
-            return TaskMetrics(
-                task=task,
-                time_index=t,
-                status="failed",
-                error=str(exc),
-                deadline_s=self.deadline_s,
-                wall_time=time.time(),
-            )
+    def _task(self, source: FrameSource, t: int, task: int) -> None:
+        for when, kind, seconds in self.options.faults:
+            if when == task:
+                logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
+                try:
+                    self.engine.inject_backend_fault(kind, seconds)
+                except Exception as exc:  # a drill must not end the run either
+                    logger.error("drill: injecting %r failed: %s", kind, exc)
+        out = self._run_one(source, t, task)
         m = out.metrics
-        if self._gt is not None and self.options.ground_truth_threshold is not None:
+        try:
+            if m.status == "ok":
+                self._score(m, t, out)
+                if self.options.write_clouds and out.merged is not None:
+                    write_ply(self.out / "tasks" / f"{t:06d}" / "merged.ply", out.merged)
+                if out.background is not None:
+                    write_ply(self.out / "background.ply", out.background)
+            # Cloud, background, metrics line, then the run state: the commit point.
+            self.folder.append_metrics(m)
+            self.metrics.append(m)
+            RunState(
+                dataset=self.identity,
+                frames=(
+                    self.options.frames.start,
+                    self.options.frames.stop,
+                    self.options.frames.step,
+                ),
+                policy=self.options.policy,
+                deadline_s=self.deadline_s,
+                tasks_done=len(self.metrics),
+                frontend=self.engine.state(),
+            ).save(self.out)
+        except OSError as exc:  # disk full, folder removed: stop with what is committed
+            raise EdgereconError(
+                f"cannot write the outputs of task {task} to {self.out} ({exc}); the run "
+                f"stopped after {len(self.metrics)} committed tasks: fix it and --resume"
+            ) from None
+        if self.on_task is not None:
+            self.on_task(m)
+
+    def _run_one(self, source: FrameSource, t: int, task: int) -> TaskOutput:
+        try:
+            # The frames of the background models' scheduled updates due before t, read
+            # first (sources stream forwards), unusable cameras left out as in tasks.
+            updates = self._update_frames(source, t)
+            frames = source.read(t)
+            defects = frame_defects(frames, self.frame_check)
+            frames = without_defective(frames, defects)
+            named = {self.dataset.rig[i].name: d for i, d in enumerate(defects) if d is not None}
+            self._note_defects(t, named)
+            plan = self.engine.plan(t)
+            return self.engine.run_task(frames, plan, task, named, updates)
+        except Exception as exc:  # any stage, any engine: a failed record, never a dead run
+            error = describe_exception(exc)
+            logger.error("task %d (time %d) failed: %s", task, t, error)
+            logger.debug("traceback", exc_info=exc)
+            m = TaskMetrics.failed(task=task, time_index=t, error=error, deadline_s=self.deadline_s)
+            return TaskOutput(metrics=m, merged=None, foreground=None)
+
+    def _update_frames(self, source: FrameSource, t: int) -> list[FrameSet]:
+        """The frames of the background models' scheduled updates due before ``t``, unusable
+        cameras left out as in tasks; a frame that cannot be read is skipped (the schedule
+        moves on without it)."""
+        out = []
+        for s in self.engine.pending_updates(t):
+            try:
+                frames = source.read(s)
+            except EdgereconError as exc:
+                logger.debug("background update at time %d skipped: %s", s, exc)
+                continue
+            out.append(without_defective(frames, frame_defects(frames, self.frame_check)))
+        return out
+
+    def _note_defects(self, t: int, defects: dict[str, str]) -> None:
+        """One warning when frames become unusable, one line when they recover."""
+        if defects == self._defects:
+            return
+        if defects:
+            logger.warning(
+                "time %d: unusable frames (%s): those cameras are left out of the tasks (a "
+                "task with fewer than 3 cameras gives an empty result) until they recover",
+                t,
+                ", ".join(f"{k} {v}" for k, v in defects.items()),
+            )
+        else:
+            logger.warning("time %d: every camera's frames are usable again", t)
+        self._defects = defects
+
+    def _score(self, m: TaskMetrics, t: int, out: TaskOutput) -> None:
+        if self._gt is None or self.options.ground_truth_threshold is None:
+            return
+        try:
             ref = self._gt.reference_cloud(t, "foreground", min_views=2)
-            m.offline_fscore = (
-                fscore(out.foreground, ref, self.options.ground_truth_threshold)
-                if len(ref)
-                else None
-            )
-        if self.options.write_clouds:
-            write_ply(self.out / "tasks" / f"{t:06d}" / "merged.ply", out.merged)
-        if m.bg_version > self._bg_written and out.merged.labels is not None:
-            write_ply(
-                self.out / "background.ply",
-                out.merged.select(out.merged.labels == BACKGROUND_LABEL),
-            )
-            self._bg_written = m.bg_version
-        return m
-
-    def _append_metrics(self, m: TaskMetrics) -> None:
-        path = self.out / "metrics.jsonl"
-        line = json.dumps(m.to_dict()) + "\n"
-        # Append + fsync: a crash loses at most the task in progress, never earlier lines.
-        with open(path, "a", encoding="utf-8") as f:
-            f.write(line)
-            f.flush()
-            os.fsync(f.fileno())
-
-    def _save_state(self, task: int) -> None:
-        state = {
-            "format": STATE_FORMAT,
-            "version": 1,
-            "dataset": str(self.dataset.root),
-            "last_task": task,
-            "bg_version": self._bg_written,
-            "controller": self.engine.controller_state(),
-        }
-        atomic_write_text(self.out / "state.json", json.dumps(state) + "\n")
+        except EdgereconError as exc:  # ground truth of this time unreadable: no score
+            logger.warning("time %d: no offline score (%s)", t, exc)
+            return
+        if len(ref) and out.foreground is not None:
+            m.offline_fscore = fscore(out.foreground, ref, self.options.ground_truth_threshold)
 
     # ------------------------------------------------------------------ summary
     def summarise(self) -> RunSummary:
         ok = [m for m in self.metrics if m.status == "ok"]
+        empty = [m for m in ok if m.frame_defects and m.num_cameras < MIN_CAMERAS]
         s = RunSummary(
             tasks=len(self.metrics),
             failed=len(self.metrics) - len(ok),
             degraded=sum(m.degraded for m in ok),
+            empty=len(empty),
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
         )
+        skip = {id(m) for m in empty}
+        ok = [m for m in ok if id(m) not in skip]  # averages over the tasks that reconstructed
         if ok:
             s.avg_scale = float(np.mean([m.scale for m in ok]))
             s.avg_cameras = float(np.mean([m.num_cameras for m in ok]))
@@ -306,7 +383,6 @@ class Session:
             off = [m.offline_fscore for m in ok if m.offline_fscore is not None]
             s.avg_online_fscore = float(np.mean(on)) if on else None
             s.avg_offline_fscore = float(np.mean(off)) if off else None
-            s.backgrounds_pushed = max(m.bg_version for m in ok)
             s.search_steps = max(m.search_steps for m in ok)
             stages: dict[str, list[float]] = {}
             for m in ok:
@@ -314,13 +390,3 @@ class Session:
                     stages.setdefault(k, []).append(v)
             s.stage_means_s = {k: round(float(np.sum(v)) / len(ok), 4) for k, v in stages.items()}
         return s
-
-    def previous_background(self) -> tuple[Any, int] | None:
-        """The background saved by an earlier run (for ``--resume``), with its version."""
-        path = self.out / "background.ply"
-        state = self.out / "state.json"
-        if not (path.exists() and state.exists()):
-            return None
-        version = int(json.loads(state.read_text()).get("bg_version", 0))
-        self._bg_written = version
-        return read_ply(path), version

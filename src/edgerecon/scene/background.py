@@ -12,9 +12,21 @@ distortion model) keeps, per pixel of a working-resolution image:
 * a shadow test: a pixel darker than the background by a bounded factor with the same
   chromaticity is a shadow, not foreground;
 * a selective update: only pixels classified as background (away from the foreground by a
-  guard band) learn; a pixel that stays foreground for ``absorb_after_frames`` frames is
+  guard band) learn; a pixel that stays foreground for ``absorb_after_frames`` updates is
   absorbed slowly (a moved piece of furniture), long after an actor standing still for a few
-  seconds would have been.
+  seconds would have been — a stopped actor stays foreground (the *hold*);
+* ghost repair: when something that was part of the learned background leaves (a person who
+  was present while the model was bootstrapped from the stream), the background it uncovers
+  differs from the model and shows up as a foreground blob — a *ghost*. A real object has an
+  image edge along its outline (object against background); a ghost has the edge in the
+  *model* (the departed object's outline) and none in the frame. Blobs whose outline is much
+  stronger in the model than in the frame are learned at once.
+
+Segmentation and update are separate: ``segment`` classifies a frame and never changes the
+model, ``update`` learns from one frame (reusing a segmentation of it). Everything works at a
+*working resolution* of at most ``working_pixels`` pixels (masks are returned there: consumers
+map them onto their views, see ``edgerecon.views.mask_scale``), so the cost per frame does not
+grow with the sensor's megapixels.
 
 The state is a few NumPy arrays (``BackgroundState``): it pickles and travels between nodes.
 """
@@ -30,7 +42,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.scene.masks import MaskConfig, clean_mask, disk, resize_mask_smooth
+from edgerecon.scene.masks import MaskConfig, clean_mask, disk
 from edgerecon.types import DataError, Image, Mask
 
 logger = logging.getLogger(__name__)
@@ -40,15 +52,21 @@ logger = logging.getLogger(__name__)
 class BackgroundConfig:
     """Parameters of the per-camera background model."""
 
-    max_working_width: int = 960
-    """Frames wider than this are downscaled to this width for modelling (pixels); the mask is
-    upsampled back to the frame size."""
+    working_pixels: int = 130_000
+    """Frames with more pixels than this are downscaled (aspect kept) to about this many
+    pixels for modelling (480x270 for 16:9); masks are produced at that working resolution."""
     threshold_sigma: float = 4.0
     """A pixel is foreground when its colour differs from the gain-compensated background by
     more than this many noise standard deviations (Mahalanobis norm over the 3 channels)."""
     min_noise_std: float = 3.0
     """Floor of the per-channel noise standard deviation (grey levels): covers compression
     noise that a short learning clip underestimates."""
+    max_noise_ratio: float = 2.0
+    """The per-pixel noise learned from a clip is capped at this multiple of the camera's
+    median noise (per channel): without an empty clip, the pixels actors crossed during the
+    learning frames would otherwise become insensitive (hd4 at 640x360, t = 100: the recall
+    of an actor who stopped where they had walked rose from 0.45 / 0.26 to 0.77 / 0.91 in the
+    two cameras that saw them cross); 0 = no cap."""
     jitter_px: float = 1.0
     """Expected misregistration between the model and a frame (pixels at the working
     resolution: camera vibration, video compression): the noise of pixels on strong image
@@ -68,18 +86,35 @@ class BackgroundConfig:
     """Windows correlating less than this with the background are foreground."""
     shadow_min_brightness: float = 0.45
     """Shadows darken the background by at most this factor (brightness ratio >= it)."""
-    shadow_max_brightness: float = 1.0
+    shadow_max_brightness: float = 1.5
     """Brightness ratios up to this are tested for shadows/highlights (1 = shadows only)."""
     shadow_max_chroma: float = 0.1
     """Largest chromaticity distortion of a shadow, relative to its brightness."""
-    learning_rate: float = 0.02
-    """Per-frame rate at which background pixels learn the current frame (0 = frozen model)."""
+    learning_rate: float = 0.05
+    """Rate at which background pixels learn the frame of each update (0 = frozen model);
+    the stream schedule updates every ``ForegroundConfig.update_interval_s`` (10 s time
+    constant at the defaults)."""
     update_guard_px: int = 4
     """Foreground is dilated by this many working pixels before the selective update, so that
     blurred silhouette edges are not learned into the background."""
-    absorb_after_frames: int = 1500
-    """A pixel that is foreground in this many consecutive frames starts to be learned
-    (a static change of the scene); 0 = never absorb. 1500 frames = 60 s at 25 fps."""
+    absorb_after_frames: int = 120
+    """A pixel that is foreground in this many consecutive updates starts to be learned
+    (a static change of the scene); 0 = never absorb. 120 updates = 60 s at the default
+    update interval."""
+    ghost_edge_ratio: float = 2.0
+    """A foreground blob is a ghost (uncovered background, see the module docstring) when the
+    model's mean gradient along its outline exceeds the frame's by this factor; 0 = no ghost
+    repair."""
+    ghost_min_edge: float = 10.0
+    """... and the model's mean gradient along the outline (strongest within a pixel) is at
+    least this (grey levels per pixel): a blob on a flat background has no outline to judge."""
+    ghost_min_outline_px: int = 12
+    """Blobs with a shorter outline (working pixels) are never judged ghosts."""
+    ghost_min_matches: int = 2
+    """A foreground pixel whose colour matches (within ``threshold_sigma``) at least this many
+    of the frames the model was learned from is background seen then, uncovered now: a ghost
+    pixel, learned at once (it catches ghosts fused to an actor, which the outline test cannot
+    judge); 0 = off."""
     max_learning_frames: int = 60
     """At most this many frames (evenly spaced) of a learning clip enter the median."""
     min_gain: float = 0.4
@@ -90,10 +125,13 @@ class BackgroundConfig:
     """Cleaning of the raw detections, in working-resolution pixels."""
 
     def __post_init__(self) -> None:
-        if self.max_working_width < 16:
+        if self.working_pixels < 1024:
             raise ValueError(
-                f"BackgroundConfig.max_working_width must be >= 16, got {self.max_working_width}"
+                f"BackgroundConfig.working_pixels must be >= 1024, got {self.working_pixels}"
             )
+        for name in ("ghost_edge_ratio", "ghost_min_edge", "ghost_min_outline_px"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"BackgroundConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("threshold_sigma", "min_noise_std", "shadow_max_chroma", "max_gain"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"BackgroundConfig.{name} must be > 0, got {getattr(self, name)}")
@@ -160,39 +198,94 @@ class BackgroundState:
     """Frames segmented since the model was learned."""
     version: int = 0
     """Incremented each time the model is (re)learned from a clip."""
+    seen: NDArray[np.uint8] | None = None
+    """(n, h, w, 3) the frames the model was learned from (working resolution; read only):
+    what each pixel looked like then, for the ghost test (None: fewer than 3 frames)."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class Segmentation:
-    """Result of segmenting one frame."""
+    """Result of segmenting one frame (all at the model's working resolution)."""
 
     foreground: Mask
-    """(H, W) clean foreground mask at the frame's resolution."""
+    """(h, w) clean foreground mask at the working resolution."""
     raw: Mask
     """(h, w) raw detections at the working resolution (before cleaning)."""
     shadow: Mask
     """(h, w) pixels explained as shadows (not foreground), working resolution."""
     gain: NDArray[np.float64]
     """(3,) per-channel global gain of the frame relative to the model (B, G, R)."""
+    image: NDArray[np.float32] | None = field(default=None, repr=False)
+    """The frame at the working resolution (float32 BGR), reused by ``update``; dropped
+    (``slim``) before a segmentation travels to another node."""
+
+    def slim(self) -> Segmentation:
+        """The same segmentation without its working image."""
+        return dataclasses.replace(self, image=None)
 
 
-def working_size(frame_size: tuple[int, int], max_width: int) -> tuple[int, int]:
-    """(width, height) at which a camera with ``frame_size`` is modelled."""
+def working_size(frame_size: tuple[int, int], max_pixels: int) -> tuple[int, int]:
+    """(width, height) at which a camera with ``frame_size`` is modelled: the frame itself
+    when it has at most ``max_pixels`` pixels, else the frame reduced by an integer factor
+    when that keeps >= 70 % of ``max_pixels``, else scaled (aspect kept, rounded as
+    ``Camera.scaled``) to about ``max_pixels``."""
     w, h = frame_size
-    if w <= max_width:
+    if w * h <= max_pixels:
         return (w, h)
-    s = max_width / w
-    return (max_width, max(1, round(h * s)))
+    s = float(np.sqrt(max_pixels / (w * h)))
+    # An exact integer reduction when one is close (1920x1080 -> 480x270): the frames then
+    # take OpenCV's fast area-averaging path, and nothing is interpolated.
+    k = int(np.ceil(1.0 / s))
+    if w % k == 0 and h % k == 0 and (w // k) * (h // k) >= 0.7 * max_pixels:
+        return (w // k, h // k)
+    return (max(1, round(w * s)), max(1, round(h * s)))
+
+
+@dataclass(frozen=True, kw_only=True)
+class UpdateStats:
+    """What one update of a background model did."""
+
+    learned_px: int
+    """Working pixels that learned the frame (background, or absorbed)."""
+    ghost_px: int
+    """Working pixels of ghosts learned at once."""
+    ghosts: int
+    """Ghost blobs found."""
+
+
+def downscale(frame: Image, size: tuple[int, int]) -> Image:
+    """``frame`` reduced to ``size`` = (width, height): pixel-area averaging, by an integer
+    factor first (OpenCV's fast path: a non-integer area resize of a 1080p frame costs ~4x
+    more), then bilinear for the remaining factor (< 2)."""
+    h, w = frame.shape[:2]
+    if (w, h) == size:
+        return frame
+    k = min(w // size[0], h // size[1])
+    while k >= 2 and (w % k or h % k):
+        k -= 1
+    if k >= 2:
+        reduced = np.asarray(
+            cv2.resize(frame, (w // k, h // k), interpolation=cv2.INTER_AREA), np.uint8
+        )
+        if (w // k, h // k) == size:
+            return reduced
+        return np.asarray(cv2.resize(reduced, size, interpolation=cv2.INTER_LINEAR), np.uint8)
+    return np.asarray(cv2.resize(frame, size, interpolation=cv2.INTER_AREA), np.uint8)
 
 
 def _to_working(frame: Image, size: tuple[int, int]) -> NDArray[np.float32]:
-    if (frame.shape[1], frame.shape[0]) != size:
-        return np.asarray(cv2.resize(frame, size, interpolation=cv2.INTER_AREA), np.float32)
-    return frame.astype(np.float32)
+    return downscale(frame, size).astype(np.float32)
 
 
 #: BGR -> grey weights (ITU-R BT.601) for cv2.transform.
 _GREY = np.array([[0.114, 0.587, 0.299]], np.float32)
+
+
+def _gradient_magnitude(grey: NDArray[np.float32]) -> NDArray[np.float32]:
+    """|grad| of a grey image in grey levels per pixel (3x3 Sobel)."""
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+    return np.asarray(cv2.magnitude(gx, gy), np.float32)
 
 
 class BackgroundModel:
@@ -233,13 +326,8 @@ class BackgroundModel:
         if len(frames) > config.max_learning_frames:
             idx = np.linspace(0, len(frames) - 1, config.max_learning_frames).round().astype(int)
             frames = [frames[i] for i in idx]
-        wsize = working_size(size, config.max_working_width)
-        stack = np.stack(
-            [
-                cv2.resize(f, wsize, interpolation=cv2.INTER_AREA) if wsize != size else f
-                for f in frames
-            ]
-        )
+        wsize = working_size(size, config.working_pixels)
+        stack = np.stack([downscale(f, wsize) for f in frames])
         mean = np.median(stack, axis=0).astype(np.float32)
         if len(frames) >= 3:
             mad = np.median(np.abs(stack.astype(np.float32) - mean), axis=0)
@@ -247,8 +335,15 @@ class BackgroundModel:
         else:
             std = np.zeros_like(mean)
         np.maximum(std, config.min_noise_std, out=std)
+        if config.max_noise_ratio > 0:
+            # A pixel an actor crossed in several learning frames gets a large MAD and would
+            # never see that actor again when they stop there: cap it (edges keep their own
+            # allowance through jitter_px).
+            cap = config.max_noise_ratio * np.median(std, axis=(0, 1))
+            np.minimum(std, np.maximum(cap, config.min_noise_std).astype(np.float32), out=std)
         var = std * std
         h, w = mean.shape[:2]
+        seen = stack if len(frames) >= 3 else None
         state = BackgroundState(
             camera=camera,
             frame_size=size,
@@ -258,6 +353,7 @@ class BackgroundModel:
             last_foreground=np.zeros((h, w), bool),
             num_frames=0,
             version=version,
+            seen=seen,
         )
         logger.debug(
             "camera %s: background learned from %d frames at %s", camera, len(frames), wsize
@@ -314,10 +410,10 @@ class BackgroundModel:
     def version(self) -> int:
         return self._state.version
 
-    def background_image(self) -> Image:
-        """The background colour as a BGR image at the frame resolution."""
+    def background_image(self, *, working: bool = False) -> Image:
+        """The background colour as a BGR image at the frame (or the working) resolution."""
         img = np.clip(np.rint(self._state.mean), 0, 255).astype(np.uint8)
-        if self.working_size != self.frame_size:
+        if not working and self.working_size != self.frame_size:
             img = np.asarray(
                 cv2.resize(img, self.frame_size, interpolation=cv2.INTER_LINEAR), np.uint8
             )
@@ -327,7 +423,7 @@ class BackgroundModel:
     def _check_frame(self, frame: Image) -> None:
         if frame.ndim != 3 or frame.shape[2] != 3:
             raise DataError(f"camera {self.camera!r}: frames must be BGR (H, W, 3)")
-        if (frame.shape[1], frame.shape[0]) != self.frame_size:
+        if (frame.shape[1], frame.shape[0]) not in (self.frame_size, self.working_size):
             raise DataError(
                 f"camera {self.camera!r}: frame is {frame.shape[1]}x{frame.shape[0]} but the "
                 f"background model was learned at {self.frame_size[0]}x{self.frame_size[1]}"
@@ -441,27 +537,128 @@ class BackgroundModel:
             changed |= texture
         return changed & ~shadow, shadow, gain
 
-    def segment(self, frame: Image, *, update: bool = True) -> Segmentation:
-        """Foreground of a full-resolution BGR frame; learns from it unless ``update=False``.
+    def working_image(self, frame: Image) -> NDArray[np.float32]:
+        """``frame`` (full resolution, or already reduced to the working size: e.g. by
+        ``downscale`` before it travelled to another node) as the float32 working image."""
+        self._check_frame(frame)
+        return _to_working(frame, self.working_size)
+
+    def segment(self, frame: Image, *, image: NDArray[np.float32] | None = None) -> Segmentation:
+        """Foreground of a full-resolution BGR frame, at the working resolution. Never changes
+        the model (see ``update``). ``image``: the frame's ``working_image`` when the caller
+        has it already.
 
         Raises ``DataError`` when the frame's size differs from the model's.
         """
-        self._check_frame(frame)
-        image = _to_working(frame, self.working_size)
+        if image is None:
+            image = self.working_image(frame)
         raw, shadow, gain = self.classify(image)
         clean = clean_mask(raw, self.config.mask)
-        if update:
-            self._update(image, clean, gain)
-        full = resize_mask_smooth(clean, self.frame_size)
-        return Segmentation(foreground=full, raw=raw, shadow=shadow, gain=gain)
+        return Segmentation(foreground=clean, raw=raw, shadow=shadow, gain=gain, image=image)
+
+    def update(
+        self,
+        frame: Image,
+        segmentation: Segmentation | None = None,
+        *,
+        image: NDArray[np.float32] | None = None,
+    ) -> UpdateStats:
+        """Learn from one frame: ghost repair, then the selective update. ``segmentation``:
+        this frame's ``segment`` result when the caller has it (it is not computed twice)."""
+        if image is None:
+            image = (
+                segmentation.image
+                if segmentation is not None and segmentation.image is not None
+                else self.working_image(frame)
+            )
+        seg = segmentation if segmentation is not None else self.segment(frame, image=image)
+        foreground = seg.foreground
+        ghost = np.zeros_like(foreground)
+        num_ghosts = 0
+        target = np.asarray(image / seg.gain.astype(np.float32), np.float32)
+        if self.config.ghost_edge_ratio > 0 and foreground.any():
+            ghost, num_ghosts = self._ghosts(image, foreground, seg.gain)
+        if self.config.ghost_min_matches > 0 and self._state.seen is not None:
+            seen_before = self._seen_before(target, foreground & ~ghost)
+            if seen_before.any():
+                ghost = ghost | seen_before
+                num_ghosts += 1
+        if ghost.any():
+            self._state.mean[ghost] = target[ghost]
+            foreground = foreground & ~ghost
+        learned = self._update(image, foreground, seg.gain)
+        return UpdateStats(
+            learned_px=learned, ghost_px=int(np.count_nonzero(ghost)), ghosts=num_ghosts
+        )
 
     def apply(self, frame: Image, *, update: bool = True) -> Mask:
-        """The clean full-resolution foreground mask of ``frame`` (see ``segment``)."""
-        return self.segment(frame, update=update).foreground
+        """The clean working-resolution foreground of ``frame``; the model then learns from
+        the frame unless ``update=False`` (segment + update in one call)."""
+        image = self.working_image(frame)
+        seg = self.segment(frame, image=image)
+        if update:
+            self.update(frame, seg, image=image)
+        return seg.foreground
+
+    def _seen_before(self, target: NDArray[np.float32], foreground: Mask) -> Mask:
+        """Foreground pixels whose colour (at the model's exposure) matches at least
+        ``ghost_min_matches`` of the learning frames (see ``ghost_min_matches``)."""
+        cfg = self.config
+        s = self._state
+        assert s.seen is not None
+        ys, xs = np.nonzero(foreground)
+        if not len(ys):
+            return np.zeros_like(foreground)
+        cand = target[ys, xs]  # (m, 3)
+        diff = s.seen[:, ys, xs].astype(np.float32) - cand  # (n, m, 3)
+        d2 = diff * diff
+        maha2 = (d2 / s.var[ys, xs]).sum(axis=2)
+        close = (maha2 <= np.float32(cfg.threshold_sigma**2)) | (
+            d2.sum(axis=2) <= np.float32(cfg.min_abs_diff**2)
+        )
+        hit = np.zeros_like(foreground)
+        hit[ys, xs] = np.count_nonzero(close, axis=0) >= cfg.ghost_min_matches
+        # Isolated matches inside an actor are chance: only regions count.
+        return np.asarray(
+            cv2.morphologyEx(hit.view(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)), bool
+        )
+
+    def _ghosts(
+        self, image: NDArray[np.float32], foreground: Mask, gain: NDArray[np.float64]
+    ) -> tuple[Mask, int]:
+        """Foreground blobs that are uncovered background (see the module docstring)."""
+        cfg = self.config
+        # Grey of the frame at the model's exposure: channel c divided by its gain.
+        grey_f = np.asarray(
+            cv2.transform(image, _GREY / gain.astype(np.float32)[None, :]), np.float32
+        )
+        grey_b = np.asarray(cv2.transform(self._state.mean, _GREY), np.float32)
+        n, cc = cv2.connectedComponents(foreground.view(np.uint8), connectivity=8)
+        u8 = foreground.view(np.uint8)
+        outline = foreground & ~cv2.erode(u8, np.ones((3, 3), np.uint8)).astype(bool)
+        ys, xs = np.nonzero(outline)
+        owner = cc[ys, xs]
+        # The strongest gradient within a pixel of the outline: the blob's outline lies within
+        # a pixel of the edge that made it, on either side.
+        k3 = np.ones((3, 3), np.uint8)
+        grad_f = cv2.dilate(_gradient_magnitude(grey_f), k3)[ys, xs]
+        grad_b = cv2.dilate(_gradient_magnitude(grey_b), k3)[ys, xs]
+        count = np.bincount(owner, minlength=n).astype(np.float64)
+        mean_f = np.bincount(owner, grad_f, minlength=n) / np.maximum(count, 1)
+        mean_b = np.bincount(owner, grad_b, minlength=n) / np.maximum(count, 1)
+        is_ghost = (
+            (count >= cfg.ghost_min_outline_px)
+            & (mean_b >= cfg.ghost_min_edge)
+            & (mean_b > cfg.ghost_edge_ratio * mean_f)
+        )
+        is_ghost[0] = False
+        if not is_ghost.any():
+            return np.zeros_like(foreground), 0
+        return is_ghost[cc], int(np.count_nonzero(is_ghost))
 
     def _update(
         self, image: NDArray[np.float32], foreground: Mask, gain: NDArray[np.float64]
-    ) -> None:
+    ) -> int:
         cfg = self.config
         s = self._state
         age = s.fg_age
@@ -483,6 +680,7 @@ class BackgroundModel:
             cv2.accumulateWeighted(target, s.mean, cfg.learning_rate, mask=m8)
         s.last_foreground[...] = foreground
         object.__setattr__(s, "num_frames", s.num_frames + 1)
+        return int(np.count_nonzero(learn)) if cfg.learning_rate > 0 else 0
 
 
 def learn_backgrounds(

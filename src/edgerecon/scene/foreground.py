@@ -3,14 +3,20 @@
 ``RigForeground`` holds one ``BackgroundModel`` per rig camera (the only state of the scene
 stage) and turns each ``FrameSet`` into a ``ForegroundResult``:
 
-1. per camera, the background model's clean foreground mask (the model learns from the frame);
+1. per camera, the background model's clean foreground mask;
 2. optionally, the visual hull of all masks, and masks made consistent with it (foreground
    that no 3D object explains, such as a change only one camera sees, is dropped);
 3. per camera, the objects (k-means with automatic k) of the final mask.
+
+Everything runs at the models' working resolution (``BackgroundConfig.working_pixels``): the
+masks, object label images and the hull's cameras are at that size, so the stage costs the
+same for a 640x480 and a 1920x1080 rig. Segmenting never changes the models; ``update``
+teaches them one frame (see :mod:`edgerecon.scene.stream` for which frames of a stream do).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -20,12 +26,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.progress import track
-from edgerecon.scene.background import BackgroundConfig, BackgroundModel, BackgroundState
+from edgerecon.scene.background import (
+    BackgroundConfig,
+    BackgroundModel,
+    BackgroundState,
+    Segmentation,
+    UpdateStats,
+    downscale,
+)
 from edgerecon.scene.hull import HullConfig, VisualHull, hull_consistent_masks, visual_hull
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
 from edgerecon.types import DataError, DepthMap, FrameSet, Image, Mask, StageTimings
-from edgerecon.views import resize_mask
 
 logger = logging.getLogger(__name__)
 
@@ -40,17 +51,29 @@ class ForegroundConfig:
     """Object clustering in each image."""
     hull: HullConfig = field(default_factory=lambda: HullConfig(max_missing=0))
     """Visual hull used for the cross-camera consistency of the masks."""
-    hull_max_width: int = 960
-    """The hull is carved from masks downscaled to at most this width (pixels)."""
     hull_consistency: bool = True
     """Remove the foreground that the visual hull of all masks does not explain: a detection
     that the other cameras seeing the same space contradict, or that fewer than
     ``hull.min_views`` cameras see (it could not be reconstructed anyway)."""
+    update_interval_s: float = 0.5
+    """Stream time between two updates of the background models: every frame whose time
+    index is a multiple of ``round(fps x update_interval_s)`` teaches them (seconds)."""
+    bootstrap_span_s: float = 1.0
+    """Without a background clip, the models start from the per-pixel median of frames spread
+    over the first this many seconds of the stream. Short on purpose: whatever is present
+    then is learned, and the ghost repair learns the background it uncovers as soon as it
+    moves; a long span would also learn an actor who stands still for most of it and then
+    hold nothing (measured on the hd4 preset: see docs/BENCHMARKS.md)."""
+    bootstrap_frames: int = 8
+    """How many frames (evenly spread over ``bootstrap_span_s``) enter that median."""
 
     def __post_init__(self) -> None:
-        if self.hull_max_width < 16:
+        for name in ("update_interval_s", "bootstrap_span_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ForegroundConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.bootstrap_frames < 1:
             raise ValueError(
-                f"ForegroundConfig.hull_max_width must be >= 16, got {self.hull_max_width}"
+                f"ForegroundConfig.bootstrap_frames must be >= 1, got {self.bootstrap_frames}"
             )
         for name, cls in (
             ("background", BackgroundConfig),
@@ -68,15 +91,24 @@ class ForegroundResult:
     time_index: int
     """The frame set's time index."""
     masks: tuple[Mask | None, ...]
-    """(H, W) final foreground per camera, full resolution."""
+    """(h, w) final foreground per camera at the working resolution (``cameras``)."""
     model_masks: tuple[Mask | None, ...]
-    """(H, W) background-model masks before the hull consistency step."""
+    """(h, w) background-model masks before the hull consistency step."""
     objects: tuple[ObjectSegmentation | None, ...]
-    """Objects per camera (labels image, per-object boxes and ROIs)."""
+    """Objects per camera (labels image, per-object boxes and ROIs), working resolution."""
     hull: VisualHull | None
     """Visual hull of the model masks (None when it was not computed)."""
     timings: StageTimings
     """Seconds per step."""
+    cameras: tuple[Camera, ...] = ()
+    """The rig's cameras at the masks' working resolution (distortion kept)."""
+    segmentations: tuple[Segmentation | None, ...] = field(default=(), repr=False)
+    """The background models' per-camera classifications (reused by ``update``)."""
+
+    def slim(self) -> ForegroundResult:
+        """The same result without the per-camera classifications (and their working
+        images): what another node needs of it."""
+        return dataclasses.replace(self, segmentations=())
 
     def label_images(self) -> list[NDArray[np.int32] | None]:
         """Per camera, the object-id image (0 = background), e.g. for ``split_sparse``."""
@@ -157,86 +189,115 @@ class RigForeground:
         """Snapshots of the models' states (picklable; see ``from_states``)."""
         return [m.state for m in self.models]
 
-    def warm_up(self, framesets: Iterable[FrameSet]) -> int:
-        """Let the models learn from frames before the first task; returns frames used."""
-        n = 0
-        for fs in track(framesets, "warming up background models"):
-            self._model_masks(fs, update=True)
-            n += 1
-        return n
+    @property
+    def working_cameras(self) -> tuple[Camera, ...]:
+        """The rig's cameras at the models' working resolution (what the masks are at)."""
+        return tuple(
+            cam.resized(*model.working_size)
+            for cam, model in zip(self.rig, self.models, strict=True)
+        )
 
-    def _model_masks(self, frames: FrameSet, update: bool) -> list[Mask | None]:
+    def reduce(self, frames: FrameSet) -> FrameSet:
+        """``frames`` at the models' working resolution: all that ``segment`` and ``update``
+        need of them, a fraction of the bytes when frames travel to another node."""
+        self._check(frames)
+        return dataclasses.replace(
+            frames,
+            images=tuple(
+                None if im is None else downscale(im, model.working_size)
+                for model, im in zip(self.models, frames.images, strict=True)
+            ),
+        )
+
+    def _check(self, frames: FrameSet) -> None:
         if len(frames.images) != len(self.rig):
             raise DataError(
                 f"frame set {frames.time_index} has {len(frames.images)} images for "
                 f"{len(self.rig)} cameras"
             )
-        return [
-            None if im is None else model.apply(im, update=update)
-            for model, im in zip(self.models, frames.images, strict=True)
-        ]
 
     def set_occluders(self, depth_maps: Sequence[DepthMap | None] | None) -> None:
-        """Per camera, the depth map of the static scene (e.g. ``hull.depth_map`` of the
-        background cloud): the visual hull then knows what each camera cannot see. None
-        forgets them."""
+        """Per camera, the depth map of the static scene at any resolution (e.g.
+        ``hull.depth_map`` of the background cloud): the visual hull then knows what each
+        camera cannot see. None forgets them."""
         if depth_maps is not None and len(depth_maps) != len(self.rig):
             raise DataError(f"{len(depth_maps)} occluder depth maps for {len(self.rig)} cameras")
-        self.occluders = None if depth_maps is None else list(depth_maps)
+        if depth_maps is None:
+            self.occluders = None
+            return
+        self.occluders = [
+            None
+            if d is None
+            else np.asarray(
+                cv2.resize(np.asarray(d, np.float32), c.size, interpolation=cv2.INTER_NEAREST),
+                np.float32,
+            )
+            if (d.shape[1], d.shape[0]) != c.size
+            else np.asarray(d, np.float32)
+            for c, d in zip(self.working_cameras, depth_maps, strict=True)
+        ]
 
-    def _hull_inputs(
-        self, masks: Sequence[Mask | None]
-    ) -> tuple[list[Camera], list[Mask | None], list[DepthMap | None] | None]:
-        """Cameras, masks and occluder maps at most ``hull_max_width`` pixels wide."""
-        width = self.config.hull_max_width
-        cams: list[Camera] = []
-        small: list[Mask | None] = []
-        occ: list[DepthMap | None] = []
-        for i, (cam, m) in enumerate(zip(self.rig, masks, strict=True)):
-            c = cam.scaled(width / cam.width) if cam.width > width else cam
-            cams.append(c)
-            small.append(None if m is None else resize_mask(m, c.size))
-            d = None if self.occluders is None else self.occluders[i]
-            if d is not None and c is not cam:
-                d = np.asarray(
-                    cv2.resize(np.asarray(d, np.float32), c.size, interpolation=cv2.INTER_NEAREST),
-                    np.float32,
-                )
-            occ.append(d)
-        return cams, small, (None if self.occluders is None else occ)
-
-    def segment(self, frames: FrameSet, *, update: bool = True) -> ForegroundResult:
-        """The foreground of one timestamp (the models learn from it unless ``update=False``)."""
+    def segment(self, frames: FrameSet) -> ForegroundResult:
+        """The foreground of one timestamp at the working resolution. The models do not
+        change (``update`` teaches them)."""
+        self._check(frames)
         timings = StageTimings()
         cfg = self.config
+        cams = self.working_cameras
         with timings.stage("background_subtraction"):
-            model_masks = self._model_masks(frames, update)
+            segs = tuple(
+                None if im is None else model.segment(im)
+                for model, im in zip(self.models, frames.images, strict=True)
+            )
+        model_masks = tuple(None if sg is None else sg.foreground for sg in segs)
         hull = None
         masks: list[Mask | None] = list(model_masks)
         with_fg = sum(m is not None and bool(m.any()) for m in model_masks)
         if cfg.hull_consistency and with_fg >= 1:
-            # The hull is carved from masks at <= hull_max_width (the background model's
-            # resolution): the same geometry for a fraction of the pixel work.
-            cams, small, occ = self._hull_inputs(model_masks)
+            occ = self.occluders
             with timings.stage("visual_hull"):
-                hull = visual_hull(cams, small, cfg.hull, occluders=occ)
+                hull = visual_hull(list(cams), list(model_masks), cfg.hull, occluders=occ)
             with timings.stage("hull_consistency"):
-                consistent = hull_consistent_masks(
-                    hull, cams, small, max_missing=cfg.hull.max_missing, occluders=occ
+                masks = list(
+                    hull_consistent_masks(
+                        hull,
+                        list(cams),
+                        list(model_masks),
+                        max_missing=cfg.hull.max_missing,
+                        occluders=occ,
+                    )
                 )
-                for i, (m, sm, cm) in enumerate(zip(model_masks, small, consistent, strict=True)):
-                    if m is None or sm is None or cm is None:
-                        continue
-                    removed = sm & ~cm
-                    if removed.any():
-                        masks[i] = m & ~resize_mask(removed, (m.shape[1], m.shape[0]))
+                masks = [
+                    None if m is None else (m if c is None else m & c)
+                    for m, c in zip(model_masks, masks, strict=True)
+                ]
         with timings.stage("objects"):
             objects = tuple(None if m is None else find_objects(m, cfg.objects) for m in masks)
         return ForegroundResult(
             time_index=frames.time_index,
             masks=tuple(masks),
-            model_masks=tuple(model_masks),
+            model_masks=model_masks,
             objects=objects,
             hull=hull,
             timings=timings,
+            cameras=cams,
+            segmentations=segs,
         )
+
+    def update(
+        self, frames: FrameSet, result: ForegroundResult | None = None
+    ) -> list[UpdateStats | None]:
+        """Teach every camera's model one frame set (ghost repair + selective update).
+        ``result``: this frame set's ``segment`` result, whose classifications are reused."""
+        self._check(frames)
+        segs: Sequence[Segmentation | None] = (
+            result.segmentations
+            if result is not None
+            and result.time_index == frames.time_index
+            and result.segmentations
+            else (None,) * len(self.rig)
+        )
+        return [
+            None if im is None else model.update(im, sg)
+            for model, im, sg in zip(self.models, frames.images, segs, strict=True)
+        ]

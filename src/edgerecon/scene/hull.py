@@ -940,13 +940,19 @@ def hull_silhouette(hull: VisualHull, camera: Camera, *, object_id: int | None =
         sel = (r_int == r) & (u >= -r) & (u < w + r) & (v >= -r) & (v < h + r)
         if not sel.any():
             continue
-        layer = np.zeros((h + 2 * r, w + 2 * r), np.uint8)
-        layer[v[sel] + r, u[sel] + r] = 1
+        us, vs = u[sel], v[sel]
+        # Only the box around these splats (+ r) is dilated: an object covers a few percent
+        # of the image, and phantom removal splats every object into every camera.
+        x0, y0 = max(int(us.min()) - r, 0), max(int(vs.min()) - r, 0)
+        x1, y1 = min(int(us.max()) + r + 1, w), min(int(vs.max()) + r + 1, h)
+        layer = np.zeros((y1 - y0 + 2 * r, x1 - x0 + 2 * r), np.uint8)
+        ok = (us >= x0 - r) & (us < x1 + r) & (vs >= y0 - r) & (vs < y1 + r)
+        layer[vs[ok] - y0 + r, us[ok] - x0 + r] = 1
         if r > 0:
             layer = cv2.dilate(
                 layer, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
             )
-        out |= layer[r : r + h, r : r + w]
+        out[y0:y1, x0:x1] |= layer[r : r + y1 - y0, r : r + x1 - x0]
     return out.astype(bool)
 
 

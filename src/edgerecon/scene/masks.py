@@ -15,6 +15,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.types import Mask
+from edgerecon.views import resize_mask, resize_mask_smooth
+
+__all__ = [
+    "MaskConfig",
+    "clean_mask",
+    "disk",
+    "fill_holes",
+    "remove_small_blobs",
+    "resize_mask",
+    "resize_mask_smooth",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -113,13 +124,3 @@ def clean_mask(mask: Mask, config: MaskConfig | None = None) -> Mask:
     if config.max_hole_fraction > 0:
         out = fill_holes(out, int(config.max_hole_fraction * area))
     return out
-
-
-def resize_mask_smooth(mask: Mask, size: tuple[int, int]) -> Mask:
-    """Resize a mask to ``size`` = (width, height) with bilinear interpolation of the 0/1
-    values and a 0.5 threshold: smoother silhouettes than nearest-neighbour upsampling."""
-    mask = np.asarray(mask, dtype=bool)
-    if (mask.shape[1], mask.shape[0]) == tuple(size):
-        return mask.copy()
-    up = cv2.resize(mask.astype(np.uint8) * 255, tuple(size), interpolation=cv2.INTER_LINEAR)
-    return up > 127

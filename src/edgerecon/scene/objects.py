@@ -154,16 +154,26 @@ def _roi(bbox: BBox, shape: tuple[int, int], config: ObjectConfig) -> BBox:
     return (x0, y0, x1 - x0, y1 - y0)
 
 
-def silhouette_score(points: NDArray[np.float64], labels: NDArray[np.int64]) -> float:
+def pairwise_distances(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, n) Euclidean distances between the rows of ``points``."""
+    return np.sqrt(np.maximum(_sqdist(points, points), 0.0))
+
+
+def silhouette_score(
+    points: NDArray[np.float64],
+    labels: NDArray[np.int64],
+    distances: NDArray[np.float64] | None = None,
+) -> float:
     """Mean silhouette coefficient of a labelling (Rousseeuw 1987); NaN for < 2 clusters.
 
-    Points alone in their cluster score 0, as in scikit-learn.
+    Points alone in their cluster score 0, as in scikit-learn. ``distances``: the points'
+    ``pairwise_distances`` when several labellings of the same points are scored.
     """
     uniq, lab = np.unique(labels, return_inverse=True)
     k = len(uniq)
     if k < 2 or len(points) < 3:
         return float("nan")
-    d = np.sqrt(np.maximum(_sqdist(points, points), 0.0))
+    d = pairwise_distances(points) if distances is None else distances
     onehot = np.zeros((len(points), k))
     onehot[np.arange(len(points)), lab] = 1.0
     counts = onehot.sum(axis=0)
@@ -326,9 +336,12 @@ def _group(
     sample = np.sort(rng.choice(len(coords), size=size, replace=False))
     score_at = sample[:: max(1, size // config.silhouette_sample)]
     pts = coords[score_at].astype(np.float64)
+    dist = pairwise_distances(pts)  # once for every candidate grouping
     num_groups = int(merged.max()) + 1
     if num_groups <= config.max_objects:
-        score = silhouette_score(pts, merged[comp[score_at]]) if num_groups > 1 else float("nan")
+        score = (
+            silhouette_score(pts, merged[comp[score_at]], dist) if num_groups > 1 else float("nan")
+        )
         return merged, score
     # More separate regions than objects allowed: k-means on the pixel coordinates proposes
     # coarser groupings (k = 2..k_max), as do the single-linkage levels; the best silhouette
@@ -346,7 +359,7 @@ def _group(
         if int(group.max()) + 1 > config.max_objects or key in tried:
             continue
         tried.add(key)
-        score = silhouette_score(pts, group[comp[score_at]]) if group.max() > 0 else -1.0
+        score = silhouette_score(pts, group[comp[score_at]], dist) if group.max() > 0 else -1.0
         if not score <= best_score:
             best, best_score = group.astype(np.int64), score
     return best, best_score
@@ -408,13 +421,22 @@ def find_objects(mask: Mask, config: ObjectConfig | None = None) -> ObjectSegmen
 
 def _coarsest(a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int64]:
     """The finest partition coarser than both ``a`` and ``b`` (join: components of the union
-    of their 'same group' relations), as a group id per element."""
+    of their 'same group' relations), as a group id per element (the smallest member's index:
+    union-find over the few components of one image)."""
     n = len(a)
-    parent = np.arange(n)
-    for labels in (a, b):
-        for g in np.unique(labels):
-            members = np.flatnonzero(labels == g)
-            roots = np.unique(parent[members])
-            root = roots.min()
-            parent[np.isin(parent, roots)] = root
-    return parent
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for labels in (a.tolist(), b.tolist()):
+        first: dict[int, int] = {}
+        for i, g in enumerate(labels):
+            j = first.setdefault(g, i)
+            ri, rj = find(i), find(j)
+            if ri != rj:
+                parent[max(ri, rj)] = min(ri, rj)
+    return np.array([find(i) for i in range(n)], np.int64)

@@ -33,6 +33,7 @@ from edgerecon.types import (
     Points3D,
     StageTimings,
 )
+from edgerecon.views import mask_scale
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ class SplitConfig:
     """Parameters of the sparse foreground/background split."""
 
     tolerance_px: int = 2
-    """A projection within this many pixels of a camera's foreground counts as foreground
+    """A projection within this many frame pixels of a camera's foreground counts as foreground
     (silhouettes and sparse points are both uncertain by a pixel or two)."""
     unobserving_weight: float = 0.5
     """Vote weight of a camera that sees a point in its image without observing it (0 = only
@@ -132,11 +133,9 @@ def _as_visibility(
 
 def _label_image(mask: NDArray[np.generic], cam: Camera) -> NDArray[np.uint8]:
     m = np.asarray(mask)
-    if m.shape != (cam.height, cam.width):
-        raise DataError(
-            f"camera {cam.name!r}: mask is {m.shape[1] if m.ndim > 1 else '?'}x{m.shape[0]} but the "
-            f"camera is {cam.width}x{cam.height}"
-        )
+    if m.ndim != 2:
+        raise DataError(f"camera {cam.name!r}: a mask must be a (H, W) image, got {m.shape}")
+    mask_scale(m, cam)  # any resolution with the frames' aspect ratio
     if m.dtype == bool:
         return m.astype(np.uint8)
     if m.min() < 0 or m.max() > 255:
@@ -179,7 +178,7 @@ def split_sparse(
                 continue
             lab = _label_image(mask, cam)
             if config.tolerance_px > 0 and lab.any():
-                r = config.tolerance_px
+                r = max(1, round(config.tolerance_px * lab.shape[1] / cam.width))
                 lab = np.asarray(
                     cv2.dilate(
                         lab, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
@@ -188,13 +187,16 @@ def split_sparse(
                 )
             uv, depth = cam.project(pts)
             inside = (depth > 0) & cam.in_image(uv)
+            if lab.shape[1] != cam.width:  # a mask at a reduced resolution
+                sx, sy = lab.shape[1] / cam.width, lab.shape[0] / cam.height
+                uv = (uv + 0.5) * np.array([sx, sy]) - 0.5
             weight = np.where(vis[:, c], 1.0, config.unobserving_weight).astype(np.float32)
             voting = inside & (weight > 0)
             # An observing camera whose projection falls outside its image still votes
             # background-free: it cannot say anything about the point.
             idx = np.flatnonzero(voting)
-            u = np.clip(np.rint(uv[idx, 0]).astype(np.intp), 0, cam.width - 1)
-            v = np.clip(np.rint(uv[idx, 1]).astype(np.intp), 0, cam.height - 1)
+            u = np.clip(np.rint(uv[idx, 0]).astype(np.intp), 0, lab.shape[1] - 1)
+            v = np.clip(np.rint(uv[idx, 1]).astype(np.intp), 0, lab.shape[0] - 1)
             hit = lab[v, u]
             fg = hit > 0
             fg_w[idx[fg]] += weight[idx[fg]]

@@ -4,7 +4,7 @@ Library API::
 
     from edgerecon.synth import preset_config, build_scene, Renderer, write_dataset, GroundTruth
 
-    config = preset_config("demo", seed=3)          # or "ring", "arc7"; any field as override
+    config = preset_config("demo", seed=3)          # or "ring", "arc7", "hd4", "hd4p"
     summary = write_dataset(config, "work/demo")    # dataset.json + rig.json + frames + gt/
     gt = GroundTruth.open("work/demo")
     gt.depth("cam0", 5); gt.object_mask("cam0", 5); gt.reference_cloud(5, "foreground")
@@ -25,9 +25,11 @@ from edgerecon.synth.scene import (
     make_rig,
     preset_config,
 )
+from edgerecon.synth.scripts import ActorScript
 
 __all__ = [
     "PRESETS",
+    "ActorScript",
     "DatasetSummary",
     "GroundTruth",
     "RealismConfig",

@@ -64,6 +64,8 @@ class DatasetSummary:
     """Points of the background ground-truth cloud (all visible, any number of views)."""
     num_foreground_points: list[int]
     """Points of the foreground ground-truth cloud per timestamp."""
+    stretches: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    """The difficult stretches (``SynthScene.stretches``: still, away, seated, dimming)."""
     timings: StageTimings = field(default_factory=StageTimings)
 
     def to_dict(self) -> dict[str, Any]:
@@ -76,6 +78,7 @@ class DatasetSummary:
             "image_size": list(self.image_size),
             "num_background_points": self.num_background_points,
             "num_foreground_points": self.num_foreground_points,
+            "stretches": self.stretches,
             "seconds": self.timings.to_dict(),
         }
 
@@ -219,6 +222,7 @@ def write_dataset(
     for w in writers.values():
         w.release()
 
+    stretches = scene.stretches()
     meta = {
         "format": GT_FORMAT,
         "version": GT_VERSION,
@@ -235,9 +239,15 @@ def write_dataset(
             "background": config.gt_voxel_background_m,
         },
         "actors": [
-            {"id": a.actor_id, "enter_frame": a.enter_frame, "leave_frame": a.leave_frame}
+            {
+                "id": a.actor_id,
+                "enter_frame": a.enter_frame,
+                "leave_frame": a.leave_frame,
+                "presence": [list(p) for p in a.presence] or [[a.enter_frame, a.leave_frame]],
+            }
             for a in scene.actors
         ],
+        "stretches": stretches,
         "actor_positions": positions,
         "rig": rig.to_dict(),
         "config": config.to_dict(),
@@ -277,6 +287,7 @@ def write_dataset(
         image_size=(cam.width, cam.height),
         num_background_points=len(bg_cloud),
         num_foreground_points=fg_counts,
+        stretches=stretches,
         timings=timings,
     )
 

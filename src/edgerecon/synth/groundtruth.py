@@ -349,6 +349,21 @@ class GroundTruth:
             raise DataError(f"{self.root}: ground-truth clouds lack the num_views attribute")
         return cloud.select(views >= min_views)
 
+    @property
+    def stretches(self) -> dict[str, list[dict[str, Any]]]:
+        """The scene's difficult stretches, integer frame intervals [start, stop): ``still``,
+        ``away``, ``seated`` (each with its ``actor``) and ``dimming`` (with ``min_level``);
+        empty lists for datasets written before they were recorded."""
+        recorded = self.meta.get("stretches", {})
+        return {k: list(recorded.get(k, [])) for k in ("still", "away", "seated", "dimming")}
+
+    def illumination(self, t: int) -> float:
+        """Global light level at time ``t`` (1 = the scene's full light)."""
+        levels = self.meta.get("scene", {}).get("illumination")
+        if not levels:
+            return 1.0
+        return float(levels[self.background_frames + self._check_time(t)])
+
     def actor_positions(self, t: int) -> dict[int, tuple[float, float]]:
         """Floor positions (metres) of the actors present at time ``t``."""
         row = self.meta.get("actor_positions", [])[self._check_time(t)]

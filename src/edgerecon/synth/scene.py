@@ -14,13 +14,20 @@ Presets (``preset_config(name, **overrides)``):
 * ``arc7``: 7 cameras at 1920x1080, ~1720 px focal length, 15 degrees apart on an arc, looking
   at the scene centre, with Dance1-like barrel distortion (the paper's studio rig).
 * ``demo``: 5 cameras at 640x480, 40 timestamps, 2 actors (the README's main job).
+* ``hd4`` / ``hd4p``: people in a room as real phone/webcam rigs film them: 4 cameras 90
+  degrees apart at 1920x1080 (``hd4p``: 1080x1920, phones held upright), no background clip,
+  250 frames at 25 fps of scripted actors (``ROOM_SCRIPTS``: one stands still for 6 s, one
+  leaves and comes back, one sits talking) and a dimming light (``ROOM_LIGHTS``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from functools import lru_cache
 from typing import Any, Literal
@@ -31,6 +38,7 @@ from numpy.typing import NDArray
 from edgerecon.geometry.camera import Camera, Rig, look_at
 from edgerecon.synth import motion
 from edgerecon.synth.primitives import Box, Cylinder, Room
+from edgerecon.synth.scripts import ROOM_LIGHTS, ROOM_SCRIPTS, ActorScript, scripted_path
 from edgerecon.synth.textures import Texture, make_texture
 
 logger = logging.getLogger(__name__)
@@ -76,6 +84,9 @@ class RigSpec:
     """Principal point minus the image centre, pixels."""
     jitter_m: float = 0.1
     """Random perturbation of camera positions (and aim), metres; 0 = perfectly regular."""
+    azimuth_deg: float | None = None
+    """Ring layout: direction of the first camera from the target, degrees about z (0 = +x);
+    None = a random rotation of the ring drawn from the seed."""
 
     def __post_init__(self) -> None:
         _check(self.layout in ("ring", "arc"), "layout", self.layout, "'ring' or 'arc'")
@@ -112,6 +123,11 @@ class RealismConfig:
     background in the masks: as real shadows, it moves with the actor); 0 = none."""
     contact_shadow_radius_m: float = 0.8
     """Radius of the contact shadow on the floor (smooth fall-off to 0 there), metres."""
+    light_keys: tuple[tuple[float, float], ...] = ()
+    """A dimmer: (frame, level) keys, the global light level linear between them and held
+    before the first and after the last (e.g. ((180, 1), (205, 0.45), (215, 0.45), (240, 1)):
+    dims to 45 % over a second at 25 fps and recovers); multiplies ``illumination_change``;
+    () = none."""
 
     def __post_init__(self) -> None:
         _check(self.noise_sigma >= 0, "noise_sigma", self.noise_sigma, "must be >= 0")
@@ -136,6 +152,14 @@ class RealismConfig:
             "contact_shadow_radius_m",
             self.contact_shadow_radius_m,
             "must be > 0",
+        )
+        keys = self.light_keys
+        _check(
+            all(len(k) == 2 and 0 < k[1] <= 2 for k in keys)
+            and all(b[0] > a[0] for a, b in itertools.pairwise(keys)),
+            "light_keys",
+            keys,
+            "(frame, level) pairs, frames increasing, levels in (0, 2]",
         )
 
 
@@ -171,6 +195,9 @@ class SceneConfig:
     """Voxel size deduplicating the foreground ground-truth cloud, metres."""
     gt_voxel_background_m: float = 0.006
     """Voxel size deduplicating the background ground-truth cloud, metres."""
+    actor_scripts: tuple[ActorScript, ...] = ()
+    """Scripted motion of actors 1, 2, ... (keys, still intervals, presence, posture); actors
+    beyond the scripts walk at random, scripts beyond ``num_actors`` are not used."""
 
     def __post_init__(self) -> None:
         _check(bool(self.name), "name", self.name, "must be non-empty")
@@ -217,6 +244,20 @@ class SceneConfig:
             self.rig.camera_height_m,
             "cameras must be below the ceiling",
         )
+        for i, script in enumerate(self.actor_scripts):
+            _check(
+                isinstance(script, ActorScript),
+                f"actor_scripts[{i}]",
+                script,
+                "an ActorScript",
+            )
+            xy = np.abs(np.asarray([k[1:] for k in script.keys], float))
+            _check(
+                bool(np.all(xy < np.asarray(self.room_size_m[:2]) / 2 - 0.3)),
+                f"actor_scripts[{i}].keys",
+                script.keys,
+                "keys must lie inside the room, >= 0.3 m from the walls",
+            )
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -228,9 +269,14 @@ class SceneConfig:
             k: (tuple(v) if isinstance(v, list) else v) for k, v in d.pop("rig").items()
         }
         rig = RigSpec(**rig_d)
-        realism = RealismConfig(**d.pop("realism"))
+        real_d = dict(d.pop("realism"))
+        if "light_keys" in real_d:
+            real_d["light_keys"] = tuple(tuple(k) for k in real_d["light_keys"])
+        realism = RealismConfig(**real_d)
         if "room_size_m" in d:
             d["room_size_m"] = tuple(d["room_size_m"])
+        if "actor_scripts" in d:
+            d["actor_scripts"] = tuple(ActorScript.from_dict(a) for a in d["actor_scripts"])
         return cls(rig=rig, realism=realism, **d)
 
 
@@ -309,6 +355,52 @@ def preset_config(name: str, **overrides: Any) -> SceneConfig:
     )
 
 
+# ------------------------------------------------------------- people in a room (hd4, hd4p)
+#: A phone or webcam lens after the vendor's own correction: mild barrel distortion.
+PHONE_DISTORTION = (-0.06, 0.02, 0.0, 0.0, 0.0)
+
+
+def _hd4(portrait: bool = False) -> SceneConfig:
+    """Four full-HD cameras 90 degrees apart in a room, no background clip, scripted actors."""
+    w, h = (1080, 1920) if portrait else (1920, 1080)
+    return SceneConfig(
+        name="synthetic-hd4p" if portrait else "synthetic-hd4",
+        rig=RigSpec(
+            layout="ring",
+            num_cameras=4,
+            width=w,
+            height=h,
+            focal_px=1400.0,
+            radius_m=3.3,
+            camera_height_m=1.9,
+            target=(0.0, 0.0, 1.0),
+            azimuth_deg=45.0,
+            distortion=PHONE_DISTORTION,
+            principal_offset_px=(-5.2, 7.4) if portrait else (7.4, -5.2),
+            jitter_m=0.08,
+        ),
+        num_frames=250,
+        num_actors=3,
+        fps=25.0,
+        background_frames=0,
+        room_size_m=(7.6, 7.2, 2.8),
+        num_furniture=6,
+        capture_radius_m=1.3,
+        realism=RealismConfig(
+            noise_sigma=2.5,
+            exposure_spread=0.08,
+            white_balance_spread=0.04,
+            blur_sigma_px=0.8,
+            light_keys=ROOM_LIGHTS,
+        ),
+        actor_scripts=ROOM_SCRIPTS,
+    )
+
+
+PRESETS["hd4"] = _hd4
+PRESETS["hd4p"] = functools.partial(_hd4, portrait=True)
+
+
 # ----------------------------------------------------------------------------------- the rig
 def make_rig(spec: RigSpec, seed: int = 0) -> Rig:
     """Cameras named cam0..cam{N-1}, placed by ``spec`` (metres, z up)."""
@@ -316,7 +408,10 @@ def make_rig(spec: RigSpec, seed: int = 0) -> Rig:
     n = spec.num_cameras
     target = np.asarray(spec.target, float)
     if spec.layout == "ring":
-        angles = 2 * np.pi * np.arange(n) / n + rng.uniform(-0.5, 0.5) * 2 * np.pi / n
+        offset = rng.uniform(-0.5, 0.5) * 2 * np.pi / n
+        if spec.azimuth_deg is not None:
+            offset = np.radians(spec.azimuth_deg)
+        angles = 2 * np.pi * np.arange(n) / n + offset
     else:
         # Centred on the -y side, so that +x is to the right of the middle camera's image.
         angles = -np.pi / 2 + np.radians(spec.spacing_deg) * (np.arange(n) - (n - 1) / 2)
@@ -377,14 +472,77 @@ class SynthScene:
         return self.config.num_frames
 
     def illumination(self, t: int | float) -> float:
-        """Global light level at frame ``t`` (background frames are t < 0)."""
+        """Global light level at frame ``t`` (background frames are t < 0): the linear drift
+        of ``illumination_change`` times the dimmer (``light_keys``)."""
         c = self.config
         a = c.realism.illumination_change
-        if a == 0:
+        level = 1.0
+        if a != 0:
+            start, end = -c.background_frames, c.num_frames - 1
+            frac = (t - start) / max(end - start, 1)
+            level = float(1.0 - a * np.clip(frac, 0.0, 1.0))
+        return level * self.dimmer(t)
+
+    def dimmer(self, t: int | float) -> float:
+        """The dimmer's light level at frame ``t`` (1 without ``light_keys``)."""
+        keys = self.config.realism.light_keys
+        if not keys:
             return 1.0
-        start, end = -c.background_frames, c.num_frames - 1
-        frac = (t - start) / max(end - start, 1)
-        return float(1.0 - a * np.clip(frac, 0.0, 1.0))
+        frames, levels = zip(*keys, strict=True)
+        return float(np.interp(t, frames, levels))
+
+    def stretches(self) -> dict[str, list[dict[str, Any]]]:
+        """The sequence's difficult stretches as integer frame intervals [start, stop) inside
+        0..num_frames (what gt/scene.json records, so that benchmarks need no hard-coded frames):
+
+        * ``still``: an actor stands exactly still (every body part identical frame to frame);
+        * ``away``: an actor has left the room and is not back yet;
+        * ``seated``: a seated actor is present (low motion: talking gestures at most);
+        * ``dimming``: the dimmer is below full light (``min_level``: its lowest level there).
+        """
+        T = self.config.num_frames
+
+        def span(a: float, b: int) -> tuple[int, int]:
+            return max(0, math.ceil(a)), min(T, b)
+
+        out: dict[str, list[dict[str, Any]]] = {
+            "still": [],
+            "away": [],
+            "seated": [],
+            "dimming": [],
+        }
+        for actor in self.actors:
+            for a, b in actor.still:
+                start, stop = span(a, math.floor(b) + 1)
+                frames = [t for t in range(start, stop) if actor.present(t)]
+                if frames:
+                    out["still"].append(
+                        {"actor": actor.actor_id, "start": frames[0], "stop": frames[-1] + 1}
+                    )
+            presence = actor.presence or ((actor.enter_frame, actor.leave_frame),)
+            for (_, leave), (enter, _) in itertools.pairwise(presence):
+                start, stop = span(leave, math.ceil(enter))
+                if stop > start:
+                    out["away"].append({"actor": actor.actor_id, "start": start, "stop": stop})
+            if actor.seated:
+                for a, b in presence:
+                    start, stop = span(a, math.ceil(b))
+                    if stop > start:
+                        out["seated"].append(
+                            {"actor": actor.actor_id, "start": start, "stop": stop}
+                        )
+        levels = np.array([self.dimmer(t) for t in range(T)])
+        dim = np.concatenate([[False], levels < 1 - 1e-9, [False]])
+        edges = np.flatnonzero(np.diff(dim.astype(np.int8)))
+        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+            out["dimming"].append(
+                {
+                    "start": int(start),
+                    "stop": int(stop),
+                    "min_level": round(float(levels[start:stop].min()), 6),
+                }
+            )
+        return out
 
     def actors_at(self, t: float) -> list[motion.Actor]:
         return [a for a in self.actors if a.present(t)]
@@ -416,6 +574,9 @@ class SynthScene:
                     "height_m": a.height_m,
                     "enter_frame": a.enter_frame,
                     "leave_frame": a.leave_frame,
+                    "presence": [list(p) for p in a.presence] or [[a.enter_frame, a.leave_frame]],
+                    "still": [list(p) for p in a.still],
+                    "posture": "sit" if a.seated else "stand",
                 }
                 for a in self.actors
             ],
@@ -491,6 +652,7 @@ def build_scene(config: SceneConfig) -> SynthScene:
     )
     furniture = _place_furniture(rng, config, rig, bank)
     actors = _make_actors(rng, config, bank, target)
+    furniture += _chairs(actors, bank)
 
     n = len(rig)
     real = config.realism
@@ -524,6 +686,7 @@ def _place_furniture(
     placed: list[tuple[F64, float]] = []
     items: list[Box | Cylinder] = []
     side_kinds = ["stone", "planks", "tiles", "posters", "paint", "fabric"]
+    keep_clear = scripted_paths(config)
     tries = 0
     while len(items) < config.num_furniture and tries < 400:
         tries += 1
@@ -553,6 +716,9 @@ def _place_furniture(
             if np.linalg.norm(xy - (c[:2] + tt * seg)) < footprint + 0.5:
                 blocked = True
                 break
+        if not blocked and len(keep_clear):
+            gaps = np.linalg.norm(keep_clear - xy, axis=1)
+            blocked = bool(gaps.min() < footprint + 0.6)
         if blocked:
             continue
         side = bank.add(str(rng.choice(side_kinds)), (2.0, 2.0))
@@ -594,32 +760,17 @@ def _make_actors(
     center = target[:2]
     half = min(config.room_size_m[:2]) / 2
     edge = min(config.capture_radius_m + 1.0, half - 0.5)
+    scripts = config.actor_scripts
     for k in range(config.num_actors):
         aid = k + 1
-        # Actor 1 is there throughout; the others may enter late and/or leave early.
-        enters = k > 0 and T >= 10 and rng.random() < 0.7
-        leaves = k > 0 and T >= 10 and not enters and rng.random() < 0.6
-        enter = float(rng.uniform(0.1, 0.35) * T) if enters else 0.0
-        leave = float(rng.uniform(0.6, 0.9) * T) if leaves else float(T)
-        times, points = motion.random_path(
-            rng,
-            start_frame=enter,
-            end_frame=leave,
-            fps=config.fps,
-            area_radius_m=config.capture_radius_m,
-            edge_radius_m=edge,
-            enters=enters,
-            leaves=leaves,
-            center=center,
-        )
-        if leaves:
-            leave = float(times[-1])
-        if k == 1 and actors:
-            lo = max(enter, actors[0].enter_frame) + 0.2 * config.fps
-            hi = min(leave, actors[0].leave_frame) - 0.2 * config.fps
-            points = motion.steer_close(
-                times, points, actors[0], distance_m=0.75, window=(lo, hi), sigma_frames=config.fps
-            )
+        script = scripts[k] if k < len(scripts) else None
+        if script is None:
+            enter, leave, times, points = _random_motion(rng, config, k, actors, center, edge)
+        else:
+            times = np.array([key[0] for key in script.keys], float)
+            points = np.array([key[1:] for key in script.keys], float)
+            presence = script.presence(T)
+            enter, leave = presence[0][0], presence[-1][1]
         look = motion.ActorLook(
             shirt=bank.add("fabric", (0.4, 0.8), texel_scale=0.75),
             trousers=bank.add(str(rng.choice(["fabric", "stone"])), (0.4, 0.8), texel_scale=0.75),
@@ -632,18 +783,103 @@ def _make_actors(
             hair_period_m=bank.textures[-2].period_m[0],
             shoes_period_m=bank.textures[-1].period_m[0],
         )
-        actors.append(
-            motion.Actor(
-                actor_id=aid,
-                height_m=float(rng.uniform(1.6, 1.9)),
-                width_scale=float(rng.uniform(0.9, 1.15)),
-                enter_frame=enter,
-                leave_frame=leave,
-                key_times=times,
-                key_positions=points,
-                stride_m=float(rng.uniform(1.2, 1.5)),
-                phase0=float(rng.uniform(0, 2 * np.pi)),
-                look=look,
-            )
+        actor = motion.Actor(
+            actor_id=aid,
+            height_m=float(rng.uniform(1.6, 1.9)),
+            width_scale=float(rng.uniform(0.9, 1.15)),
+            enter_frame=enter,
+            leave_frame=leave,
+            key_times=times,
+            key_positions=points,
+            stride_m=float(rng.uniform(1.2, 1.5)),
+            phase0=float(rng.uniform(0, 2 * np.pi)),
+            look=look,
         )
+        if script is not None:
+            if script.facing_deg is not None:
+                facing = math.radians(script.facing_deg)
+            else:
+                to_target = center - points[0]
+                facing = math.atan2(to_target[1], to_target[0])
+            actor = dataclasses.replace(
+                actor,
+                presence=script.presence(T),
+                still=tuple((float(a), float(b)) for a, b in script.still),
+                seated=script.posture == "sit",
+                facing=facing,
+                gesture=script.gesture,
+                gesture_period=script.gesture_period_frames,
+                turn_frames=script.turn_s * config.fps,
+            )
+        actors.append(actor)
     return actors
+
+
+def _random_motion(
+    rng: np.random.Generator,
+    config: SceneConfig,
+    k: int,
+    actors: list[motion.Actor],
+    center: F64,
+    edge: float,
+) -> tuple[float, float, F64, F64]:
+    """Presence and keyframes of random actor ``k``: actor 1 is there throughout; the others
+    may enter late and/or leave early; actor 2 is steered to pass close to actor 1."""
+    T = config.num_frames
+    enters = k > 0 and T >= 10 and rng.random() < 0.7
+    leaves = k > 0 and T >= 10 and not enters and rng.random() < 0.6
+    enter = float(rng.uniform(0.1, 0.35) * T) if enters else 0.0
+    leave = float(rng.uniform(0.6, 0.9) * T) if leaves else float(T)
+    times, points = motion.random_path(
+        rng,
+        start_frame=enter,
+        end_frame=leave,
+        fps=config.fps,
+        area_radius_m=config.capture_radius_m,
+        edge_radius_m=edge,
+        enters=enters,
+        leaves=leaves,
+        center=center,
+    )
+    if leaves:
+        leave = float(times[-1])
+    if k == 1 and actors:
+        lo = max(enter, actors[0].enter_frame) + 0.2 * config.fps
+        hi = min(leave, actors[0].leave_frame) - 0.2 * config.fps
+        points = motion.steer_close(
+            times, points, actors[0], distance_m=0.75, window=(lo, hi), sigma_frames=config.fps
+        )
+    return enter, leave, times, points
+
+
+def _chairs(actors: Sequence[motion.Actor], bank: _TextureBank) -> list[Box]:
+    """A chair (seat and backrest boxes, static) under every seated actor."""
+    items: list[Box] = []
+    for actor in actors:
+        if not actor.seated:
+            continue
+        side = bank.add("planks", (1.0, 1.0))
+        top = bank.add("fabric", (0.6, 0.6))
+        heading = actor.heading(actor.enter_frame)
+        for center, half in motion.chair_boxes(
+            actor.position(actor.enter_frame), heading, actor.height_m, actor.width_scale
+        ):
+            items.append(
+                Box(center=center, half=half, yaw=heading, side_material=side, top_material=top)
+            )
+    return items
+
+
+def scripted_paths(config: SceneConfig, samples_per_frame: float = 0.5) -> F64:
+    """(M, 2) floor points along the scripted actors' paths while they are present (to keep
+    furniture off them)."""
+    pts = [np.zeros((0, 2))]
+    for script in config.actor_scripts[: config.num_actors]:
+        times = np.array([key[0] for key in script.keys], float)
+        points = np.array([key[1:] for key in script.keys], float)
+        path = scripted_path(times, points, script.still)
+        for a, b in script.presence(config.num_frames):
+            lo, hi = max(a, path.x[0]), min(b, path.x[-1])
+            n = max(2, int((hi - lo) * samples_per_frame) + 1)
+            pts.append(path(np.linspace(lo, hi, n)) if hi > lo else points[:1])
+    return np.concatenate(pts)

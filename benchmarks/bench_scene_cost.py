@@ -1,0 +1,122 @@
+"""What the scene stage costs per camera and per task, at three sensor resolutions (issue 11).
+
+The scene stage of one task: every camera's background subtraction, the visual hull of the
+masks and the masks made consistent with it, and the objects of each mask (all at the working
+resolution, ``BackgroundConfig.working_pixels``), plus the scheduled background update. Its
+share of the golden task is measured against the golden reconstruction of the same frames
+(``pipeline.reconstruct`` at r = 1 with all cameras, the product's own stage timings).
+
+The scenes are the people-in-a-room preset (``hd4``: 4 cameras 90 degrees apart, no background
+clip) rendered at each size. Also scored: mask IoU against the ground truth (at the ground
+truth's resolution).
+
+    python benchmarks/bench_scene_cost.py                       # 640x480, 1280x720, 1920x1080
+    python benchmarks/bench_scene_cost.py --sizes 1920x1080 --tasks 20 --json cost.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from _report import print_rows, report_header, write_report
+from edgerecon.pipeline import reconstruct, warm_up
+from edgerecon.quality.masks import mask_iou
+from edgerecon.scene.foreground import ForegroundConfig, RigForeground
+from edgerecon.scene.stream import bootstrap_indices
+from edgerecon.synth import Renderer, build_scene, preset_config
+from edgerecon.types import FrameSet
+
+STAGES = ("background_subtraction", "visual_hull", "hull_consistency", "objects")
+
+
+def measure(
+    preset: str, size: tuple[int, int], tasks: int, start: int, step: int
+) -> dict[str, Any]:
+    config = preset_config(preset, width=size[0], height=size[1])
+    scene = build_scene(config)
+    renderer = Renderer(scene)
+    rig = scene.rig
+    fg_config = ForegroundConfig()
+
+    def frameset(t: int) -> tuple[FrameSet, Any]:
+        fr = renderer.render(t)
+        return FrameSet(time_index=t, images=tuple(fr.images)), fr
+
+    boot = bootstrap_indices(config.num_frames, config.fps, fg_config)
+    fg = RigForeground.learn_from_framesets(rig, [frameset(t)[0] for t in boot], fg_config)
+    wall = dict.fromkeys((*STAGES, "update"), 0.0)
+    cpu = {"segment": 0.0, "update": 0.0}
+    ious = []
+    golden_s = []
+    for k in range(tasks):
+        t = start + k * step
+        fs, fr = frameset(t)
+        c0 = time.process_time()
+        res = fg.segment(fs)
+        c1 = time.process_time()
+        t1 = time.perf_counter()
+        fg.update(fs, res)
+        wall["update"] += time.perf_counter() - t1
+        cpu["segment"] += c1 - c0
+        cpu["update"] += time.process_time() - c1
+        for s in STAGES:
+            wall[s] += res.timings.seconds.get(s, 0.0)
+        ious.append(
+            np.mean([mask_iou(m, gt > 0) for m, gt in zip(res.masks, fr.masks, strict=True)])
+        )
+        if k < 2:  # the golden task of the same frames (product timings)
+            golden_s.append(reconstruct(fs, rig).timings.total)
+    n = len(rig)
+    per_task = {s: 1000 * v / tasks for s, v in wall.items()}
+    total_ms = sum(per_task.values())
+    golden = float(np.median(golden_s))
+    w, h = rig[0].size
+    working = fg.working_cameras[0].size
+    return {
+        "size": f"{w}x{h}",
+        "working": f"{working[0]}x{working[1]}",
+        "cameras": n,
+        "tasks": tasks,
+        **{f"{s}_ms": round(v, 1) for s, v in per_task.items()},
+        "scene_ms_per_task": round(total_ms, 1),
+        "scene_ms_per_camera": round(total_ms / n, 1),
+        "scene_cpu_ms_per_task": round(1000 * (cpu["segment"] + cpu["update"]) / tasks, 1),
+        "golden_task_s": round(golden, 3),
+        "share_of_golden": round(total_ms / 1000 / golden, 4),
+        "mask_iou": round(float(np.mean(ious)), 4),
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--preset", default="hd4")
+    ap.add_argument("--sizes", nargs="*", default=["640x480", "1280x720", "1920x1080"])
+    ap.add_argument("--tasks", type=int, default=10, help="tasks timed per size")
+    ap.add_argument("--start", type=int, default=40, help="first timestamp")
+    ap.add_argument("--step", type=int, default=10, help="timestamps between tasks")
+    ap.add_argument("--json", type=Path, default=None, help="write a JSON report")
+    args = ap.parse_args()
+    warm_up()
+    rows = []
+    for text in args.sizes:
+        w, h = (int(v) for v in text.lower().split("x"))
+        rows.append(measure(args.preset, (w, h), args.tasks, args.start, args.step))
+        print_rows(f"scene stage, {args.preset}", list(rows[-1]), rows[-1:])
+    print_rows(
+        f"scene stage per task ({args.preset}, load {os.getloadavg()[0]:.1f})", list(rows[0]), rows
+    )
+    if args.json:
+        write_report(args.json, {**report_header(), "rows": rows})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

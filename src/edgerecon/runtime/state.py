@@ -1,0 +1,317 @@
+"""The run's state and its output folder: one owner, saved atomically, restored together.
+
+:class:`RunState` is everything ``--resume`` needs, in one record (``state.json``): the
+dataset's identity and the frame range, the deadline, the number of tasks committed and the
+front-end's state (controller with its configuration and pi(N'), where pi came from, the
+background version as (back-end epoch, counter), the last back-end epoch). It is written after
+each task, after the task's cloud and its metrics line: ``state.json`` is the commit point,
+and a metrics line beyond it (a crash between the two writes, or a torn line) is cut off and
+that task redone.
+
+:class:`OutputFolder` guards ``--out``: an exclusive lock (a second run on the same folder
+is refused, naming the holder; the lock dies with its process, kill -9 included), a non-empty
+folder that is not this run is refused unless ``--overwrite``, and a resume must match the
+saved dataset and frame range. All of it is checked before any heavy work.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import logging
+import os
+import shutil
+import socket
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from edgerecon.io.dataset import Dataset
+from edgerecon.io.ply import atomic_write_text, read_ply
+from edgerecon.runtime.frontend import FrontEndState
+from edgerecon.runtime.messages import TaskMetrics
+from edgerecon.types import EdgereconError, PointCloud
+
+logger = logging.getLogger(__name__)
+
+STATE_FORMAT = "edgerecon-run-state"
+STATE_VERSION = 2
+
+#: What a run writes in its output folder (``--overwrite`` removes these and nothing else).
+RUN_FILES = ("metrics.jsonl", "state.json", "summary.json", "background.ply", "tasks")
+LOCK_NAME = ".lock"
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetIdentity:
+    """What makes two datasets the same for ``--resume``: the folder, the cameras and their
+    calibration (a fingerprint), and the number of frames."""
+
+    root: str
+    name: str
+    num_frames: int
+    cameras: tuple[str, ...]
+    rig_fingerprint: str
+    """SHA-256 (16 hex digits) of every camera's size, K, distortion and pose."""
+
+    @classmethod
+    def of(cls, dataset: Dataset) -> DatasetIdentity:
+        h = hashlib.sha256()
+        for cam in dataset.rig:
+            h.update(cam.name.encode())
+            h.update(np.asarray(cam.size, np.int64).tobytes())
+            for a in (cam.K, cam.dist, cam.R, cam.t):
+                h.update(np.round(np.asarray(a, np.float64), 9).tobytes())
+        return cls(
+            root=str(Path(dataset.root).resolve()),
+            name=dataset.name,
+            num_frames=int(dataset.num_frames),
+            cameras=tuple(dataset.rig.names),
+            rig_fingerprint=h.hexdigest()[:16],
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "cameras": list(self.cameras)}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> DatasetIdentity:
+        return cls(
+            root=str(d["root"]),
+            name=str(d["name"]),
+            num_frames=int(d["num_frames"]),
+            cameras=tuple(d["cameras"]),
+            rig_fingerprint=str(d["rig_fingerprint"]),
+        )
+
+    def difference(self, other: DatasetIdentity) -> str | None:
+        """What differs from ``other`` (None: the same dataset)."""
+        if self.cameras != other.cameras:
+            return f"cameras {list(other.cameras)} instead of {list(self.cameras)}"
+        if self.rig_fingerprint != other.rig_fingerprint:
+            return "a different calibration"
+        if self.root != other.root:
+            return f"folder {other.root} instead of {self.root}"
+        if self.num_frames != other.num_frames:
+            return f"{other.num_frames} frames instead of {self.num_frames}"
+        return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunState:
+    """The one record ``--resume`` restores (see module docstring)."""
+
+    dataset: DatasetIdentity
+    frames: tuple[int, int | None, int]
+    """``--frames`` as (start, stop, step)."""
+    policy: str
+    deadline_s: float
+    tasks_done: int
+    """Tasks committed: the first ``tasks_done`` lines of metrics.jsonl."""
+    frontend: FrontEndState
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": STATE_FORMAT,
+            "version": STATE_VERSION,
+            "dataset": self.dataset.to_dict(),
+            "frames": list(self.frames),
+            "policy": self.policy,
+            "deadline_s": self.deadline_s,
+            "tasks_done": self.tasks_done,
+            "frontend": self.frontend.to_dict(),
+            "saved_at": time.time(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RunState:
+        if d.get("format") != STATE_FORMAT:
+            raise EdgereconError("not an edgerecon run state")
+        if d.get("version") != STATE_VERSION:
+            raise EdgereconError(
+                f"run state version {d.get('version')} (this edgerecon reads {STATE_VERSION}): "
+                "start the run again with --overwrite"
+            )
+        start, stop, step = d["frames"]
+        return cls(
+            dataset=DatasetIdentity.from_dict(d["dataset"]),
+            frames=(int(start), None if stop is None else int(stop), int(step)),
+            policy=str(d["policy"]),
+            deadline_s=float(d["deadline_s"]),
+            tasks_done=int(d["tasks_done"]),
+            frontend=FrontEndState.from_dict(d["frontend"]),
+        )
+
+    def save(self, folder: Path) -> None:
+        atomic_write_text(folder / "state.json", json.dumps(self.to_dict()) + "\n", sync=True)
+
+    @classmethod
+    def load(cls, folder: Path) -> RunState:
+        path = folder / "state.json"
+        try:
+            return cls.from_dict(json.loads(path.read_text()))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise EdgereconError(f"{path}: unreadable run state ({exc})") from None
+
+
+class OutputFolder:
+    """``--out`` of one run, locked for the run's lifetime (see module docstring)."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self._lock: IO[str] | None = None
+
+    # ------------------------------------------------------------------ lock
+    def acquire(self, command: str = "") -> OutputFolder:
+        """Create the folder (an unwritable one is an error now, not after the work) and
+        take its lock, or refuse naming the run that holds it."""
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+            f = open(self.path / LOCK_NAME, "a+", encoding="utf-8")
+        except OSError as exc:
+            raise EdgereconError(f"--out {self.path}: cannot write there ({exc})") from None
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            f.close()
+            raise EdgereconError(
+                f"--out {self.path} is in use by another run ({holder}): wait for it to end "
+                "or choose another --out"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(
+            f"pid {os.getpid()} on {socket.gethostname()} since "
+            f"{time.strftime('%Y-%m-%d %H:%M:%S')}" + (f": {command}" if command else "")
+        )
+        f.flush()
+        self._lock = f
+        return self
+
+    def release(self) -> None:
+        if self._lock is not None:
+            with contextlib.suppress(OSError):
+                fcntl.flock(self._lock.fileno(), fcntl.LOCK_UN)
+            self._lock.close()
+            self._lock = None
+
+    def __enter__(self) -> OutputFolder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    # ------------------------------------------------------------------ contents
+    def entries(self) -> list[str]:
+        return sorted(p.name for p in self.path.iterdir() if p.name != LOCK_NAME)
+
+    def prepare(
+        self, *, resume: bool, overwrite: bool, identity: DatasetIdentity, frames: tuple[Any, ...]
+    ) -> RunState | None:
+        """Check the folder's contents against what this run will do; returns the saved
+        state to resume from (None: a fresh run in an empty folder)."""
+        entries = self.entries()
+        has_state = (self.path / "state.json").exists()
+        if resume and has_state:
+            state = RunState.load(self.path)
+            diff = state.dataset.difference(identity)
+            if diff is not None:
+                raise EdgereconError(
+                    f"--resume: {self.path} holds a run of {state.dataset.name} "
+                    f"({state.dataset.root}); this dataset has {diff}"
+                )
+            start, stop, step = state.frames
+            new_start, new_stop, new_step = frames
+            stop_ok = new_stop is None or (stop is not None and new_stop >= stop)
+            if (new_start, new_step) != (start, step) or not stop_ok:
+                raise EdgereconError(
+                    f"--resume: the run in {self.path} was started with --frames "
+                    f"{_frames_text(state.frames)}; resume it with the same start and step "
+                    f"(its end may grow), got {_frames_text(frames)}"
+                )
+            return state
+        if resume and not entries:
+            logger.warning("--resume: %s holds no run yet: starting one", self.path)
+            return None
+        if resume:
+            raise EdgereconError(
+                f"--resume: {self.path} holds no run state (state.json): nothing to resume; "
+                "use --overwrite to start a new run there"
+            )
+        if entries and not overwrite:
+            what = "a run" if has_state else f"{len(entries)} entries ({', '.join(entries[:4])})"
+            raise EdgereconError(
+                f"--out {self.path} is not empty (it holds {what}): use --resume to continue "
+                "that run, --overwrite to replace it, or another folder"
+            )
+        for name in RUN_FILES:
+            p = self.path / name
+            if p.is_dir():
+                shutil.rmtree(p)
+            else:
+                p.unlink(missing_ok=True)
+        return None
+
+    # ------------------------------------------------------------------ metrics
+    def read_metrics(self, committed: int) -> list[TaskMetrics]:
+        """The first ``committed`` records of metrics.jsonl; anything after them (a torn
+        last line, a line written just before a crash) is cut off, and those tasks run
+        again."""
+        path = self.path / "metrics.jsonl"
+        if not path.exists():
+            if committed:
+                raise EdgereconError(
+                    f"{path} is missing but the run state counts {committed} tasks"
+                )
+            return []
+        data = path.read_bytes()
+        records: list[TaskMetrics] = []
+        offset = 0
+        while len(records) < committed:
+            end = data.find(b"\n", offset)
+            line = data[offset:] if end < 0 else data[offset:end]
+            try:
+                records.append(TaskMetrics.from_dict(json.loads(line)))
+            except (ValueError, TypeError) as exc:
+                raise EdgereconError(
+                    f"{path}: line {len(records) + 1} of {committed} committed ones does not "
+                    f"parse ({exc}); the run cannot be resumed (use --overwrite)"
+                ) from None
+            if end < 0:
+                raise EdgereconError(f"{path}: only {len(records)} of {committed} lines")
+            offset = end + 1
+        if offset < len(data):
+            logger.warning(
+                "%s: cutting off %d bytes after the %d committed tasks (torn or uncommitted)",
+                path,
+                len(data) - offset,
+                committed,
+            )
+            with open(path, "r+b") as f:
+                f.truncate(offset)
+                os.fsync(f.fileno())
+        return records
+
+    def append_metrics(self, m: TaskMetrics) -> None:
+        """Append one line and fsync: a crash loses at most the task in progress."""
+        path = self.path / "metrics.jsonl"
+        with open(path, "a", encoding="utf-8") as f:
+            f.write(json.dumps(m.to_dict()) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def read_background(self) -> PointCloud | None:
+        path = self.path / "background.ply"
+        return read_ply(path) if path.exists() else None
+
+
+def _frames_text(frames: tuple[Any, ...]) -> str:
+    start, stop, step = frames
+    return f"{start}:{'' if stop is None else stop}:{step}"

@@ -1,0 +1,110 @@
+"""``edgerecon run``: options checked before any work, the output folder's rules, exit codes,
+Ctrl-C."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+
+import edgerecon.pipeline
+import edgerecon.runtime.session
+from edgerecon.cli import build_parser, main
+
+
+def _run(tiny_dataset, out, *extra):
+    return main(
+        [
+            "run",
+            "--dataset",
+            str(tiny_dataset),
+            "--out",
+            str(out),
+            "--deadline",
+            "20",
+            "--no-background-updates",
+            *extra,
+        ]
+    )
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--frames", "100:"], "selects no timestamp"),
+        (["--fixed", "0"], "--fixed must be a scale in (0, 1]"),
+        (["--fixed", "0.5", "--cameras", "0,0,1"], "--cameras must name at least 3 distinct"),
+        (["--cameras", "0,1,2"], "give --fixed SCALE too"),
+        (["--inject-fault", "1:kill"], "needs --engine ray"),
+        (["--inject-fault", "x:stall"], "--inject-fault must be TASK:stall|crash|kill"),
+        (["--resume", "--overwrite"], "exclude each other"),
+    ],
+)
+def test_bad_options_are_refused_before_any_work(tiny_dataset, tmp_path, capsys, extra, message):
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    assert _run(tiny_dataset, out, *extra) == 2
+    assert time.perf_counter() - t0 < 3.0, "refused before the set-up, not after"
+    assert message in capsys.readouterr().err
+    assert not out.exists(), "no empty output folder left behind"
+
+
+def test_unwritable_out_is_refused_at_once(tiny_dataset, tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    assert _run(tiny_dataset, tmp_path / "file" / "out", "--frames", "0:1") == 2
+    assert "cannot write there" in capsys.readouterr().err
+
+
+def test_run_refuses_a_used_folder_resumes_and_overwrites(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert _run(tiny_dataset, out, "--frames", "0:2", "--fixed", "0.6", "--json") == 0
+    first = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in first["tasks"]] == [0, 1]
+    # A finished run is not replaced silently.
+    assert _run(tiny_dataset, out, "--frames", "0:2", "--fixed", "0.6") == 2
+    assert "not empty" in capsys.readouterr().err
+    assert _run(tiny_dataset, out, "--frames", "0:3", "--fixed", "0.6", "--resume", "--json") == 0
+    resumed = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in resumed["tasks"]] == [0, 1, 2]
+    assert resumed["summary"]["tasks"] == 3
+    # --overwrite starts again: no stale task folder of the old run remains.
+    assert _run(tiny_dataset, out, "--frames", "1:2", "--fixed", "0.6", "--overwrite") == 0
+    assert sorted(p.name for p in (out / "tasks").iterdir()) == ["000001"]
+    assert len((out / "metrics.jsonl").read_text().splitlines()) == 1
+
+
+def test_failed_tasks_exit_3_with_the_summary(tiny_dataset, tmp_path, capsys, monkeypatch):
+    def boom(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", boom)
+    assert _run(tiny_dataset, tmp_path, "--frames", "0:2", "--fixed", "0.6") == 3
+    err = capsys.readouterr().err
+    assert "2 of 2 tasks failed" in err
+    assert json.loads((tmp_path / "summary.json").read_text())["failed"] == 2
+
+
+def test_ctrl_c_writes_the_summary_and_prints_resume(tiny_dataset, tmp_path, capsys, monkeypatch):
+    real = edgerecon.runtime.session.frame_defects
+
+    def interrupt(frames, config=None):
+        if frames.time_index == 1:
+            raise KeyboardInterrupt
+        return real(frames, config)
+
+    monkeypatch.setattr(edgerecon.runtime.session, "frame_defects", interrupt)
+    assert _run(tiny_dataset, tmp_path, "--frames", "0:3", "--fixed", "0.6") == 130
+    err = capsys.readouterr().err
+    assert "interrupted after 1 tasks" in err and "--resume" in err
+    assert f"--out {tmp_path}" in err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["interrupted"] is True and summary["tasks"] == 1
+
+
+def test_run_help_documents_exit_codes(capsys):
+    parser = build_parser()
+    with pytest.raises(SystemExit):
+        parser.parse_args(["run", "--help"])
+    text = capsys.readouterr().out
+    assert "exit codes:" in text and "130" in text and "tasks failed" in text.replace("\n", " ")

@@ -1,0 +1,156 @@
+"""A task can fail; a run cannot (issue 11 item 5): unusable frames, a stage that raises on the
+front-end or the back-end, a stage that hangs, and the two-object crash, each with background
+updates on."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+import edgerecon.pipeline
+import edgerecon.scene.objects
+from edgerecon.io.dataset import open_dataset
+from edgerecon.quality.frames import FrameCheckConfig, frame_defect
+from edgerecon.runtime import RuntimeConfig
+from edgerecon.scene.foreground import RigForeground
+from tests.runtime.conftest import run_frames, runtime_config
+
+
+def test_frame_defects_known_answers():
+    rng = np.random.default_rng(0)
+    textured = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    dark_noise = rng.integers(0, 6, (240, 320, 3), dtype=np.uint8)  # lights out, sensor noise
+    grey = np.clip(128 + rng.normal(0, 1.0, (240, 320, 3)), 0, 255).astype(np.uint8)
+    assert frame_defect(textured) is None
+    assert frame_defect(np.zeros((240, 320, 3), np.uint8)) == "black"
+    assert frame_defect(dark_noise) == "black"
+    assert frame_defect(np.full((240, 320, 3), 255, np.uint8)) == "saturated"
+    assert frame_defect(grey) == "textureless"
+    assert frame_defect(grey, FrameCheckConfig(textureless_max_std=0.5)) is None
+    with pytest.raises(ValueError, match="black_max_level"):
+        FrameCheckConfig(black_max_level=250)
+
+
+def test_black_frames_give_empty_tasks_fast_with_one_warning(
+    tiny, tiny_dataset, tmp_path_factory, tmp_path, caplog
+):
+    # Lights out at times 3-4 (every camera) and two cameras blinded at time 5. The lit
+    # background model took every black pixel for foreground: the visual hull filled the
+    # room and each such task cost many times a normal one (minutes per task at full HD).
+    src = tmp_path_factory.mktemp("dark") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    for cam in range(5):
+        for t in (3, 4):
+            path = src / "frames" / f"cam{cam}" / f"{t:06d}.png"
+            cv2.imwrite(str(path), np.zeros((240, 320, 3), np.uint8))
+    for cam in (0, 1):
+        cv2.imwrite(
+            str(src / "frames" / f"cam{cam}" / "000005.png"), np.zeros((240, 320, 3), np.uint8)
+        )
+    caplog.set_level(logging.WARNING)
+    summary, metrics = run_frames((open_dataset(src), tiny[1]), tmp_path, 0, 7)
+    assert [m.status for m in metrics] == ["ok"] * 7
+    for m in metrics[3:5]:
+        assert m.frame_defects == {f"cam{k}": "black" for k in range(5)}
+        assert m.num_fg_points == 0 and m.num_cameras == 0 and not m.submitted
+        assert m.num_merged_points >= 0
+    # Fast: an empty task costs the frame check, not a reconstruction.
+    assert metrics[4].wall_time - metrics[3].wall_time < 0.5 * (
+        metrics[3].wall_time - metrics[1].wall_time
+    )
+    assert metrics[5].frame_defects == {"cam0": "black", "cam1": "black"}
+    assert metrics[5].num_cameras == 3 and metrics[5].num_fg_points > 0
+    assert metrics[6].frame_defects == {} and metrics[6].num_cameras == 5
+    assert summary.empty == 2 and summary.failed == 0
+    unusable = [r for r in caplog.records if "unusable frames" in r.getMessage()]
+    # One warning when the lights go out, one when two cameras stay blinded, then recovery.
+    assert len(unusable) == 2
+    assert any("usable again" in r.getMessage() for r in caplog.records)
+
+
+def test_a_stage_that_raises_is_a_failed_record(tiny, tmp_path, monkeypatch):
+    # Time 1: the scene stage raises (the front-end computes the masks). Time 3: the
+    # front-end's foreground MVS raises.
+    real_mvs = edgerecon.pipeline.reconstruct_foreground
+    real_segment = RigForeground.segment
+    calls = {"n": 0}
+
+    def mvs(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the third task that gets that far: time 3
+            raise RuntimeError("boom in the foreground MVS")
+        return real_mvs(*args, **kwargs)
+
+    def segment(self, frames, **kw):
+        if frames.time_index == 1:
+            raise ValueError("zero-size array to reduction operation minimum which has no identity")
+        return real_segment(self, frames, **kw)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", mvs)
+    monkeypatch.setattr(RigForeground, "segment", segment)
+    summary, metrics = run_frames(tiny, tmp_path, 0, 5)
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "failed", "ok"]
+    assert "zero-size array" in metrics[1].error
+    assert "RuntimeError: boom in the foreground MVS" in metrics[3].error
+    assert "reconstruct_task" in metrics[3].error  # where it was raised
+    assert not metrics[2].degraded and not metrics[4].degraded, "the run goes on whole"
+    assert metrics[2].submitted and metrics[4].submitted, "the back-end serves on"
+    assert summary.failed == 2 and not (tmp_path / "tasks" / "000003").exists()
+
+
+def test_a_stage_that_hangs_is_abandoned_by_the_watchdog(tiny, tmp_path, monkeypatch):
+    release = threading.Event()
+    real = edgerecon.pipeline.reconstruct_foreground
+    calls = {"n": 0}
+
+    def hang(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            release.wait(120)  # a stage that never returns (until the test ends)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", hang)
+    try:
+        _, metrics = run_frames(
+            tiny, tmp_path, 0, 4, runtime_config(task_timeout_s=12.0), fixed=(0.8, None)
+        )
+    finally:
+        release.set()
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "ok"]
+    assert metrics[1].error.startswith("watchdog: still running after 12.0 s")
+    assert metrics[2].wall_time - metrics[1].wall_time < 60
+    assert RuntimeConfig(deadline_s=2.0).watchdog_s == 30.0
+    assert RuntimeConfig(deadline_s=5.0).watchdog_s == 50.0
+
+
+def test_two_object_crash_is_a_failed_record_also_after_resume(tiny, tmp_path, monkeypatch):
+    # The two-person capture crashed the whole run in scene/objects.py _component_gaps, and
+    # again after --resume. Whatever raises there now fails only the task.
+    real = edgerecon.scene.objects._component_gaps
+    broken = {"times": {1, 3}}
+    current = {"t": -1}
+
+    def gaps(cc, num_comp):
+        if current["t"] in broken["times"]:
+            return np.zeros((0,)).min()  # the original 'zero-size array' ValueError
+        return real(cc, num_comp)
+
+    real_segment = RigForeground.segment
+
+    def segment(self, frames, **kw):
+        current["t"] = frames.time_index
+        return real_segment(self, frames, **kw)
+
+    monkeypatch.setattr(edgerecon.scene.objects, "_component_gaps", gaps)
+    monkeypatch.setattr(RigForeground, "segment", segment)
+    _, first = run_frames(tiny, tmp_path, 0, 3)
+    assert [m.status for m in first] == ["ok", "failed", "ok"]
+    assert "zero-size array" in first[1].error and "scene/objects.py" in first[1].error
+    summary, metrics = run_frames(tiny, tmp_path, 0, 5, resume=True)
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "failed", "ok"]
+    assert summary.tasks == 5 and summary.failed == 2

@@ -1,0 +1,314 @@
+"""Run state with one owner: background versions across back-end restarts and resumes, the
+saved background, the deadline and dataset on resume, pi(N') refreshes, late golden
+references, and the output folder (lock, overwrite, torn lines)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from edgerecon.io.ply import read_ply
+from edgerecon.optimize.controller import BisectionController, ControllerConfig
+from edgerecon.runtime import FrameRange, SessionOptions, run_online
+from edgerecon.runtime.engine import EmbeddedEngine
+from edgerecon.runtime.frontend import FixedController, FrontEnd
+from edgerecon.runtime.messages import BackgroundUpdate, BgVersion
+from edgerecon.runtime.online import make_controller
+from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
+from edgerecon.types import EdgereconError, PointCloud
+from tests.runtime.conftest import run_frames, runtime_config
+
+
+def _cloud(n):
+    rng = np.random.default_rng(n)
+    return PointCloud(points3D=rng.normal(size=(n, 3)), colors=np.zeros((n, 3), np.uint8))
+
+
+def _wait(predicate, timeout=120.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_background_versions_order_by_epoch_then_counter():
+    assert BgVersion(2, 1) > BgVersion(1, 9) > BgVersion(1, 2) > BgVersion()
+    assert not BgVersion() and BgVersion(3, 1)
+    assert BgVersion.from_list([2, 5]) == BgVersion(2, 5) and str(BgVersion(2, 5)) == "v2.5"
+
+
+def _rig():
+    from tests.conftest import ring_rig
+
+    return ring_rig(4)
+
+
+def test_frontend_takes_a_restarted_backends_backgrounds():
+    # Before: every back-end counted from 1, so after a restart the front-end (holding v5)
+    # dropped the new back-end's v1..v5 silently.
+    fe = FrontEnd(_rig(), runtime_config(), FixedController(1.0, (0, 1, 2, 3)))
+    first = fe.register_backend()
+    assert first.epoch == 1 and first.first
+    for k in range(1, 6):
+        fe.push_background(BackgroundUpdate(version=BgVersion(1, k), cloud=_cloud(k), seconds=0))
+    second = fe.register_backend()
+    assert second.epoch == 2 and not second.first
+    fe.push_background(BackgroundUpdate(version=BgVersion(2, 1), cloud=_cloud(50), seconds=0))
+    assert fe.bg_version == BgVersion(2, 1) and len(fe.background()[0]) == 50
+    # A late push from the dead back-end is older: ignored.
+    fe.push_background(BackgroundUpdate(version=BgVersion(1, 6), cloud=_cloud(7), seconds=0))
+    assert fe.bg_version == BgVersion(2, 1)
+    state = fe.state()
+    assert state.backend_epoch == 2 and state.backgrounds_received == 6
+    # Restored (resume): the next back-end continues the epochs, the background is kept.
+    again = FrontEnd(
+        _rig(),
+        runtime_config(),
+        FixedController(1.0, (0, 1, 2, 3)),
+        restored=state,
+        background=_cloud(50),
+    )
+    assert again.bg_version == BgVersion(2, 1) and again.register_backend().epoch == 3
+
+
+def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
+    ds, scene = tiny
+    engine = EmbeddedEngine(
+        ds, runtime_config(backend_retry_s=0.1), FixedController(0.6, (0, 1, 2, 3, 4)), scene
+    )
+    try:
+        fe = engine.frontend
+        assert _wait(lambda: fe.bg_version.counter >= 1), "first background (from the clip)"
+        assert fe.bg_version.epoch == 1
+        engine.inject_backend_fault("crash")
+        engine.link.mark_lost("test")
+        engine.link._next_check = 0.0
+        assert not engine.link.usable()  # found dead: restarted, not usable yet
+        assert engine.backend_restarts == 1 and engine.backend.epoch == 2
+        with ds.open_frames() as src:
+            frames = src.read(3)
+        engine.link._next_check = 0.0
+        out = engine.run_task(frames, engine.plan(3), 0, {})
+        assert out.metrics.status == "ok" and out.metrics.submitted
+        assert _wait(lambda: fe.bg_version.epoch == 2), "the new back-end's background is taken"
+    finally:
+        engine.close()
+
+
+def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp_path, monkeypatch):
+    ds, scene = tiny
+    config = runtime_config()
+    fixed = (0.8, None)
+    taken = []  # (front-end, version) of every push
+    current = []  # the front-end of the run in progress (the last to register a back-end)
+    real_push, real_register = FrontEnd.push_background, FrontEnd.register_backend
+
+    def push(self, update):
+        taken.append((self, update.version))
+        return real_push(self, update)
+
+    def register(self):
+        current.append(self)
+        return real_register(self)
+
+    monkeypatch.setattr(FrontEnd, "push_background", push)
+    monkeypatch.setattr(FrontEnd, "register_backend", register)
+
+    # Frames arrive slowly after tasks 0 and 4: the back-end (of epoch 1, then of epoch 2
+    # after the resume) has time to push a background.
+    def slow(m):
+        if m.task in (0, 4):
+            epoch = 1 if m.task == 0 else 2
+            pushed = lambda: any(fe is current[-1] and v.epoch == epoch for fe, v in taken)  # noqa: E731
+            assert _wait(pushed, timeout=180)
+
+    whole = tmp_path / "whole"
+    _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)
+    taken.clear()  # the next run's pushes only
+    part = tmp_path / "part"
+    _, first = run_frames(tiny, part, 0, 3, config, fixed=fixed, on_task=slow)
+    state = RunState.load(part)
+    assert state.tasks_done == 3 and state.frontend.bg_version.epoch == 1
+    # The saved background is the background itself, not a merged cloud with holes cut
+    # where the last task's foreground was (a resumed run's clouds held ~7k of ~144k points).
+    saved_bg = read_ply(part / "background.ply")
+    last = read_ply(part / "tasks" / f"{first[-1].time_index:06d}" / "merged.ply")
+    held = state.frontend.bg_version
+    assert held.counter >= 1
+    assert len(saved_bg) > (last.labels == 0).sum()
+    # A crash left a torn last line: it is cut off and that task is done again.
+    with open(part / "metrics.jsonl", "a") as f:
+        f.write('{"task": 3, "time_index": 3, "sta')
+    summary, resumed = run_online(
+        ds,
+        config,
+        SessionOptions(frames=FrameRange(start=0, stop=7), resume=True),
+        part,
+        scene=scene,
+        fixed=fixed,
+        on_task=slow,
+    )
+    lines = [json.loads(x) for x in (part / "metrics.jsonl").read_text().splitlines()]
+    assert [x["task"] for x in lines] == list(range(7))
+    assert [x["time_index"] for x in lines] == list(range(7))
+    # The resumed run merged the saved background first, then the new back-end's (epoch 2).
+    assert resumed[3].background_version == held
+    assert max(m.background_version for m in resumed).epoch == 2
+    assert summary.bg_version[0] == 2
+    # Same foreground clouds as the uninterrupted run (the background models replayed the
+    # frames the back-end had learned from before the interruption).
+    for a, b in zip(resumed, uninterrupted, strict=True):
+        assert a.status == b.status == "ok"
+        assert (a.num_sparse, a.num_fg_points, a.num_sparse_fg) == (
+            b.num_sparse,
+            b.num_fg_points,
+            b.num_sparse_fg,
+        ), a.task
+        fa = read_ply(part / "tasks" / f"{a.time_index:06d}" / "merged.ply")
+        fb = read_ply(whole / "tasks" / f"{b.time_index:06d}" / "merged.ply")
+        np.testing.assert_array_equal(
+            fa.points3D[fa.labels > 0], fb.points3D[fb.labels > 0], err_msg=str(a.task)
+        )
+
+
+def test_resume_applies_a_new_deadline_and_restarts_the_search():
+    ctrl = BisectionController(ControllerConfig(deadline_s=2.0), {3: (0, 1, 2)}, 4)
+    ctrl.next_config()
+    ctrl.observe(1.0, 1.0)
+    saved = ctrl.to_dict()
+    ds = type("D", (), {"rig": _rig()})()
+    same = make_controller(ds, runtime_config(deadline_s=2.0), saved_state=saved)
+    assert isinstance(same, BisectionController) and same.events == []
+    new = make_controller(ds, runtime_config(deadline_s=0.5), saved_state=saved)
+    assert isinstance(new, BisectionController)
+    assert new.config.deadline_s == 0.5 and new.events[-1]["reason"] == "deadline"
+
+
+def _state(ds, frames=(0, 4, 1)):
+    from edgerecon.runtime.frontend import FrontEndState
+
+    return RunState(
+        dataset=DatasetIdentity.of(ds),
+        frames=frames,
+        policy="all",
+        deadline_s=2.0,
+        tasks_done=2,
+        frontend=FrontEndState(controller={"format": "edgerecon-fixed"}),
+    )
+
+
+def test_resume_refuses_another_dataset_or_frame_range(tiny, tiny_dataset, tmp_path):
+    ds, _ = tiny
+    _state(ds).save(tmp_path)
+    ident = DatasetIdentity.of(ds)
+    with OutputFolder(tmp_path).acquire() as folder:
+        assert folder.prepare(resume=True, overwrite=False, identity=ident, frames=(0, 8, 1))
+        other = DatasetIdentity(**{**ident.__dict__, "rig_fingerprint": "0" * 16})
+        with pytest.raises(EdgereconError, match="different calibration"):
+            folder.prepare(resume=True, overwrite=False, identity=other, frames=(0, 4, 1))
+        with pytest.raises(EdgereconError, match="same start and step"):
+            folder.prepare(resume=True, overwrite=False, identity=ident, frames=(1, 4, 1))
+        with pytest.raises(EdgereconError, match="same start and step"):
+            folder.prepare(resume=True, overwrite=False, identity=ident, frames=(0, 4, 2))
+        with pytest.raises(EdgereconError, match="not empty"):
+            folder.prepare(resume=False, overwrite=False, identity=ident, frames=(0, 4, 1))
+
+
+def test_output_folder_lock_overwrite_and_torn_lines(tiny, tmp_path):
+    ds, _ = tiny
+    a = OutputFolder(tmp_path).acquire("edgerecon run A")
+    with pytest.raises(EdgereconError, match=r"in use by another run \(pid \d+ .*run A"):
+        OutputFolder(tmp_path).acquire()
+    a.release()
+    # A finished run's files, a stale task folder and a user's own file.
+    (tmp_path / "tasks" / "000099").mkdir(parents=True)
+    (tmp_path / "notes.txt").write_text("mine")
+    _state(ds).save(tmp_path)
+    lines = [json.dumps({"task": k, "time_index": k, "status": "ok"}) for k in range(3)]
+    (tmp_path / "metrics.jsonl").write_text("\n".join(lines) + "\n" + '{"task": 3, "ti')
+    with OutputFolder(tmp_path).acquire() as folder:
+        # Two committed tasks: the third line (written before a crash, uncommitted) and the
+        # torn fourth are cut off.
+        records = folder.read_metrics(2)
+        assert [m.task for m in records] == [0, 1]
+        assert (tmp_path / "metrics.jsonl").read_text() == "\n".join(lines[:2]) + "\n"
+        folder.prepare(
+            resume=False, overwrite=True, identity=DatasetIdentity.of(ds), frames=(0, 4, 1)
+        )
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".lock", "notes.txt"]
+
+
+def test_unwritable_out_is_refused_before_any_work(tiny, tmp_path):
+    ds, _ = tiny
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    t0 = time.perf_counter()
+    with pytest.raises(EdgereconError, match="cannot write there"):
+        run_online(
+            ds,
+            runtime_config(),
+            SessionOptions(frames=FrameRange(start=0, stop=2)),
+            blocker / "out",
+        )
+    assert time.perf_counter() - t0 < 2.0
+
+
+def test_golden_task_refreshes_camera_mapping_and_late_golden_is_degraded(tiny):
+    ds, scene = tiny
+    ctrl = BisectionController(ControllerConfig(deadline_s=100.0), None, len(ds.rig))
+    config = runtime_config(golden_timeout_s=0.3, online_quality="golden")
+    fe = FrontEnd(ds.rig, config, ctrl, scene.tracker(ds.rig))
+    with ds.open_frames() as src:
+        framesets = [src.read(t) for t in range(3)]
+    handed: list = []
+
+    def run(task, frames):
+        plan = fe.next_plan(frames.time_index)
+        return plan, fe.run_task(frames, plan, handed.append, lambda t: time.sleep(t), task=task)
+
+    plan, out = run(0, framesets[0])
+    assert plan.phase == "golden" and fe.pi_source["task"] == 0
+    # The back-end was handed the frames with the front-end's own masks, asked for a reference.
+    assert handed[0].frames.time_index == 0 and handed[0].golden
+    assert handed[0].foreground.masks[0] is not None and not handed[0].foreground.segmentations
+    m = out.metrics
+    # The golden reference came late: counted as degraded, and the wait is in the stages.
+    assert m.degraded and "no golden reference" in m.degraded_reason
+    assert m.stages["wait_golden"] == pytest.approx(0.3, abs=0.2)
+    assert m.critical_path_s < sum(m.stages.values())  # the wait is after the critical path
+    ctrl.restart("test", golden=True)  # a golden re-search recomputes pi(N') ...
+    plan, out = run(1, framesets[1])
+    assert plan.phase == "golden" and fe.pi_source == {
+        "task": 1,
+        "time_index": 1,
+        "rows": fe.pi_source["rows"],
+    }
+
+
+def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, monkeypatch):
+    import errno
+
+    import edgerecon.runtime.session as session_module
+
+    real = session_module.write_ply
+    calls = {"n": 0}
+
+    def full(path, cloud, **kw):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(path, cloud, **kw)
+
+    monkeypatch.setattr(session_module, "write_ply", full)
+    config = runtime_config(background_updates=False)
+    with pytest.raises(EdgereconError, match=r"No space left.*after 1 committed tasks.*--resume"):
+        run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None))
+    assert RunState.load(tmp_path).tasks_done == 1
+    monkeypatch.setattr(session_module, "write_ply", real)
+    _, metrics = run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None), resume=True)
+    assert [m.time_index for m in metrics] == [0, 1, 2]
