@@ -10,7 +10,7 @@ configs); only the values that differ from the defaults need to be there::
 
     [runtime]                        # RuntimeConfig: run, demo (and reconstruct --split's
     deadline_s = 2.0                 # [runtime.foreground] / [runtime.split])
-    masks_timeout_s = 1.5
+    golden_timeout_s = 1.5
     [runtime.foreground.background]  # BackgroundConfig of the scene model
     ...
 

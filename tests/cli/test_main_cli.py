@@ -64,7 +64,7 @@ def test_tables_are_not_cut_when_piped(capsys):
 def test_config_round_trip_and_errors(tmp_path):
     sections = {
         "reconstruction": ReconstructionConfig(scale=0.7, camera_ids=(0, 2, 3)),
-        "runtime": RuntimeConfig(deadline_s=1.5, masks_timeout_s=0.8),
+        "runtime": RuntimeConfig(deadline_s=1.5, golden_timeout_s=0.8),
         "controller": ControllerConfig(deadline_s=1.5, margin_s=0.25, r_min=0.4),
     }
     path = tmp_path / "c.toml"
@@ -76,15 +76,15 @@ def test_config_round_trip_and_errors(tmp_path):
     assert cc == sections["controller"]
     assert "deadline_s" not in data["controller"]  # the controller's comes from [runtime]
     # Docstrings become comments.
-    assert field_docs(RuntimeConfig)["masks_timeout_s"].startswith("How long the front-end")
+    assert field_docs(RuntimeConfig)["golden_timeout_s"].startswith("How long the front-end")
     assert "# How long the front-end waits" in path.read_text()
     # Mistakes name the key and the closest one.
     with pytest.raises(
         ConfigError, match=r"'reconstruction.sparse_config.max_featurs'.*max_features"
     ):
         build(ReconstructionConfig, {"sparse_config": {"max_featurs": 10}}, where="reconstruction")
-    with pytest.raises(ConfigError, match=r"runtime.masks_timeout_s must be a number"):
-        build(RuntimeConfig, {"deadline_s": 1.0, "masks_timeout_s": "soon"}, where="runtime")
+    with pytest.raises(ConfigError, match=r"runtime.golden_timeout_s must be a number"):
+        build(RuntimeConfig, {"deadline_s": 1.0, "golden_timeout_s": "soon"}, where="runtime")
     path.write_text("[runtim]\ndeadline_s = 1\n")
     with pytest.raises(ConfigError, match=r"unknown table \[runtim\]; did you mean 'runtime'"):
         load_config_file(path)
