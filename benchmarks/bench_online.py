@@ -48,7 +48,7 @@ from edgerecon.quality import evaluate_clouds
 from edgerecon.quality.online import online_offline_correlation
 from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
 from edgerecon.runtime.config import median_camera_distance
-from edgerecon.runtime.engine import foreground_at
+from edgerecon.scene.stream import bootstrap_scene
 from edgerecon.types import PointCloud
 
 
@@ -91,11 +91,18 @@ def golden_foregrounds(root: Path, times: list[int]) -> dict[int, PointCloud]:
     cameras, masks as the online system computes them) of every timestamp."""
     ds = open_dataset(root)
     out = {}
-    for t in times:
-        frames, fg = foreground_at(ds, t)
-        out[t] = reconstruct_task(
-            frames, ds.rig, fg, background=PointCloud.empty()
-        ).foreground.cloud
+    clip = ds.open_background()
+    with ds.open_frames() as source:
+        # One pass over the stream: the models at each time index, as the online system's.
+        tracker = bootstrap_scene(ds.rig, source, ds.fps, clip=clip)
+        for t in sorted(times):
+            tracker.catch_up(source, t)
+            frames = source.read(t)
+            fg = tracker.segment(frames)
+            rec = reconstruct_task(frames, ds.rig, fg, background=PointCloud.empty())
+            out[t] = rec.foreground.cloud
+    if clip is not None:
+        clip.close()
     return out
 
 

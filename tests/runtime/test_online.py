@@ -31,8 +31,6 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     assert all(m.num_fg_points > 0 and m.critical_path_s > 0 for m in metrics)
     assert all(m.submitted for m in metrics)
     assert {"scene", "sfm", "split", "merge", "online_quality"} <= set(metrics[0].stages)
-    # The scene stage (masks at the working resolution) costs a small share of the task.
-    assert metrics[0].stages["scene"] < 0.35 * metrics[0].critical_path_s
     lines = _lines(tmp_path / "metrics.jsonl")
     assert [x["time_index"] for x in lines] == [0, 1, 2, 3]
     for m in metrics:

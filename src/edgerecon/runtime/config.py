@@ -36,6 +36,10 @@ class RuntimeConfig:
     the offline foreground F); "golden" = the paper's: the task's foreground sparse points
     against the golden configuration's, which the back-end reconstructs for every task
     (Pearson 0.2-0.5 on wide-baseline rigs, and late references degrade tasks)."""
+    adjust_target: float = 0.95
+    """After the search the controller steers the average task time to this share of the
+    deadline (the paper: 1.0; measured there on the simulator: half the tasks miss; 0.95
+    keeps the average within the deadline under timing noise, see docs/OPTIMIZER.md)."""
     golden_timeout_s: float | None = None
     """How long the front-end waits, after publishing a task's cloud, for the back-end's
     golden reference of the online estimate; None = the deadline, at least 2 s."""
@@ -58,6 +62,10 @@ class RuntimeConfig:
     """Least time between the starts of two background rebuilds."""
     background_scale: float = 1.0
     """Image scale of background rebuilds (the back-end has time: golden by default)."""
+    background_process: bool = True
+    """Rebuild the background in a process of its own (a thread of the back-end's process
+    holding the interpreter lock while descheduled stalls the front-end's critical path in
+    the embedded engine)."""
     background_nice: int = 10
     """OS niceness of the background-rebuild thread (Linux), so that the current task's
     work (and golden references) is served first."""
@@ -78,6 +86,10 @@ class RuntimeConfig:
     def __post_init__(self) -> None:
         if not (self.deadline_s > 0 and math.isfinite(self.deadline_s)):
             raise ValueError(f"RuntimeConfig.deadline_s must be > 0, got {self.deadline_s!r}")
+        if not 0 < self.adjust_target <= 1.5:
+            raise ValueError(
+                f"RuntimeConfig.adjust_target must be in (0, 1.5], got {self.adjust_target}"
+            )
         if self.online_quality not in ONLINE_QUALITIES:
             raise ValueError(
                 f"RuntimeConfig.online_quality must be one of {ONLINE_QUALITIES}, "

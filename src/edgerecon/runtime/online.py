@@ -67,7 +67,9 @@ def make_controller(
             )
             ctrl.set_deadline(config.deadline_s)
         return ctrl
-    cc = controller_config or ControllerConfig(deadline_s=config.deadline_s)
+    cc = controller_config or ControllerConfig(
+        deadline_s=config.deadline_s, adjust_target=config.adjust_target
+    )
     return BisectionController(cc, None, n)
 
 

@@ -579,7 +579,10 @@ class BackgroundModel:
         if self.config.ghost_edge_ratio > 0 and foreground.any():
             ghost, num_ghosts = self._ghosts(image, foreground, seg.gain)
         if self.config.ghost_min_matches > 0 and self._state.seen is not None:
-            seen_before = self._seen_before(target, foreground & ~ghost)
+            # Only pixels that were foreground at the last update too: a ghost stays where it
+            # is, and most pixels of a moving actor are new at each update.
+            steady = foreground & ~ghost & (self._state.fg_age > 0)
+            seen_before = self._seen_before(target, steady)
             if seen_before.any():
                 ghost = ghost | seen_before
                 num_ghosts += 1

@@ -601,7 +601,9 @@ def visual_hull(
         )
         labels = _objects(
             idx,
-            max(1, round(gap / size)),
+            # At least 2 voxels: parts a voxel apart are one object (a hand a voxel off the
+            # arm), and the labelling grid is 8x smaller than at 1.
+            max(2, round(gap / size)),
             config.min_object_voxels,
             config.min_object_fraction,
         )

@@ -46,7 +46,7 @@ class ObjectConfig:
     """... joins the nearest object within this share of the image diagonal."""
     sample_size: int = 1500
     """Foreground pixels sampled for k-means."""
-    silhouette_sample: int = 400
+    silhouette_sample: int = 300
     """Of those, pixels used for the silhouette score (its cost grows with the square)."""
     roi_margin_fraction: float = 0.1
     """Each object's region of interest is its bounding box grown by this share of its larger
@@ -203,7 +203,7 @@ def _group_components(
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 30, 0.5)
     cv2.setRNGSeed(rng_seed)
     _, _, centers = cv2.kmeans(  # type: ignore[call-overload]
-        coords[sample], k, None, criteria, 3, cv2.KMEANS_PP_CENTERS
+        coords[sample], k, None, criteria, 1, cv2.KMEANS_PP_CENTERS
     )
     cluster = np.argmin(_sqdist(coords.astype(np.float64), centers.astype(np.float64)), axis=1)
     share = np.bincount(comp * k + cluster, minlength=num_comp * k).reshape(num_comp, k)

@@ -1,0 +1,79 @@
+"""One definition of the background models over a stream (scene/stream.py): the schedule,
+and the same masks for a time index whatever the order of the tasks before it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edgerecon.cli import main
+from edgerecon.io.dataset import open_dataset
+from edgerecon.scene.foreground import ForegroundConfig
+from edgerecon.scene.stream import (
+    bootstrap_indices,
+    bootstrap_scene,
+    dataset_scene_at,
+    update_step,
+)
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small people-in-a-room stream without an empty-scene clip (hd4 at 192x108)."""
+    from edgerecon.synth import preset_config, write_dataset
+
+    out = tmp_path_factory.mktemp("room") / "scene"
+    write_dataset(preset_config("hd4", width=192, height=108, num_frames=40), out)
+    return out
+
+
+def test_schedule_known_answers() -> None:
+    cfg = ForegroundConfig()
+    assert update_step(25.0, cfg) == 12  # one update per 0.5 s
+    assert update_step(6.0, cfg) == 3
+    assert update_step(None, cfg) == 12  # unknown rate: 25 fps assumed
+    assert bootstrap_indices(100, 25.0, cfg) == [0, 3, 7, 10, 14, 17, 21, 24]
+    assert bootstrap_indices(3, 25.0, cfg) == [0, 1, 2]  # a short stream: all of it
+    with pytest.raises(ValueError, match="update_interval_s"):
+        ForegroundConfig(update_interval_s=0)
+
+
+def test_the_masks_of_a_time_index_do_not_depend_on_the_tasks_before_it(room: Path) -> None:
+    """The online front-end's pattern (pending updates, segment, the task frame's own update
+    after the critical path) gives the masks of a fresh ``dataset_scene_at`` at every task."""
+    ds = open_dataset(room)
+    with ds.open_frames() as source:
+        live = bootstrap_scene(ds.rig, source, ds.fps)
+        assert live.step == 12 and live.learned_from.startswith("median of 8 frames")
+        for t in (5, 13, 24, 31, 38):  # tasks at an irregular rate, 24 on the schedule
+            for s in live.pending(t):
+                live.learn(source.read(s))
+            frames = source.read(t)
+            result = live.segment(frames)
+            live.learn(frames, result)
+            fresh = dataset_scene_at(ds, t).segment(frames)
+            for a, b in zip(result.masks, fresh.masks, strict=True):
+                assert a is not None and b is not None
+                np.testing.assert_array_equal(a, b)
+        assert live.updates == 4  # 0, 12, 24, 36
+    assert live.next_update == 48
+
+
+def test_masks_and_reconstruct_split_see_the_same_foreground(
+    room: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["masks", "--dataset", str(room), "--time", "30", "-o", str(tmp_path / "m")]) == 0
+    rc = main(
+        ["reconstruct", "--dataset", str(room), "--time", "30", "--split", "--out",
+         str(tmp_path / "r"), "--scale", "0.5"]
+    )  # fmt: skip
+    assert rc == 0
+    capsys.readouterr()
+    masks = json.loads((tmp_path / "m" / "masks.json").read_text())
+    split = json.loads((tmp_path / "r" / "timings.json").read_text())
+    from_masks = [c["area_fraction"] for c in masks["cameras"]]
+    assert split["foreground_area"] == pytest.approx(from_masks, abs=1e-9)
+    assert masks["background_updates"] == split["background_updates"] == 3  # 0, 12, 24
