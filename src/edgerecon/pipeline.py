@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon import progress
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
 from edgerecon.geometry.camera import Camera, Rig
@@ -493,9 +494,18 @@ def warm_up() -> float:
     config = preset_config(
         "demo", num_frames=1, width=160, height=120, num_cameras=3, background_frames=0
     )
-    scene = build_scene(config)
-    frame = Renderer(scene, threads=1).render(0)
-    reconstruct(FrameSet(time_index=0, images=tuple(frame.images)), scene.rig)
+    # The hidden reconstruction's own log lines ("time 0: ...") would read as a task of the
+    # data: below WARNING they are muted (warm-up runs before any task, on one thread).
+    package = logging.getLogger("edgerecon")
+    with progress.phase("load the compiled kernels (warm-up)"):
+        scene = build_scene(config)
+        frame = Renderer(scene, threads=1).render(0)
+        level = package.level
+        package.setLevel(max(logging.WARNING, level))
+        try:
+            reconstruct(FrameSet(time_index=0, images=tuple(frame.images)), scene.rig)
+        finally:
+            package.setLevel(level)
     _warmed_up = True
     seconds = time.perf_counter() - t0
     logger.info("kernels ready in %.1f s", seconds)

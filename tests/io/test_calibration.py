@@ -24,7 +24,7 @@ from edgerecon.io import (
     save_rig,
     write_colmap_text,
 )
-from edgerecon.io.calibration import quaternion_to_rotation, rotation_to_quaternion
+from edgerecon.io.colmap import quaternion_to_rotation, rotation_to_quaternion
 from edgerecon.types import CalibrationError
 from tests.conftest import ring_rig, shared_data
 

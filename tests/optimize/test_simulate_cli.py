@@ -22,12 +22,12 @@ def test_simulate_json(capsys):
 
 
 def test_simulate_table_and_errors(capsys):
-    assert main(["simulate", "-d", "7.5", "--tasks", "20", "--load-step", "10:1.5"]) == 0
+    assert main(["simulate", "--deadline", "7.5", "--tasks", "20", "--load-step", "10:1.5"]) == 0
     out = capsys.readouterr().out
     assert "search steps" in out and "per task" in out
-    assert main(["simulate", "-d", "7.5", "--tasks", "0"]) == 2
+    assert main(["simulate", "--deadline", "7.5", "--tasks", "0"]) == 2
     assert "--tasks" in capsys.readouterr().err
-    assert main(["simulate", "-d", "-3"]) == 2
+    assert main(["simulate", "--deadline", "-3"]) == 2
     assert "deadline_s" in capsys.readouterr().err
 
 

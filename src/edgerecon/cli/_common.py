@@ -54,7 +54,13 @@ def print_table(
         table.add_column(col, justify="right" if col not in ("stage", "camera", "name") else "left")
     for row in rows:
         table.add_row(*[_fmt(v) for v in row])
-    (error_console if stderr else console).print(table)
+    out = error_console if stderr else console
+    if not out.is_terminal:
+        # Piped or redirected: the table at its natural width, never cut ("1080x1…").
+        natural = out.measure(table, options=out.options.update(max_width=1000)).maximum
+        if natural > out.width:
+            out = Console(file=out.file, width=natural, highlight=False)
+    out.print(table)
 
 
 def _fmt(v: Any) -> str:

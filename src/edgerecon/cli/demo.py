@@ -15,16 +15,19 @@ import time
 from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.cli._config import load_config, online_configs, run_options_table, write_effective
 from edgerecon.cli.run import (
     EXIT_OK,
     EXIT_TASKS_FAILED,
     add_online_arguments,
     build_options,
     live_printer,
+    num_tasks,
     parse_fixed,
     print_summary,
 )
 from edgerecon.cli.view import live_viewer
+from edgerecon.configfile import section
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import reconstruct, warm_up
 from edgerecon.quality import evaluate_clouds
@@ -99,14 +102,11 @@ def run(args: argparse.Namespace) -> int:
     golden_score = evaluate_clouds(
         golden.dense.cloud if golden.dense else golden.sparse.cloud, ref_all, threshold
     )[0]
-    deadline = args.deadline or round(args.deadline_fraction * golden.timings.total, 2)
-    rt = RuntimeConfig(
-        deadline_s=deadline,
-        background_updates=not args.no_background_updates,
-        background_scale=args.background_scale,
-        sparse_scope=args.sparse_scope,
-        online_quality=args.online_quality,
-    )
+    cfg = load_config(args)
+    if args.deadline is None and "deadline_s" not in section(cfg, "runtime"):
+        args.deadline = round(args.deadline_fraction * golden.timings.total, 2)
+    rt, controller_config = online_configs(args, cfg)
+    deadline = rt.deadline_s
     if not args.json:
         console.print(
             f"original pipeline (r=1, all {len(dataset.rig)} cameras, whole scene) at t={t_mid}: "
@@ -118,7 +118,10 @@ def run(args: argparse.Namespace) -> int:
     # The run folder is the demo's own work folder: a new demo replaces the last one.
     options = build_options(args, dataset, threshold, overwrite=True)
     fixed = parse_fixed(args, dataset)
-    with live_viewer(args, out / "run"):
+    with (
+        live_viewer(args, out / "run"),
+        live_printer(not args.json, num_tasks(args, dataset)) as on_task,
+    ):
         summary, metrics = run_online(
             dataset,
             rt,
@@ -127,8 +130,11 @@ def run(args: argparse.Namespace) -> int:
             engine=args.engine,
             address=args.address,
             fixed=fixed,
-            on_task=live_printer(not args.json),
+            controller_config=controller_config,
+            on_task=on_task,
         )
+    effective = {"runtime": rt, "controller": controller_config, "run": run_options_table(args)}
+    write_effective(out / "run", "demo", effective)
     figures = write_report([out / "run"], out / "run" / "report")
     result = {
         "scene": str(scene_dir),

@@ -20,6 +20,8 @@ import cv2
 import numpy as np
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table, to_json
+from edgerecon.cli._config import add_config_flag, load_config
+from edgerecon.configfile import build, section
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, write_ply
 from edgerecon.quality.masks import at_resolution
@@ -47,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--no-hull", action="store_true", help="skip the visual-hull consistency of the masks"
     )
     p.add_argument("--hull-ply", action="store_true", help="also write the visual hull (hull.ply)")
+    add_config_flag(p)
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -109,7 +112,13 @@ def run(args: argparse.Namespace) -> int:
             f"--time {args.time} is outside the dataset's frames 0..{dataset.num_frames - 1}"
         )
     rig = dataset.rig
-    config = ForegroundConfig(hull_consistency=not args.no_hull)
+    # The scene model's settings are the online system's: [runtime.foreground] of --config.
+    config = build(
+        ForegroundConfig,
+        section(load_config(args), "runtime", "foreground"),
+        where="runtime.foreground",
+        overrides={"hull_consistency": False} if args.no_hull else None,
+    )
     t0 = time.perf_counter()
     tracker = dataset_scene_at(dataset, args.time, config, progress=not args.json)
     learned_from = tracker.learned_from
@@ -167,7 +176,12 @@ def run(args: argparse.Namespace) -> int:
         },
     }
     if args.hull_ply and hull is not None:
-        write_ply(out / "hull.ply", hull_cloud(hull, rig.cameras, frames.images))
+        write_ply(
+            out / "hull.ply",
+            hull_cloud(hull, rig.cameras, frames.images),
+            unit=rig.unit,
+            up=rig.up,
+        )
     atomic_write_text(out / "masks.json", to_json(summary) + "\n")
     if args.json:
         emit_json(summary)

@@ -11,11 +11,19 @@ from contextlib import contextmanager
 from typing import Any
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, error_console, print_table
+from edgerecon.cli._config import (
+    add_config_flag,
+    load_config,
+    online_configs,
+    run_options_table,
+    write_effective,
+)
+from edgerecon.cli._live import TaskDisplay
 from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.cli.view import add_live_view_arguments, live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import SPARSE_SCOPES
-from edgerecon.runtime import FrameRange, RunSummary, RuntimeConfig, SessionOptions, TaskMetrics
+from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetrics
 from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.online import run_online
 from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted
@@ -43,8 +51,11 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "--deadline",
         type=float,
         required=False,
-        help="deadline per task in seconds (the average critical path aims at it)",
+        metavar="S",
+        help="deadline per task in seconds (the average critical path aims at it); required "
+        "by run unless --config's [runtime] sets deadline_s",
     )
+    add_config_flag(p)
     p.add_argument("--frames", default=None, help="timestamps A:B:STEP (default: the whole stream)")
     p.add_argument(
         "--engine",
@@ -199,25 +210,23 @@ TASK_COLUMNS = [
 ]
 
 
-def live_printer(enabled: bool) -> Any:
-    """A callback that prints one table row per finished task."""
-    if not enabled:
-        return None
+def live_printer(enabled: bool, total: int | None = None) -> TaskDisplay:
+    """The task rows and the status line (task i/N, ETA) of a run: a context manager and
+    the ``on_task`` callback (see ``cli._live``)."""
     widths = [4, 6, 7, 5, 3, 7, 4, 8, 9, 20]
-    header = " ".join(c.rjust(w) for c, w in zip(TASK_COLUMNS, widths, strict=True))
-    state = {"printed": False}
+    return TaskDisplay(columns=TASK_COLUMNS, widths=widths, row=task_row, total=total, rows=enabled)
 
-    def on_task(m: TaskMetrics) -> None:
-        if not state["printed"]:
-            console.print(f"[bold]{header}[/]", soft_wrap=True)
-            state["printed"] = True
-        row = task_row(m)
-        # One line per task even on an 80-column pipe (no wrapping).
-        console.print(
-            " ".join(str(v).rjust(w) for v, w in zip(row, widths, strict=True)), soft_wrap=True
-        )
 
-    return on_task
+def num_tasks(args: argparse.Namespace, dataset: Any) -> int | None:
+    """How many tasks ``--frames`` makes (at most, with --policy newest; None for a live
+    stream, which goes on until --duration or Ctrl-C)."""
+    if getattr(dataset, "is_live", False):
+        return None
+    try:
+        frames = FrameRange.parse(args.frames) if args.frames else FrameRange()
+    except ValueError:
+        return None
+    return len(frames.indices(dataset.num_frames)) or None
 
 
 def print_summary(title: str, s: RunSummary) -> None:
@@ -333,18 +342,11 @@ def sigterm_as_interrupt() -> Iterator[None]:
 
 def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
-    if args.deadline is None:
-        raise ValueError("--deadline is required (seconds per task)")
-    config = RuntimeConfig(
-        deadline_s=args.deadline,
-        background_updates=not args.no_background_updates,
-        background_scale=args.background_scale,
-        sparse_scope=args.sparse_scope,
-        online_quality=args.online_quality,
-    )
+    config, controller_config = online_configs(args, load_config(args))
+    args.deadline = config.deadline_s  # (from --config too) the resume command repeats it
     fixed = parse_fixed(args, dataset)
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))
-    return run_and_report(
+    code = run_and_report(
         args,
         lambda on_task: run_online(
             dataset,
@@ -354,19 +356,30 @@ def run(args: argparse.Namespace) -> int:
             engine=args.engine,
             address=args.address,
             fixed=fixed,
+            controller_config=controller_config,
             on_task=on_task,
             command=resume_command(args).removesuffix(" --resume"),
         ),
-        title=f"{dataset.name}: online run, deadline {args.deadline:g} s",
+        title=f"{dataset.name}: online run, deadline {config.deadline_s:g} s",
+        total=num_tasks(args, dataset),
     )
+    effective = {"runtime": config, "controller": controller_config, "run": run_options_table(args)}
+    write_effective(args.out, "run", effective)
+    return code
 
 
-def run_and_report(args: argparse.Namespace, start: Any, *, title: str) -> int:
-    """Run ``start(on_task)`` (-> summary, metrics), print or emit the result and return the
-    exit code (see ``EXIT_CODES_HELP``)."""
+def run_and_report(
+    args: argparse.Namespace, start: Any, *, title: str, total: int | None = None
+) -> int:
+    """Run ``start(on_task)`` (-> summary, metrics) inside the live display, print or emit
+    the result and return the exit code (see ``EXIT_CODES_HELP``)."""
     try:
-        with sigterm_as_interrupt(), live_viewer(args, args.out):
-            summary, metrics = start(live_printer(not args.json))
+        with (
+            sigterm_as_interrupt(),
+            live_viewer(args, args.out),
+            live_printer(not args.json, total) as on_task,
+        ):
+            summary, metrics = start(on_task)
     except RunInterrupted as stop:
         error_console.print(
             f"[yellow]interrupted after {stop.summary.tasks} tasks[/] (summary.json written); "

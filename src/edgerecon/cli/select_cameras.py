@@ -23,7 +23,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "visibility matrix.",
     )
     p.add_argument("source", help="dataset folder or visibility .npy file")
-    p.add_argument("--frame", type=int, default=0, help="frame index (dataset; default 0)")
+    p.add_argument(
+        "--time",
+        "-t",
+        "--frame",
+        dest="frame",
+        type=int,
+        default=0,
+        help="frame index (dataset; default 0)",
+    )
     p.add_argument("--scale", type=float, default=1.0, help="image scale r (dataset; 1.0)")
     p.add_argument(
         "--solver",

@@ -41,8 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "resembling the paper's Dance1 runs, and summarise like the paper's Table III.",
     )
     p.add_argument(
-        "--deadline",
-        "-d",
+        "--deadline",  # no -d: that is evaluate's distance threshold
         type=float,
         nargs="+",
         required=True,

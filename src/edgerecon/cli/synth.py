@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
@@ -32,7 +33,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--preset", choices=sorted(PRESETS), default="demo", help="scene preset")
     p.add_argument("--out", required=True, help="output dataset folder")
-    p.add_argument("--frames", type=int, help="number of timestamps T")
+    p.add_argument("--num-frames", type=int, help="number of timestamps T")
+    # Before 0.2: --frames, a count here but A:B:STEP in `run`; still accepted, with a warning.
+    p.add_argument("--frames", dest="frames_count", type=int, help=argparse.SUPPRESS)
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--cameras", type=int, help="number of cameras N")
     p.add_argument("--actors", type=int, help="number of actors K")
@@ -60,8 +63,13 @@ def run(args: argparse.Namespace) -> int:
     from edgerecon.synth.scene import STUDIO_DISTORTION
 
     overrides: dict[str, object] = {"seed": args.seed}
+    if args.frames_count is not None:
+        logging.getLogger(__name__).warning(
+            "synth --frames is deprecated (in `run` --frames is A:B:STEP): use --num-frames"
+        )
+        args.num_frames = args.num_frames if args.num_frames is not None else args.frames_count
     for opt, key in (
-        ("frames", "num_frames"),
+        ("num_frames", "num_frames"),
         ("cameras", "num_cameras"),
         ("actors", "num_actors"),
         ("background_frames", "background_frames"),

@@ -23,13 +23,15 @@ Formats (``load_rig`` detects them from a file or a folder):
 * **Middlebury** ``*_par.txt``: a count line, then per image
   ``name k11..k33 r11..r33 t1 t2 t3`` (``K [R | t]`` world->camera, metres). Image sizes
   are read from the image files next to it. Camera names are the image stems.
-* **COLMAP text model** (``cameras.txt`` + ``images.txt``; ``read_colmap_text`` /
-  ``write_colmap_text``). Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
-  FULL_OPENCV (when k4..k6 are zero, the rest is OpenCV's k1 k2 p1 p2 k3). Poses are
-  ``cam_from_world`` quaternions (QW QX QY QZ) and translations. COLMAP puts the centre of the
-  top-left pixel at (0.5, 0.5): principal points are shifted by 0.5 pixel each way. Camera
-  names are the image names without their extension. The writer records the rig's unit and up
-  direction in a comment that the reader understands (COLMAP ignores comments).
+* **COLMAP model** (``cameras`` + ``images`` as ``.txt`` or ``.bin``, also under ``sparse/``
+  or ``sparse/0``; ``edgerecon.io.colmap``). Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL,
+  RADIAL, OPENCV and FULL_OPENCV (when k4..k6 are zero). Many images per camera (a capture's
+  frames, ``cam0/000000.png`` ...) are grouped into the rig's cameras by COLMAP camera id,
+  folder or pose. COLMAP puts the centre of the top-left pixel at (0.5, 0.5): principal
+  points are shifted by 0.5 pixel. The writer records the rig's unit and up direction in a
+  comment that the reader understands (COLMAP ignores comments).
+* **anipose / Pose2Sim / caliscope TOML** (``calibration.toml``, ``Calib*.toml``,
+  ``camera_array.toml``; ``edgerecon.io.calib_toml``): OpenCV cameras, world->camera.
 
 Every malformed or inconsistent input raises ``CalibrationError`` naming the file, the camera
 when there is one, and the problem.
@@ -37,13 +39,10 @@ when there is one, and the problem.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import math
 import os
-import re
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +51,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.io._errors import in_file as _in_file
+from edgerecon.io.calib_toml import (
+    load_toml,
+    read_toml_calibration,
+    toml_calibrations,
+    toml_flavour,
+)
+from edgerecon.io.colmap import (
+    find_colmap_model,
+    read_colmap_rig,
+    write_colmap_rig,
+)
 from edgerecon.io.frames import (
     IMAGE_EXTENSIONS,
     VIDEO_EXTENSIONS,
@@ -68,19 +79,7 @@ ImageSizes = Mapping[str, tuple[int, int]] | tuple[int, int]
 """Image sizes ``(width, height)`` per camera name, or one size for every camera."""
 
 #: Names of the calibration formats ``detect_calibration_format`` returns.
-FORMATS = ("edgerecon", "openmvg", "opencv-xml", "middlebury", "colmap")
-
-
-@contextlib.contextmanager
-def _in_file(path: Path | str) -> Iterator[None]:
-    """Prefix CalibrationErrors raised inside (e.g. by Camera/Rig validation) with a file."""
-    try:
-        yield
-    except CalibrationError as exc:
-        msg = str(exc)
-        if str(path) in msg:
-            raise
-        raise CalibrationError(f"{path}: {msg}") from None
+FORMATS = ("edgerecon", "openmvg", "opencv-xml", "middlebury", "colmap", "toml")
 
 
 def _size_for(image_sizes: ImageSizes | None, name: str) -> tuple[int, int] | None:
@@ -447,164 +446,13 @@ def middlebury_par_files(root: str | os.PathLike[str]) -> list[Path]:
 
 
 # ============================================================================== COLMAP
-# model name -> number of parameters
-_COLMAP_MODELS = {
-    "SIMPLE_PINHOLE": 3,
-    "PINHOLE": 4,
-    "SIMPLE_RADIAL": 4,
-    "RADIAL": 5,
-    "OPENCV": 8,
-    "FULL_OPENCV": 12,
-}
-_META = re.compile(r"#\s*edgerecon:\s*(.*)")
-
-
-def _colmap_intrinsics(
-    model: str, params: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(K, dist) of a COLMAP camera in edgerecon's pixel convention."""
-    dist = np.zeros(5)
-    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-        fx = fy = params[0]
-        cx, cy = params[1], params[2]
-        if model == "SIMPLE_RADIAL":
-            dist[0] = params[3]
-        elif model == "RADIAL":
-            dist[:2] = params[3:5]
-    else:
-        fx, fy, cx, cy = params[:4]
-        if model in ("OPENCV", "FULL_OPENCV"):
-            dist[:4] = params[4:8]
-        if model == "FULL_OPENCV":
-            if np.any(params[9:12] != 0):
-                raise CalibrationError(
-                    "FULL_OPENCV with non-zero rational coefficients k4..k6 is not supported"
-                )
-            dist[4] = params[8]
-    # COLMAP: centre of the top-left pixel at (0.5, 0.5); edgerecon: at (0, 0).
-    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-    return K, dist
-
-
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True
-
-
-def _strip_image_ext(name: str) -> str:
-    base, ext = os.path.splitext(name)
-    return base if ext.lower() in IMAGE_EXTENSIONS else name
-
-
 def read_colmap_text(path: str | os.PathLike[str], *, unit: str | None = None) -> Rig:
-    """Read a COLMAP text model (a folder with ``cameras.txt`` and ``images.txt``).
+    """Read the rig of a COLMAP model (a folder with ``cameras`` + ``images`` as ``.txt`` or
+    ``.bin``; many images per camera are grouped, see ``edgerecon.io.colmap``).
 
-    ``unit`` overrides the unit recorded by ``write_colmap_text`` (default "m").
+    ``unit`` overrides the unit recorded by edgerecon's writer (default "m").
     """
-    folder = Path(path)
-    if folder.is_file():
-        folder = folder.parent
-    cam_file, img_file = folder / "cameras.txt", folder / "images.txt"
-    for f in (cam_file, img_file):
-        if not f.is_file():
-            raise CalibrationError(f"COLMAP model incomplete: {f} not found")
-    meta: dict[str, str] = {}
-    intrinsics: dict[int, tuple[int, int, NDArray[np.float64], NDArray[np.float64]]] = {}
-    for lineno, line in enumerate(cam_file.read_text(encoding="utf-8").splitlines(), start=1):
-        m = _META.match(line.strip())
-        if m:
-            for word in m.group(1).split():
-                if "=" in word:
-                    k, v = word.split("=", 1)
-                    meta[k] = v
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        words = line.split()
-        where = f"{cam_file}:{lineno}"
-        try:
-            cam_id, model = int(words[0]), words[1]
-            width, height = int(words[2]), int(words[3])
-            params = np.array([float(v) for v in words[4:]])
-        except (IndexError, ValueError) as exc:
-            raise CalibrationError(f"{where}: malformed camera line ({exc})") from None
-        if model not in _COLMAP_MODELS:
-            raise CalibrationError(
-                f"{where}: unsupported COLMAP camera model {model!r} "
-                f"(supported: {', '.join(_COLMAP_MODELS)})"
-            )
-        if params.size != _COLMAP_MODELS[model]:
-            raise CalibrationError(
-                f"{where}: {model} takes {_COLMAP_MODELS[model]} parameters, got {params.size}"
-            )
-        with _in_file(where):
-            K, dist = _colmap_intrinsics(model, params)
-        intrinsics[cam_id] = (width, height, K, dist)
-
-    # Each image has a pose line, normally followed by its (possibly empty) 2D points line
-    # (X Y POINT3D_ID triples). Hand-written files often leave the points lines out, so a line
-    # counts as a points line only if it directly follows a pose line and looks like one.
-    entries = []
-    expect_points = False
-    text = img_file.read_text(encoding="utf-8")
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        if line.lstrip().startswith("#"):
-            continue
-        words = line.split()
-        if expect_points:
-            expect_points = False
-            if not words or (len(words) % 3 == 0 and all(_is_number(w) for w in words)):
-                continue
-        if not words:
-            continue
-        where = f"{img_file}:{lineno}"
-        if len(words) < 10:
-            raise CalibrationError(
-                f"{where}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', "
-                f"got {len(words)} fields"
-            )
-        try:
-            q = np.array([float(v) for v in words[1:5]])
-            t = np.array([float(v) for v in words[5:8]])
-            cam_id = int(words[8])
-        except ValueError as exc:
-            raise CalibrationError(f"{where}: {exc}") from None
-        entries.append((" ".join(words[9:]), q, t, cam_id, where))
-        expect_points = True
-    names = [_strip_image_ext(n) for n, *_ in entries]
-    cameras = []
-    for (_, q, t, cam_id, where), name in zip(entries, names, strict=True):
-        if cam_id not in intrinsics:
-            raise CalibrationError(
-                f"{where}: camera {name!r} uses CAMERA_ID {cam_id}, not in {cam_file}"
-            )
-        norm = float(np.linalg.norm(q))
-        if not abs(norm - 1.0) < 1e-3:
-            raise CalibrationError(
-                f"{where}: camera {name!r}: quaternion norm is {norm:.6g}, expected 1"
-            )
-        width, height, K, dist = intrinsics[cam_id]
-        with _in_file(where):
-            cameras.append(
-                Camera(
-                    name=name,
-                    width=width,
-                    height=height,
-                    K=K,
-                    R=quaternion_to_rotation(q / norm),
-                    t=t,
-                    dist=dist,
-                )
-            )
-    up = tuple(float(v) for v in meta["up"].split(",")) if "up" in meta else (0.0, 0.0, 1.0)
-    with _in_file(folder):
-        return Rig(
-            cameras=tuple(cameras),
-            unit=unit if unit is not None else meta.get("unit", "m"),
-            up=up,  # type: ignore[arg-type]
-        )
+    return read_colmap_rig(path, unit=unit)
 
 
 def write_colmap_text(path: str | os.PathLike[str], rig: Rig) -> Path:
@@ -612,96 +460,16 @@ def write_colmap_text(path: str | os.PathLike[str], rig: Rig) -> Path:
     ``points3D.txt``) into the folder ``path``. Each camera becomes one COLMAP camera of the
     simplest model that holds it exactly (PINHOLE, OPENCV or FULL_OPENCV) and one image
     named ``<camera name>.png``."""
-    folder = Path(path)
-    folder.mkdir(parents=True, exist_ok=True)
-    cam_lines = [
-        "# Camera list with one line of data per camera:",
-        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
-        f"# Number of cameras: {len(rig)}",
-        f"# edgerecon: unit={rig.unit} up={','.join(repr(v) for v in rig.up)}",
-    ]
-    img_lines = [
-        "# Image list with two lines of data per image:",
-        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-        f"# Number of images: {len(rig)}, mean observations per image: 0",
-    ]
-    for i, cam in enumerate(rig, start=1):
-        if cam.K[0, 1] != 0:
-            raise CalibrationError(f"camera {cam.name!r}: COLMAP cannot represent a skewed K")
-        if any(ch.isspace() for ch in cam.name):
-            raise CalibrationError(
-                f"camera {cam.name!r}: COLMAP image names cannot contain whitespace"
-            )
-        fx, fy = cam.K[0, 0], cam.K[1, 1]
-        cx, cy = cam.K[0, 2] + 0.5, cam.K[1, 2] + 0.5
-        k1, k2, p1, p2, k3 = cam.dist
-        if not cam.has_distortion:
-            model, params = "PINHOLE", [fx, fy, cx, cy]
-        elif k3 == 0:
-            model, params = "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
-        else:
-            model, params = "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
-        cam_lines.append(
-            f"{i} {model} {cam.width} {cam.height} " + " ".join(repr(float(p)) for p in params)
-        )
-        q = rotation_to_quaternion(cam.R)
-        img_lines.append(
-            f"{i} " + " ".join(repr(float(v)) for v in (*q, *cam.t)) + f" {i} {cam.name}.png"
-        )
-        img_lines.append("")
-    atomic_write_text(folder / "cameras.txt", "\n".join(cam_lines) + "\n")
-    atomic_write_text(folder / "images.txt", "\n".join(img_lines) + "\n")
-    atomic_write_text(
-        folder / "points3D.txt",
-        "# 3D point list with one line of data per point:\n"
-        "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n",
-    )
-    return folder
-
-
-def quaternion_to_rotation(q: Sequence[float] | NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation matrix of a unit quaternion (w, x, y, z) (COLMAP's order)."""
-    w, x, y, z = (float(v) for v in q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def rotation_to_quaternion(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix (Shepperd's method:
-    pivot on the largest diagonal term for accuracy)."""
-    m = np.asarray(R, dtype=np.float64)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    cands = [tr, m[0, 0], m[1, 1], m[2, 2]]
-    k = int(np.argmax(cands))
-    if k == 0:
-        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif k == 1:
-        s = 2.0 * math.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0))
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif k == 2:
-        s = 2.0 * math.sqrt(max(1.0 + m[1, 1] - m[0, 0] - m[2, 2], 0.0))
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + m[2, 2] - m[0, 0] - m[1, 1], 0.0))
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    qa = np.array(q)
-    qa /= np.linalg.norm(qa)
-    return -qa if qa[0] < 0 else qa
+    return write_colmap_rig(path, rig, binary=False)
 
 
 # ============================================================================== detection
 def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     """Which of ``FORMATS`` a calibration file or folder is in (``CalibrationError`` if none).
 
-    Folders: ``rig.json`` > COLMAP (``cameras.txt`` + ``images.txt``, also under
-    ``sparse/`` or ``sparse/0``) > ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json``.
+    Folders: ``rig.json`` > COLMAP (``cameras`` + ``images`` .txt or .bin, also under
+    ``sparse/`` or ``sparse/0``) > one calibration ``*.toml`` (also under ``calibration/``) >
+    ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json``.
     """
     path = Path(path)
     if not path.exists():
@@ -711,10 +479,16 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     name = path.name.lower()
     if name.endswith("_par.txt"):
         return "middlebury"
-    if name in ("cameras.txt", "images.txt"):
+    if name in ("cameras.txt", "images.txt", "cameras.bin", "images.bin"):
         return "colmap"
     if path.suffix.lower() in (".xml", ".yml", ".yaml"):
         return "opencv-xml"
+    if path.suffix.lower() == ".toml":
+        if toml_flavour(load_toml(path)) is None:
+            raise CalibrationError(
+                f"{path}: TOML file is not an anipose / Pose2Sim / caliscope calibration"
+            )
+        return "toml"
     if path.suffix.lower() == ".json":
         data = _read_json(path)
         if isinstance(data, dict) and data.get("format") == "edgerecon-rig":
@@ -731,25 +505,27 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
 def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     if (folder / "rig.json").is_file():
         return "edgerecon", folder / "rig.json"
-    for sub in (folder, folder / "sparse", folder / "sparse" / "0"):
-        if (sub / "cameras.txt").is_file() and (sub / "images.txt").is_file():
-            return "colmap", sub
-    par = middlebury_par_files(folder)
-    if len(par) == 1:
-        return "middlebury", par[0]
-    if len(par) > 1:
-        raise CalibrationError(
-            f"{folder}: several Middlebury parameter files ({', '.join(p.name for p in par)}); "
-            "pass one of them"
-        )
+    colmap = find_colmap_model(folder)
+    if colmap is not None:
+        return "colmap", colmap
+    for fmt, found, what in (
+        ("toml", toml_calibrations(folder), "TOML calibrations"),
+        ("middlebury", middlebury_par_files(folder), "Middlebury parameter files"),
+    ):
+        if len(found) > 1:
+            raise CalibrationError(
+                f"{folder}: several {what} ({', '.join(p.name for p in found)}); pass one of them"
+            )
+        if found:
+            return fmt, found[0]
     if opencv_xml_cameras(folder):
         return "opencv-xml", folder
     sfm = sorted(folder.glob("sfm_data*.json"))
     if len(sfm) == 1:
         return "openmvg", sfm[0]
     raise CalibrationError(
-        f"{folder}: no calibration found (looked for rig.json, COLMAP cameras.txt/images.txt, "
-        "*_par.txt, camN/config.xml, sfm_data*.json)"
+        f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
+        "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json)"
     )
 
 
@@ -771,6 +547,8 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
         rig = read_middlebury_par(target, image_sizes)
     elif fmt == "colmap":
         rig = read_colmap_text(target)
+    elif fmt == "toml":
+        rig = read_toml_calibration(target)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:

@@ -272,6 +272,16 @@ def _spec_from_section(
     start = section.get("start", 0)
     if not isinstance(start, int) or start < 0:
         raise DataError(f"{descriptor}: {what}.start must be a non-negative integer")
+    offsets = section.get("offsets", {})
+    if not isinstance(offsets, Mapping) or not all(
+        isinstance(k, int) and k >= 0 for k in offsets.values()
+    ):
+        raise DataError(
+            f"{descriptor}: {what}.offsets must map camera names to non-negative frame counts"
+        )
+    unknown = sorted(set(offsets) - set(names))
+    if unknown:
+        raise DataError(f"{descriptor}: {what}.offsets names cameras {unknown} the rig lacks")
     if kind == "stream":
         paths = tuple((n, _stream_location(str(cameras[n]), root)) for n in names)
     else:
@@ -283,7 +293,12 @@ def _spec_from_section(
 
             stream = StreamConfig.from_dict(section)
         return FrameSpec(
-            kind=cast(FrameKind, kind), cameras=paths, start=start, fps=fps, stream=stream
+            kind=cast(FrameKind, kind),
+            cameras=paths,
+            start=start,
+            fps=fps,
+            stream=stream,
+            offsets=tuple(offsets.items()),
         )
     except (ValueError, TypeError) as exc:
         raise DataError(f"{descriptor}: {what}: {exc}") from None
@@ -428,6 +443,8 @@ def _section(
             out["start"] = spec.start
         if spec.stream is not None:
             out.update(spec.stream.to_dict())
+        if spec.offsets:
+            out["offsets"] = dict(spec.offsets)
     else:
         out = dict(spec)
         if out.get("kind") not in ("video", "images", "stream"):

@@ -379,6 +379,42 @@ class _ImageReader(_CameraReader):
         return _to_bgr8(image)
 
 
+class _OffsetReader(_CameraReader):
+    """A camera whose time index t is its own frame ``t + offset`` (synchronisation)."""
+
+    def __init__(self, inner: _CameraReader, offset: int) -> None:
+        super().__init__(inner.camera)
+        if offset < 0:
+            raise ValueError(f"camera {inner.camera!r}: frame offset must be >= 0, got {offset}")
+        self.inner = inner
+        self.offset = offset
+
+    @property
+    def num_frames(self) -> int:
+        return max(0, self.inner.num_frames - self.offset)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.inner.size
+
+    @property
+    def fps(self) -> float | None:
+        return self.inner.fps
+
+    @property
+    def location(self) -> str:
+        return f"{self.inner.location} (from its frame {self.offset})"
+
+    def frame_location(self, t: int) -> str:
+        return self.inner.frame_location(t + self.offset)
+
+    def read(self, t: int) -> Image:
+        return self.inner.read(t + self.offset)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
 def _count_pattern(pattern: str, start: int) -> int:
     """Frames of an ``{index}`` pattern: ``max index - start + 1`` over the files that exist
     (gaps inside the range are missing frames, reported when read)."""
@@ -480,11 +516,20 @@ class _PerCameraSource(FrameSource):
         rig: Rig | None,
         missing: MissingPolicy,
         fps: float | None,
+        offsets: Mapping[str, int] | None = None,
     ) -> None:
         if missing not in MISSING_POLICIES:
             raise ValueError(f"missing must be one of {MISSING_POLICIES}, got {missing!r}")
         if not readers:
             raise DataError("a frame source needs at least one camera")
+        offsets = dict(offsets or {})
+        unknown = sorted(set(offsets) - {r.camera for r in readers})
+        if unknown:
+            raise DataError(f"frame offsets given for unknown cameras {unknown}")
+        readers = [
+            _OffsetReader(r, int(offsets[r.camera])) if offsets.get(r.camera) else r
+            for r in readers
+        ]
         self._readers = list(readers)
         self._missing = missing
         self._rig = rig
@@ -532,10 +577,11 @@ class _PerCameraSource(FrameSource):
     def stats(self) -> dict[str, int]:
         """Decoder work so far: frames decoded, frames skipped with ``grab()``, and rewinds
         (a read before the current stream position restarts that video from its start)."""
+        inner = [getattr(r, "inner", r) for r in self._readers]
         return {
-            "decoded": sum(r.num_decoded for r in self._readers),
-            "grabbed": sum(r.num_grabbed for r in self._readers),
-            "rewinds": sum(r.num_rewinds for r in self._readers),
+            "decoded": sum(r.num_decoded for r in inner),
+            "grabbed": sum(r.num_grabbed for r in inner),
+            "rewinds": sum(r.num_rewinds for r in inner),
         }
 
     def _check_index(self, t: int) -> int:
@@ -660,6 +706,7 @@ class VideoFrameSource(_PerCameraSource):
         rig: Rig | None = None,
         missing: MissingPolicy = "error",
         fps: float | None = None,
+        offsets: Mapping[str, int] | None = None,
     ) -> None:
         readers = [_VideoReader(name, Path(p)) for name, p in _order(cameras, rig)]
         if fps is None:
@@ -668,7 +715,7 @@ class VideoFrameSource(_PerCameraSource):
                 fps = min(rates.values())
                 if max(rates.values()) - fps > 1e-3:
                     logger.warning("cameras have different frame rates %s", rates)
-        super().__init__(readers, rig=rig, missing=missing, fps=fps)
+        super().__init__(readers, rig=rig, missing=missing, fps=fps, offsets=offsets)
 
 
 class ImageFolderFrameSource(_PerCameraSource):
@@ -685,9 +732,10 @@ class ImageFolderFrameSource(_PerCameraSource):
         missing: MissingPolicy = "error",
         fps: float | None = None,
         start: int = 0,
+        offsets: Mapping[str, int] | None = None,
     ) -> None:
         readers = [_ImageReader(name, p, start) for name, p in _order(cameras, rig)]
-        super().__init__(readers, rig=rig, missing=missing, fps=fps)
+        super().__init__(readers, rig=rig, missing=missing, fps=fps, offsets=offsets)
 
 
 def check_frame_size(rig: Rig, camera: str, size: tuple[int, int], where: str) -> None:
@@ -721,6 +769,9 @@ class FrameSpec:
     """Frame rate to report; None: the videos' own rate (images: unknown)."""
     stream: StreamConfig | None = None
     """How live streams are read and synchronized ("stream" only; None = defaults)."""
+    offsets: tuple[tuple[str, int], ...] = ()
+    """Synchronisation: (camera name, k >= 0) when time index t is that camera's frame t + k
+    (cameras not listed: k = 0; files only)."""
 
     def __post_init__(self) -> None:
         if self.kind not in FRAME_KINDS:
@@ -730,6 +781,11 @@ class FrameSpec:
         if self.fps is not None and not self.fps > 0:
             raise ValueError(f"fps must be positive, got {self.fps}")
         object.__setattr__(self, "cameras", tuple((str(n), str(p)) for n, p in self.cameras))
+        offsets = tuple((str(n), int(k)) for n, k in self.offsets if int(k) != 0)
+        for n, k in offsets:
+            if k < 0:
+                raise ValueError(f"offset of camera {n!r} must be >= 0, got {k}")
+        object.__setattr__(self, "offsets", offsets)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -744,10 +800,11 @@ class FrameSpec:
             return StreamFrameSource(
                 paths, rig=rig, missing=missing, fps=self.fps, config=self.stream
             )
+        offsets = dict(self.offsets)
         if self.kind == "video":
-            return VideoFrameSource(paths, rig=rig, missing=missing, fps=self.fps)
+            return VideoFrameSource(paths, rig=rig, missing=missing, fps=self.fps, offsets=offsets)
         return ImageFolderFrameSource(
-            paths, rig=rig, missing=missing, fps=self.fps, start=self.start
+            paths, rig=rig, missing=missing, fps=self.fps, start=self.start, offsets=offsets
         )
 
 

@@ -2,19 +2,26 @@
 
 Written properties: x y z (float32, or float64 with ``double=True``), nx ny nz (float32),
 red green blue (uchar), label (int), confidence (float), then any extra attributes.
-The reader accepts ASCII and binary (either endianness) vertex-only PLY files with any
-property names; unknown properties land in ``PointCloud.attributes``.
+The writer records the unit and up direction as header comments (``comment unit mm``,
+``comment up 0 0 -1``; ``read_ply_meta`` reads them back). The reader accepts any PLY: ASCII
+or binary of either endianness, other elements (mesh faces) before or after the vertices,
+and list properties (openMVS's per-point ``views``), which it skips; unknown scalar
+properties land in ``PointCloud.attributes``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import numpy as np
 
+from edgerecon.io.records import Item, walk_records
 from edgerecon.types import DataError, PointCloud
 
 _PLY_TYPES = {
@@ -81,8 +88,44 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
-def write_ply(path: str | os.PathLike[str], cloud: PointCloud, *, double: bool = False) -> Path:
-    """Write ``cloud`` as binary PLY, atomically. Returns the path."""
+@dataclass(frozen=True, kw_only=True)
+class PlyMeta:
+    """What a PLY header says besides its properties (edgerecon writes ``comment unit U``
+    and ``comment up X Y Z``; viewers show comments as they are)."""
+
+    unit: str | None = None
+    """Length unit of the coordinates ("m", "mm", ...), None when the file does not say."""
+    up: tuple[float, float, float] | None = None
+    """World up direction, None when the file does not say."""
+    comments: tuple[str, ...] = ()
+    """Every comment line, in order."""
+    num_vertices: int = 0
+    vertex_properties: tuple[str, ...] = ()
+    """Scalar vertex properties; list properties are listed as ``list:<name>``."""
+
+
+def ply_comments(unit: str | None = None, up: Sequence[float] | None = None) -> list[str]:
+    """Header comments that record a cloud's unit and up direction."""
+    out = []
+    if unit is not None:
+        out.append(f"unit {unit}")
+    if up is not None:
+        out.append("up " + " ".join(repr(float(v)) for v in up))
+    return out
+
+
+def write_ply(
+    path: str | os.PathLike[str],
+    cloud: PointCloud,
+    *,
+    double: bool = False,
+    unit: str | None = None,
+    up: Sequence[float] | None = None,
+    comments: Sequence[str] = (),
+) -> Path:
+    """Write ``cloud`` as binary PLY, atomically. ``unit`` and ``up`` are recorded as header
+    comments (``comment unit mm``, ``comment up 0 0 -1``) with any other ``comments``.
+    Returns the path."""
     n = len(cloud)
     fields: list[tuple[str, str]] = []
     cols: list[np.ndarray] = []
@@ -124,6 +167,7 @@ def write_ply(path: str | os.PathLike[str], cloud: PointCloud, *, double: bool =
         "ply",
         "format binary_little_endian 1.0",
         "comment written by edgerecon",
+        *(f"comment {c}" for c in [*ply_comments(unit, up), *comments]),
         f"element vertex {n}",
     ]
     for name, code in fields:
@@ -134,28 +178,59 @@ def write_ply(path: str | os.PathLike[str], cloud: PointCloud, *, double: bool =
 
 
 def read_ply(path: str | os.PathLike[str]) -> PointCloud:
-    """Read the vertex element of a PLY file into a ``PointCloud``."""
+    """Read the vertex element of a PLY file into a ``PointCloud``.
+
+    Any PLY: ASCII or binary of either endianness, other elements before or after the
+    vertices (faces of a mesh), and list properties (openMVS's ``views``), which are skipped.
+    """
+    return _read(path)[0]
+
+
+def read_ply_meta(path: str | os.PathLike[str]) -> PlyMeta:
+    """The header of a PLY file: unit, up direction, comments, vertex properties."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            return _parse_header(f, path)[0]
+    except FileNotFoundError:
+        raise DataError(f"PLY file not found: {path}") from None
+    except (UnicodeDecodeError, ValueError, IndexError) as exc:
+        raise DataError(f"{path}: not a readable PLY header ({exc})") from None
+
+
+def _read(path: str | os.PathLike[str]) -> tuple[PointCloud, PlyMeta]:
     path = Path(path)
     try:
         with open(path, "rb") as f:
             return _read_ply(f, path)
     except FileNotFoundError:
         raise DataError(f"PLY file not found: {path}") from None
-    except (UnicodeDecodeError, ValueError) as exc:
+    except (UnicodeDecodeError, ValueError, IndexError) as exc:
         raise DataError(f"{path}: not a readable PLY file ({exc})") from None
 
 
-def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
+# (name, count) of each element, with its properties: (name, numpy code) for scalars,
+# (name, "list:<count code>:<item code>") for lists.
+_Element = tuple[str, int, list[tuple[str, str]]]
+
+
+def _parse_header(f: BinaryIO, path: Path) -> tuple[PlyMeta, str, list[_Element]]:
     if f.readline().strip() != b"ply":
         raise DataError(f"{path}: not a PLY file (missing 'ply' magic)")
     fmt = None
-    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    elements: list[_Element] = []
+    comments: list[str] = []
     while True:
         line = f.readline()
         if not line:
             raise DataError(f"{path}: truncated PLY header")
-        words = line.decode("ascii").split()
-        if not words or words[0] in ("comment", "obj_info"):
+        text = line.decode("ascii").strip()
+        words = text.split()
+        if not words:
+            continue
+        if words[0] in ("comment", "obj_info"):
+            if words[0] == "comment":
+                comments.append(text[len("comment") :].strip())
             continue
         if words[0] == "format":
             fmt = words[1]
@@ -165,7 +240,10 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
             if not elements:
                 raise DataError(f"{path}: property before any element")
             if words[1] == "list":
-                elements[-1][2].append((words[4], "list:" + words[2] + ":" + words[3]))
+                if words[2] not in _PLY_TYPES or words[3] not in _PLY_TYPES:
+                    raise DataError(f"{path}: unknown PLY type in {text!r}")
+                code = f"list:{_PLY_TYPES[words[2]]}:{_PLY_TYPES[words[3]]}"
+                elements[-1][2].append((words[4], code))
             else:
                 if words[1] not in _PLY_TYPES:
                     raise DataError(f"{path}: unknown PLY type {words[1]!r}")
@@ -174,25 +252,77 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
             break
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise DataError(f"{path}: unsupported PLY format {fmt!r}")
-    if not elements or elements[0][0] != "vertex":
-        raise DataError(f"{path}: the first PLY element must be 'vertex'")
-    _, n, props = elements[0]
-    if any(code.startswith("list:") for _, code in props):
-        raise DataError(f"{path}: list properties in the vertex element are not supported")
+    vertex = next((e for e in elements if e[0] == "vertex"), None)
+    if vertex is None:
+        raise DataError(f"{path}: no 'vertex' element")
+    unit = up = None
+    for c in comments:
+        w = c.split()
+        if len(w) == 2 and w[0] == "unit":
+            unit = w[1]
+        elif len(w) == 4 and w[0] == "up":
+            with contextlib.suppress(ValueError):
+                up = (float(w[1]), float(w[2]), float(w[3]))
+    meta = PlyMeta(
+        unit=unit,
+        up=up,
+        comments=tuple(comments),
+        num_vertices=vertex[1],
+        vertex_properties=tuple(
+            ("list:" + n if c.startswith("list:") else n) for n, c in vertex[2]
+        ),
+    )
+    return meta, fmt, elements
+
+
+def _layout(props: list[tuple[str, str]]) -> tuple[Item, ...]:
+    items = []
+    for _, code in props:
+        if code.startswith("list:"):
+            _, count, item = code.split(":")
+            items.append(Item(np.dtype(item).itemsize, count_size=np.dtype(count).itemsize))
+        else:
+            items.append(Item(np.dtype(code).itemsize))
+    return tuple(items)
+
+
+def _read_ply(f: BinaryIO, path: Path) -> tuple[PointCloud, PlyMeta]:
+    meta, fmt, elements = _parse_header(f, path)
+    data: dict[str, np.ndarray] = {}
     if fmt == "ascii":
-        rows = [f.readline() for _ in range(n)]
-        table = np.loadtxt(rows, ndmin=2) if n else np.zeros((0, len(props)))
-        data = {name: table[:, i].astype(code) for i, (name, code) in enumerate(props)}
+        for name, n, props in elements:
+            rows = [f.readline() for _ in range(n)]
+            if name == "vertex":
+                data = _ascii_vertices(rows, props, path)
+                break
     else:
         endian = "<" if fmt == "binary_little_endian" else ">"
-        dtype = np.dtype([(name, endian + code) for name, code in props])
-        raw = f.read(dtype.itemsize * n)
-        if len(raw) < dtype.itemsize * n:
-            raise DataError(
-                f"{path}: truncated PLY body ({len(raw)} of {dtype.itemsize * n} bytes)"
+        buf = np.frombuffer(f.read(), np.uint8)
+        pos = 0
+        for name, n, props in elements:
+            has_lists = any(code.startswith("list:") for _, code in props)
+            if name == "vertex" and not has_lists:
+                # The common case: fixed-size rows, read in one go.
+                dtype = np.dtype([(p, endian + code) for p, code in props])
+                size = dtype.itemsize * n
+                if pos + size > len(buf):
+                    raise DataError(
+                        f"{path}: truncated PLY body ({len(buf) - pos} of {size} bytes)"
+                    )
+                arr = np.frombuffer(buf[pos : pos + size].tobytes(), dtype=dtype, count=n)
+                data = {p: arr[p].astype(arr[p].dtype.newbyteorder("=")) for p, _ in props}
+                break
+            recs = walk_records(
+                buf, pos, n, _layout(props), big_endian=endian == ">", what=f"{path} {name}"
             )
-        arr = np.frombuffer(raw, dtype=dtype, count=n)
-        data = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name, _ in props}
+            if name == "vertex":
+                data = {
+                    p: recs.field(i, endian + code).astype(np.dtype(code).newbyteorder("="))
+                    for i, (p, code) in enumerate(props)
+                    if not code.startswith("list:")
+                }
+                break
+            pos = recs.end
     for key in "xyz":
         if key not in data:
             raise DataError(f"{path}: vertex element has no {key!r} property")
@@ -216,7 +346,7 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
     if "confidence" in data:
         confidence, used = data["confidence"], used | {"confidence"}
     attrs = {k: v for k, v in data.items() if k not in used}
-    return PointCloud(
+    cloud = PointCloud(
         points3D=pts,
         colors=colors,
         normals=normals,
@@ -224,3 +354,28 @@ def _read_ply(f: BinaryIO, path: Path) -> PointCloud:
         confidence=confidence,
         attributes=attrs,
     )
+    return cloud, meta
+
+
+def _ascii_vertices(
+    rows: list[bytes], props: list[tuple[str, str]], path: Path
+) -> dict[str, np.ndarray]:
+    n = len(rows)
+    if not any(code.startswith("list:") for _, code in props):
+        table = np.loadtxt(rows, ndmin=2) if n else np.zeros((0, len(props)))
+        return {name: table[:, i].astype(code) for i, (name, code) in enumerate(props)}
+    # Rows of different lengths: walk each row's tokens, skipping the lists.
+    cols: dict[str, list[float]] = {name: [] for name, code in props if ":" not in code}
+    for k, row in enumerate(rows):
+        words = row.split()
+        pos = 0
+        try:
+            for name, code in props:
+                if code.startswith("list:"):
+                    pos += 1 + int(words[pos])
+                else:
+                    cols[name].append(float(words[pos]))
+                    pos += 1
+        except (IndexError, ValueError):
+            raise DataError(f"{path}: malformed ASCII vertex {k}") from None
+    return {name: np.asarray(cols[name]).astype(code) for name, code in props if name in cols}

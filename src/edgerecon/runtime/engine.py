@@ -21,6 +21,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from edgerecon import progress
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController
@@ -69,6 +70,7 @@ class SceneModel:
         )
 
 
+@progress.phase("learn the background model")
 def learn_scene_model(
     dataset: Dataset,
     foreground: ForegroundConfig | None = None,

@@ -318,10 +318,12 @@ class Session:
         try:
             if m.status == "ok":
                 self._score(m, t, out)
+                rig = self.dataset.rig
                 if self.options.write_clouds and out.merged is not None:
-                    write_ply(self.out / "tasks" / f"{t:06d}" / "merged.ply", out.merged)
+                    path = self.out / "tasks" / f"{t:06d}" / "merged.ply"
+                    write_ply(path, out.merged, unit=rig.unit, up=rig.up)
                 if out.background is not None:
-                    write_ply(self.out / "background.ply", out.background)
+                    write_ply(self.out / "background.ply", out.background, unit=rig.unit, up=rig.up)
             # Cloud, background, metrics line, then the run state: the commit point.
             self.folder.append_metrics(m)
             self.metrics.append(m)

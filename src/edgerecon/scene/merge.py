@@ -13,6 +13,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -111,8 +112,11 @@ def split_merged(merged: PointCloud) -> tuple[PointCloud, PointCloud]:
     return merged.select(merged.labels >= 1), merged.select(merged.labels == BACKGROUND_LABEL)
 
 
-def write_merged(out_dir: str | os.PathLike[str], merged: PointCloud) -> dict[str, Path]:
-    """Write ``merged.ply``, ``fg.ply`` and ``bg.ply`` (atomically) into ``out_dir``."""
+def write_merged(
+    out_dir: str | os.PathLike[str], merged: PointCloud, **ply: Any
+) -> dict[str, Path]:
+    """Write ``merged.ply``, ``fg.ply`` and ``bg.ply`` (atomically) into ``out_dir``;
+    ``ply`` goes to ``write_ply`` (``unit=``, ``up=``)."""
     out = Path(out_dir)
     fg, bg = split_merged(merged)
     n_unknown = (
@@ -123,7 +127,7 @@ def write_merged(out_dir: str | os.PathLike[str], merged: PointCloud) -> dict[st
             "write_merged: %d points with unknown labels are only in merged.ply", n_unknown
         )
     return {
-        "merged": write_ply(out / "merged.ply", merged),
-        "fg": write_ply(out / "fg.ply", fg),
-        "bg": write_ply(out / "bg.ply", bg),
+        "merged": write_ply(out / "merged.ply", merged, **ply),
+        "fg": write_ply(out / "fg.ply", fg, **ply),
+        "bg": write_ply(out / "bg.ply", bg, **ply),
     }

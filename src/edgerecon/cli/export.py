@@ -1,0 +1,234 @@
+"""``edgerecon export``: a reconstruction as a COLMAP model (for openMVS and COLMAP) or as a
+viewer-friendly PLY."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from edgerecon.cli._common import add_json_flag, console, emit_json
+from edgerecon.io.dataset import Dataset, open_dataset
+from edgerecon.io.export import export_colmap, z_up_metres
+from edgerecon.io.ply import read_ply, read_ply_meta, write_ply
+from edgerecon.types import DataError, PointCloud
+
+#: Clouds a reconstruction folder may hold, in the order ``--cloud auto`` picks them for
+#: each format (COLMAP: the SfM points first, as COLMAP's own models hold).
+_COLMAP_ORDER = ("sparse.ply", "merged.ply", "dense.ply")
+_PLY_ORDER = ("merged.ply", "dense.ply", "sparse.ply")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "export",
+        help="export a reconstruction as a COLMAP model (openMVS, COLMAP) or a viewer PLY",
+        description="SOURCE is the output folder of `reconstruct`, a task folder of `run` "
+        "(RUN/tasks/<time>) or a PLY file. --to colmap writes OUT/images/<camera>.png (the "
+        "timestamp's frames, undistorted) and OUT/sparse/ (cameras, images, points3D with "
+        "tracks): openMVS reads it with `InterfaceCOLMAP -i OUT -o scene.mvs`. --to ply "
+        "writes one PLY with its unit and up direction in the header.",
+    )
+    p.add_argument("source", help="reconstruction folder, run task folder, or a PLY file")
+    p.add_argument("--out", "-o", required=True, help="output folder (colmap) or file (ply)")
+    p.add_argument("--to", choices=("colmap", "ply"), default="colmap", help="format (colmap)")
+    p.add_argument(
+        "--cloud",
+        default="auto",
+        help="which cloud: sparse, dense, merged, fg, bg or a PLY path (default: colmap: "
+        "sparse.ply, ply: merged.ply or dense.ply)",
+    )
+    p.add_argument("--dataset", help="the dataset (default: recorded in the source folder)")
+    p.add_argument("--time", "-t", type=int, help="the timestamp (default: recorded)")
+    p.add_argument("--binary", action="store_true", help="colmap: .bin files instead of .txt")
+    p.add_argument(
+        "--distorted",
+        action="store_true",
+        help="colmap: original frames and OPENCV cameras (default: undistorted, PINHOLE)",
+    )
+    p.add_argument("--no-images", action="store_true", help="colmap: write the model only")
+    p.add_argument(
+        "--min-track", type=int, default=2, help="colmap: least images per point (default 2)"
+    )
+    p.add_argument(
+        "--max-range",
+        default="auto",
+        metavar="auto|none|X",
+        help="leave out points farther than X (the rig's unit) from the point the cameras look "
+        "at; auto: 3 x the farthest camera's distance from it (stray SfM points tens of metres "
+        "away make viewers zoom out and openMVS's scene bounds explode); needs the dataset",
+    )
+    p.add_argument(
+        "--z-up-metres",
+        "--z-up-meters",
+        dest="z_up_metres",
+        action="store_true",
+        help="convert to metres with the rig's up along +Z (viewers' convention); the COLMAP "
+        "poses follow",
+    )
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+def _recorded(source: Path) -> dict[str, Any]:
+    """Dataset and time recorded next to a reconstruction (reconstruct's timings.json, or a
+    run's state.json for RUN/tasks/<time>)."""
+    timings = source / "timings.json"
+    if timings.is_file():
+        data = json.loads(timings.read_text())
+        return {"dataset": data.get("dataset"), "time": data.get("time_index")}
+    state = source.parent.parent / "state.json"
+    if source.parent.name == "tasks" and state.is_file() and source.name.isdigit():
+        dataset = json.loads(state.read_text()).get("dataset")
+        if isinstance(dataset, dict):  # the run state's dataset identity
+            dataset = dataset.get("root")
+        return {"dataset": dataset, "time": int(source.name)}
+    return {}
+
+
+def _cloud_path(source: Path, choice: str, order: tuple[str, ...]) -> Path:
+    if source.is_file():
+        return source
+    if choice == "auto":
+        for name in order:
+            if (source / name).is_file():
+                return source / name
+        raise DataError(f"{source}: no {', '.join(order)} to export")
+    named = {"fg": "fg.ply", "bg": "bg.ply"}.get(choice, f"{choice}.ply")
+    path = source / named if not choice.endswith(".ply") else Path(choice)
+    if not path.is_file():
+        raise DataError(f"cloud {choice!r} not found: {path}")
+    return path
+
+
+def run(args: argparse.Namespace) -> int:
+    source = Path(args.source)
+    if not source.exists():
+        raise DataError(f"not found: {source}")
+    recorded = _recorded(source if source.is_dir() else source.parent)
+    dataset_path = args.dataset or recorded.get("dataset")
+    time_index = args.time if args.time is not None else recorded.get("time")
+    if args.to == "ply":
+        return _run_ply(args, source, dataset_path)
+    if dataset_path is None:
+        raise DataError("--to colmap needs the dataset (--dataset DIR): the cameras come from it")
+    dataset = open_dataset(dataset_path)
+    cloud_path = _cloud_path(source, args.cloud, _COLMAP_ORDER)
+    cloud, dropped = crop_range(read_ply(cloud_path), dataset.rig, args.max_range)
+    occluders = _occluders(source, cloud_path)
+    frames = None
+    if not args.no_images:
+        if time_index is None:
+            raise DataError("the images need the timestamp (--time T), or pass --no-images")
+        with dataset.open_frames() as src:
+            frames = src.read(int(time_index))
+    report = export_colmap(
+        args.out,
+        dataset.rig,
+        cloud,
+        frames=frames,
+        occluders=occluders,
+        distorted=args.distorted,
+        binary=args.binary,
+        min_track=args.min_track,
+        transform=z_up_metres(dataset.rig.unit, dataset.rig.up) if args.z_up_metres else None,
+    )
+    if args.json:
+        emit_json(
+            {**report.to_dict(), "cloud": str(cloud_path), "time": time_index, "dropped": dropped}
+        )
+        return 0
+    if dropped:
+        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
+    console.print(
+        f"{cloud_path}: {report.num_points:,} of {report.num_points_in:,} points seen by >= "
+        f"{args.min_track} images (mean track {report.mean_track_length:.2f}); "
+        f"{len(dataset.rig)} cameras "
+        + ("(original frames, OPENCV)" if args.distorted else "(undistorted, PINHOLE)"),
+        soft_wrap=True,
+    )
+    if report.transform:
+        console.print(f"world frame {report.transform}", soft_wrap=True)
+    console.print(
+        f"wrote {report.model}" + (f" and {len(report.images)} images" if report.images else ""),
+        soft_wrap=True,
+    )
+    console.print(f"openMVS: InterfaceCOLMAP -i {args.out} -o {Path(args.out) / 'scene.mvs'}")
+    return 0
+
+
+def crop_range(cloud: PointCloud, rig: Any, spec: str) -> tuple[PointCloud, int]:
+    """``cloud`` without the points beyond ``--max-range`` (see its help), and how many."""
+    import numpy as np
+
+    from edgerecon.cli.info import convergence_point
+
+    if spec == "none":
+        return cloud, 0
+    center = convergence_point(rig)
+    if center is None:
+        center = rig.centers.mean(axis=0)
+    if spec == "auto":
+        radius = 3.0 * float(np.linalg.norm(rig.centers - center, axis=1).max())
+    else:
+        try:
+            radius = float(spec)
+        except ValueError:
+            raise DataError(f"--max-range must be auto, none or a length, got {spec!r}") from None
+        if not radius > 0:
+            raise DataError(f"--max-range must be positive, got {spec!r}")
+    keep = np.linalg.norm(cloud.points3D - center, axis=1) <= radius
+    return cloud.select(keep), int(np.count_nonzero(~keep))
+
+
+def _occluders(source: Path, cloud_path: Path) -> PointCloud | None:
+    """The densest cloud next to the exported one (hides what the cameras cannot see)."""
+    folder = source if source.is_dir() else source.parent
+    for name in ("merged.ply", "dense.ply"):
+        path = folder / name
+        if path.is_file() and path != cloud_path:
+            return read_ply(path)
+    return None
+
+
+def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
+    cloud_path = _cloud_path(source, args.cloud, _PLY_ORDER)
+    cloud = read_ply(cloud_path)
+    meta = read_ply_meta(cloud_path)
+    dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
+    dropped = 0
+    if dataset is not None:
+        cloud, dropped = crop_range(cloud, dataset.rig, args.max_range)
+    unit = dataset.rig.unit if dataset else meta.unit
+    up = tuple(dataset.rig.up) if dataset else meta.up
+    note = ""
+    if args.z_up_metres:
+        if unit is None or up is None:
+            raise DataError(
+                f"{cloud_path} does not record its unit and up direction: give --dataset"
+            )
+        sim = z_up_metres(unit, up)
+        cloud = sim.cloud(cloud)
+        unit, up, note = sim.unit, sim.up, sim.describe()
+    out = Path(args.out)
+    if out.suffix.lower() != ".ply":
+        out = out / cloud_path.name
+    comments = [f"exported by edgerecon from {cloud_path.name}"]
+    if note:
+        comments.append(f"world frame {note}")
+    write_ply(out, cloud, unit=unit, up=up, comments=comments)
+    if args.json:
+        emit_json(
+            {"ply": str(out), "points": len(cloud), "unit": unit, "up": up, "note": note,
+             "dropped": dropped}
+        )  # fmt: skip
+        return 0
+    if dropped:
+        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
+    console.print(
+        f"wrote {out}: {len(cloud):,} points, unit {unit or 'unknown'}, up {up or 'unknown'}"
+        + (f" ({note})" if note else ""),
+        soft_wrap=True,
+    )
+    return 0

@@ -1,0 +1,313 @@
+"""``edgerecon import``: COLMAP binary models with many images per camera, anipose / Pose2Sim
+and caliscope TOML, each to a dataset that reconstructs; matching, offsets, checks."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.cli import main
+from edgerecon.geometry import Rig
+from edgerecon.io import load_rig, open_dataset, read_ply
+from edgerecon.io.calib_toml import read_toml_calibration, toml_flavour
+from edgerecon.io.colmap import (
+    ColmapCamera,
+    ColmapImage,
+    ColmapModel,
+    rig_to_colmap,
+    rotation_to_quaternion,
+    write_colmap_model,
+)
+from edgerecon.io.importer import import_dataset, level_horizon_up, parse_up
+from edgerecon.quality import evaluate_clouds
+from edgerecon.synth import GroundTruth
+from edgerecon.types import CalibrationError, DataError
+from tests.conftest import ring_rig
+
+
+def _fmt(values) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in np.ravel(values)) + "]"
+
+
+def _matrix(m) -> str:
+    return "[" + ", ".join(_fmt(row) for row in np.asarray(m)) + "]"
+
+
+def anipose_toml(rig: Rig, scale: float = 1.0, pose2sim: bool = False) -> str:
+    """An anipose ``calibration.toml`` (Pose2Sim: 4 distortions, float sizes, fisheye)."""
+    out = []
+    for k, cam in enumerate(rig):
+        rvec = cv2.Rodrigues(cam.R)[0].ravel()
+        size = f"[{cam.width}.0, {cam.height}.0]" if pose2sim else f"[{cam.width}, {cam.height}]"
+        dist = cam.dist[:4] if pose2sim else cam.dist
+        out += [
+            f"[cam_{k:02d}]" if pose2sim else f"[cam_{k}]",
+            f'name = "{cam.name}"',
+            f"size = {size}",
+            f"matrix = {_matrix(cam.K)}",
+            f"distortions = {_fmt(dist)}",
+            f"rotation = {_fmt(rvec)}",
+            f"translation = {_fmt(cam.t * scale)}",
+        ]
+        if pose2sim:
+            out.append("fisheye = false")
+        out.append("")
+    out += ["[metadata]", "adjusted = false", "error = 0.0", ""]
+    return "\n".join(out)
+
+
+def caliscope_toml(rig: Rig, ignored: int | None = None) -> str:
+    """A caliscope ``camera_array.toml`` (``[cameras.N]``, 3x3 rotations, metres)."""
+    out = []
+    for k, cam in enumerate(rig):
+        out += [
+            f"[cameras.{k}]",
+            f"cam_id = {k}",
+            "rotation_count = 0",
+            "error = 0.4",
+            f"ignore = {'true' if k == ignored else 'false'}",
+            f"size = [{cam.width}, {cam.height}]",
+            f"matrix = {_matrix(cam.K)}",
+            f"distortions = {_fmt(cam.dist)}",
+            f"translation = {_fmt(cam.t)}",
+            f"rotation = {_matrix(cam.R)}",
+            "",
+        ]
+    return "\n".join(out)
+
+
+def _assert_same_rig(got: Rig, want: Rig, scale: float = 1.0, atol: float = 1e-9) -> None:
+    assert len(got) == len(want)
+    for a, b in zip(got, want, strict=True):
+        assert a.size == b.size
+        np.testing.assert_allclose(a.K, b.K, atol=atol)
+        np.testing.assert_allclose(a.R, b.R, atol=atol)
+        np.testing.assert_allclose(a.t, b.t * scale, atol=atol * scale)
+        np.testing.assert_allclose(a.dist, b.dist, atol=atol)
+
+
+# ----------------------------------------------------------------------------- readers
+def test_toml_readers_known_answers(tmp_path):
+    rig = ring_rig(4, dist=(-0.1, 0.02, 0.001, -0.002, 0.005))
+    ani = tmp_path / "calibration.toml"
+    ani.write_text(anipose_toml(rig, scale=1000.0))
+    got = load_rig(ani)
+    assert toml_flavour(__import__("tomllib").loads(ani.read_text())) == "anipose"
+    assert got.names == rig.names and got.unit == "mm"  # 4 m away: guessed millimetres
+    _assert_same_rig(got, rig, scale=1000.0)
+    p2s = tmp_path / "Calib.toml"
+    p2s.write_text(anipose_toml(rig, pose2sim=True))
+    got = read_toml_calibration(p2s)
+    assert got.unit == "m"
+    np.testing.assert_allclose(got[2].dist, [*rig[2].dist[:4], 0.0])
+    np.testing.assert_allclose(got[1].R, rig[1].R, atol=1e-12)
+    cal = tmp_path / "camera_array.toml"
+    cal.write_text(caliscope_toml(rig, ignored=3))
+    got = load_rig(cal)
+    assert got.names == ["cam_0", "cam_1", "cam_2"]  # cam_3 is ignored
+    _assert_same_rig(got, Rig(cameras=rig.cameras[:3]))
+
+
+def test_caliscope_reference_file_matches_its_conversion():
+    from tests.conftest import shared_data
+
+    root = shared_data("caliscope_charuco")
+    got = load_rig(root / "source" / "camera_array.toml")
+    ref = load_rig(root / "rig.json")
+    _assert_same_rig(got, ref, atol=0)
+    # Its up from the level horizons (SOURCE.md: 0.2896, 0.0152, 0.957).
+    np.testing.assert_allclose(level_horizon_up(got), ref.up, atol=1e-3)
+
+
+def test_toml_errors(tmp_path):
+    rig = ring_rig(3)
+    bad = tmp_path / "Calib.toml"
+    bad.write_text(anipose_toml(rig, pose2sim=True).replace("fisheye = false", "fisheye = true", 1))
+    with pytest.raises(CalibrationError, match=r"'cam0'.*fisheye cameras are not supported"):
+        load_rig(bad)
+    bad.write_text(anipose_toml(rig).replace("rotation = [", "rotation = [0.0, ", 1))
+    with pytest.raises(CalibrationError, match=r"'cam0'.*rotation must be a Rodrigues"):
+        load_rig(bad)
+    bad.write_text("[cam_0]\nname = 'x'\n")
+    with pytest.raises(CalibrationError, match="not an anipose / Pose2Sim / caliscope"):
+        load_rig(bad)
+    bad.write_text("[cam_0\n")
+    with pytest.raises(CalibrationError, match="not valid TOML"):
+        load_rig(bad)
+
+
+def test_parse_up():
+    assert parse_up("-Y") == (0.0, -1.0, 0.0)
+    assert parse_up("0,0,2") == (0.0, 0.0, 1.0)
+    assert parse_up("auto") == "auto"
+    with pytest.raises(ValueError, match="--up"):
+        parse_up("sideways")
+
+
+# ----------------------------------------------------------------------------- import
+def _colmap_binary_of(rig: Rig, num_frames: int, noise: float = 2e-5) -> ColmapModel:
+    """A COLMAP model as SfM leaves it: images ``camK/00000i.png``, one COLMAP camera per
+    physical camera, poses of one camera's images slightly different."""
+    rng = np.random.default_rng(3)
+    base = rig_to_colmap(rig)
+    cameras = {
+        k: ColmapCamera(
+            camera_id=10 + k,
+            model=c.model,
+            width=c.width,
+            height=c.height,
+            params=c.params,
+        )
+        for k, c in base.cameras.items()
+    }
+    cameras = {c.camera_id: c for c in cameras.values()}
+    images = {}
+    for f in range(num_frames):
+        for k, cam in enumerate(rig):
+            dR = cv2.Rodrigues(noise * rng.normal(size=(3, 1)))[0]
+            R = dR @ cam.R
+            C = cam.center + noise * rng.normal(size=3)
+            image_id = 100 + f * len(rig) + k
+            images[image_id] = ColmapImage(
+                image_id=image_id,
+                qvec=rotation_to_quaternion(R),
+                tvec=-R @ C,
+                camera_id=11 + k,
+                name=f"{cam.name}/{f:06d}.png",
+            )
+    return ColmapModel(cameras=cameras, images=images)
+
+
+def _reconstruct_score(dataset, tmp_path, gt, scale, t=3, dense=False):
+    """Reconstruct time t of an imported dataset with the CLI; score of its cloud (dense, or
+    sparse: cheaper) against the scene's ground truth (in metres) at 3 cm."""
+    out = tmp_path / "rec"
+    args = ["reconstruct", "--dataset", str(dataset), "--time", str(t), "--out", str(out)]
+    assert main(args + ([] if dense else ["--no-dense"])) == 0
+    cloud = read_ply(out / ("dense.ply" if dense else "sparse.ply"))
+    ref = gt.reference_cloud(t, "all", min_views=2)
+    return evaluate_clouds(cloud.points3D / scale, ref, 0.03)[0]
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_dataset):
+    ds = open_dataset(tiny_dataset)
+    return ds, GroundTruth.open(tiny_dataset)
+
+
+def test_import_colmap_binary_with_many_images_per_camera(scene, tmp_path, capsys):
+    ds, gt = scene
+    model_dir = tmp_path / "colmap" / "sparse" / "0"
+    write_colmap_model(model_dir, _colmap_binary_of(ds.rig, ds.num_frames), binary=True)
+    assert not (model_dir / "cameras.txt").exists()
+    out = tmp_path / "imported"
+    code = main(
+        [
+            "import",
+            str(tmp_path / "colmap"),
+            "--images",
+            str(ds.root / "frames"),
+            "--out",
+            str(out),
+            "--json",
+        ]
+    )
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["calibration_format"] == "colmap"
+    assert [c["name"] for c in report["cameras"]] == ds.rig.names
+    assert {c["matched_by"] for c in report["cameras"]} == {"colmap"}
+    imported = open_dataset(out)
+    assert imported.num_frames == ds.num_frames
+    # Poses: the mean of each camera's 8 images, within the SfM noise.
+    _assert_same_rig(imported.rig, ds.rig, atol=1e-4)
+    # The original rig gives P 0.81 / R 0.43 here (sparse: P 0.93, 287 points).
+    score = _reconstruct_score(out, tmp_path, gt, 1.0, dense=True)
+    assert score.precision > 0.7 and score.recall > 0.35, score
+
+
+def test_import_anipose_toml_in_millimetres(scene, tmp_path, capsys):
+    ds, gt = scene
+    calib = tmp_path / "calibration.toml"
+    calib.write_text(anipose_toml(ds.rig, scale=1000.0))
+    out = tmp_path / "ani"
+    # One folder holding the cameras' image folders, matched by name.
+    assert main(["import", str(calib), str(ds.root / "frames"), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "guessed from the rig's size" in text and "cam3" in text
+    imported = open_dataset(out)
+    assert imported.rig.unit == "mm"
+    _assert_same_rig(imported.rig, ds.rig, scale=1000.0)
+    score = _reconstruct_score(out, tmp_path, gt, 1000.0)
+    assert score.precision > 0.85 and score.num_pred > 150, score
+
+
+def test_import_caliscope_toml(scene, tmp_path):
+    ds, gt = scene
+    calib = tmp_path / "camera_array.toml"
+    calib.write_text(caliscope_toml(ds.rig))
+    # caliscope names its cameras cam_0..; the frame folders are cam0.. (punctuation ignored)
+    report = import_dataset(
+        tmp_path / "cs",
+        calibration=calib,
+        frames=[str(ds.root / "frames")],
+        background=[str(ds.root / "background")],
+    )
+    with report.dataset.open_background() as bg:
+        assert bg.num_frames == 12  # the scene's empty-room clip
+    assert report.dataset.rig.names == [f"cam_{k}" for k in range(5)]
+    assert all(c.matched_by == "name" for c in report.cameras)
+    assert report.calibration_format == "toml" and "caliscope" in report.unit_note
+    assert report.dataset.rig.up == (0.0, 0.0, 1.0)  # the level horizons point at +Z
+    score = _reconstruct_score(tmp_path / "cs", tmp_path, gt, 1.0)
+    assert score.precision > 0.85 and score.num_pred > 150, score
+
+
+def test_import_offsets_explicit_names_and_checks(scene, tmp_path):
+    ds, _ = scene
+    calib = tmp_path / "Calib.toml"
+    calib.write_text(anipose_toml(ds.rig, pose2sim=True))
+    frames = ds.root / "frames"
+    items = [f"{n}={frames / n}" for n in ds.rig.names]
+    report = import_dataset(
+        tmp_path / "d", calibration=calib, frames=items, offsets={"cam1": 2, "cam3": -1}
+    )
+    # Negative offsets shift the other cameras: cam3 -> 0, cam1 -> 3, the rest -> 1.
+    assert {c.name: c.offset for c in report.cameras} == {
+        "cam0": 1,
+        "cam1": 3,
+        "cam2": 1,
+        "cam3": 0,
+        "cam4": 1,
+    }
+    assert report.dataset.num_frames == ds.num_frames - 3
+    with report.dataset.open_frames() as src, ds.open_frames() as orig:
+        got = src.read(2)
+        want = [orig.read(t) for t in (3, 5, 3, 2, 3)]
+        for k in range(5):
+            np.testing.assert_array_equal(got.images[k], want[k].images[k])
+    # Frames at another resolution with the calibration's aspect: intrinsics rescaled.
+    half = tmp_path / "half"
+    for n in ds.rig.names:
+        (half / n).mkdir(parents=True)
+        for f in sorted((frames / n).glob("*.png"))[:3]:
+            im = cv2.imread(str(f))
+            cv2.imwrite(str(half / n / f.name), cv2.resize(im, (160, 120)))
+    report = import_dataset(tmp_path / "h", calibration=calib, frames=[str(half)])
+    assert report.dataset.rig[0].size == (160, 120)
+    assert report.cameras[0].rescaled_from == (320, 240)
+    np.testing.assert_allclose(report.dataset.rig[0].K[0, 0], ds.rig[0].K[0, 0] / 2)
+    # A camera whose frames have another shape is an error naming it.
+    shutil.rmtree(half / "cam2")
+    (half / "cam2").mkdir()
+    cv2.imwrite(str(half / "cam2" / "000000.png"), np.zeros((100, 100, 3), np.uint8))
+    with pytest.raises(CalibrationError, match=r"camera 'cam2'.*100x100.*320x240"):
+        import_dataset(tmp_path / "h2", calibration=calib, frames=[str(half)])
+    with pytest.raises(DataError, match="camera 'cam9'"):
+        import_dataset(tmp_path / "x", calibration=calib, frames=[f"cam9={frames / 'cam0'}"])
+    with pytest.raises(DataError, match="exists"):
+        import_dataset(tmp_path / "d", calibration=calib, frames=items)
