@@ -198,6 +198,9 @@ class BackgroundState:
     """Frames segmented since the model was learned."""
     version: int = 0
     """Incremented each time the model is (re)learned from a clip."""
+    last_image: NDArray[np.uint8] | None = None
+    """(h, w, 3) the last update's frame at the model's exposure (working resolution): what
+    stayed the same since then is still (None before the first update)."""
     seen: NDArray[np.uint8] | None = None
     """(n, h, w, 3) the frames the model was learned from (working resolution; read only):
     what each pixel looked like then, for the ghost test (None: fewer than 3 frames)."""
@@ -378,6 +381,7 @@ class BackgroundModel:
                 var=state.var.copy(),
                 fg_age=state.fg_age.copy(),
                 last_foreground=state.last_foreground.copy(),
+                last_image=None if state.last_image is None else state.last_image.copy(),
             ),
             config,
         )
@@ -393,6 +397,7 @@ class BackgroundModel:
             var=s.var.copy(),
             fg_age=s.fg_age.copy(),
             last_foreground=s.last_foreground.copy(),
+            last_image=None if s.last_image is None else s.last_image.copy(),
         )
 
     @property
@@ -521,9 +526,10 @@ class BackgroundModel:
         abs2 = cv2.transform(d2, ones)
         # Mahalanobis distance with the variance scaled by the gain (noise scales with it).
         maha2 = cv2.transform(d2 / noise, (1.0 / (g * g)).reshape(1, 3))
-        changed = (maha2 > np.float32(cfg.threshold_sigma**2)) & (
-            abs2 > np.float32(cfg.min_abs_diff**2)
-        )
+        # The absolute floor is in the background's units, so it scales with the exposure
+        # too: at 45 % light an actor's contrast with the floor is 45 % of what it was.
+        floor = cfg.min_abs_diff * float(np.mean(g))
+        changed = (maha2 > np.float32(cfg.threshold_sigma**2)) & (abs2 > np.float32(floor**2))
         # Brightness distortion alpha (I ~ alpha * mu, mu the compensated background) and
         # chromaticity distortion |I - alpha mu| / (alpha |mu|): a shadow is a darker copy of
         # the background colour. |I - alpha mu|^2 = |I|^2 - (I.mu)^2 / |mu|^2.
@@ -592,9 +598,10 @@ class BackgroundModel:
         if self.config.ghost_edge_ratio > 0 and foreground.any():
             ghost, num_ghosts = self._ghosts(image, foreground, seg.gain)
         if self.config.ghost_min_matches > 0 and self._state.seen is not None:
-            # Only pixels that were foreground at the last update too: a ghost stays where it
-            # is, and most pixels of a moving actor are new at each update.
-            steady = foreground & ~ghost & (self._state.fg_age > 0)
+            # Only pixels foreground at the last update too, and still since then: a ghost is
+            # uncovered background, it does not move; an actor walking over a place whose
+            # learning frames showed look-alike colours (another actor crossing) does.
+            steady = foreground & ~ghost & (self._state.fg_age > 0) & self._still(target)
             seen_before = self._seen_before(target, steady)
             if seen_before.any():
                 ghost = ghost | seen_before
@@ -603,6 +610,9 @@ class BackgroundModel:
             self._state.mean[ghost] = target[ghost]
             foreground = foreground & ~ghost
         learned = self._update(image, foreground, seg.gain)
+        self._state = dataclasses.replace(
+            self._state, last_image=np.clip(np.rint(target), 0, 255).astype(np.uint8)
+        )
         self._stats = None  # the background changed
         return UpdateStats(
             learned_px=learned, ghost_px=int(np.count_nonzero(ghost)), ghosts=num_ghosts
@@ -616,6 +626,23 @@ class BackgroundModel:
         if update:
             self.update(frame, seg, image=image)
         return seg.foreground
+
+    def _still(self, target: NDArray[np.float32]) -> Mask:
+        """Pixels whose colour (at the model's exposure) did not change since the last
+        update (within ``threshold_sigma`` of the noise, or ``min_abs_diff``)."""
+        s = self._state
+        if s.last_image is None:
+            return np.zeros(target.shape[:2], bool)
+        d = target - s.last_image.astype(np.float32)
+        d2 = d * d
+        return np.asarray(
+            (
+                cv2.transform(d2 / s.var, np.ones((1, 3), np.float32))
+                <= self.config.threshold_sigma**2
+            )
+            | (cv2.transform(d2, np.ones((1, 3), np.float32)) <= self.config.min_abs_diff**2),
+            bool,
+        )
 
     def _seen_before(self, target: NDArray[np.float32], foreground: Mask) -> Mask:
         """Foreground pixels whose colour (at the model's exposure) matches at least
