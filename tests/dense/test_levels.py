@@ -126,3 +126,26 @@ def test_deck_level_does_not_spread_over_the_floor(two_levels):
     assert sum(int((~_in_deck(X, -0.3)).sum()) for X in after.values()) == 0
     assert sum(int(_in_deck(X, 0.05).sum()) for X in after.values()) > 500
     assert lm.stats()["cells_lower"] > 0 and lm.stats()["cells_raised"] == 0
+
+
+def test_a_blank_deck_measured_only_at_its_rim_is_raised_throughout():
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-3, 3, (20000, 2)), np.zeros(20000)]
+    floor = floor[~_in_deck(floor)]
+    # Deck points only on a 0.3 m rim; nothing measured in its middle (a blank top).
+    rim = np.c_[rng.uniform(-DECK, DECK, (8000, 2)), np.full(8000, DECK_H)]
+    rim = rim[~_in_deck(rim, 0.3)]
+    P = np.vstack([floor, rim])
+    N = np.tile(np.float32([0, 0, 1]), (len(P), 1))
+    plane = Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=1000, rms=0.0)
+    lm = level_map(plane, P, N, np.full(len(P), 3), band=0.03, cell=0.2, min_points=5)
+    centre = np.array([[0.0, 0.0, 0.0], [0.3, -0.3, 0.0]])
+    assert np.allclose(lm.raised[lm.cells(centre)], DECK_H, atol=1e-6)
+    # A floor point under the blank middle is refused from any camera above the deck.
+    assert lm.refused(centre, np.array([4.0, 0.0, 2.0])).all()
+    assert not lm.refused(np.array([[2.5, 2.5, 0.0]]), np.array([4.0, 0.0, 2.0])).any()
+    # Just behind the deck as the camera sees it: the ray passes under the deck's top (the
+    # pixel shows the deck); just in front of it: the floor is seen.
+    behind, front = np.array([[-1.0, 0.0, 0.0]]), np.array([[1.1, 0.0, 0.0]])
+    assert lm.refused(behind, np.array([4.0, 0.0, 2.0])).all()
+    assert not lm.refused(front, np.array([4.0, 0.0, 2.0])).any()
