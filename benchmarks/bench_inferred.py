@@ -2,15 +2,15 @@
 change when only measured points are scored, and what the level map that verifies the
 completion costs.
 
-    python benchmarks/bench_inferred.py --arc7 DIR            # DIR: edgerecon synth --preset arc7
-    python benchmarks/bench_inferred.py --arc7 DIR --repeat 2 --json inferred.json
+    python benchmarks/bench_inferred.py --synth DIR       # DIR: edgerecon synth --preset arc7 ...
+    python benchmarks/bench_inferred.py --synth ARC7 DEMO --repeat 2 --json inferred.json
 
 Each dataset runs the golden whole-scene pipeline (``edgerecon.pipeline.reconstruct``) with
 the level map (``DenseConfig.ground_level_cell`` 16, the default) and without it (0),
 alternately (A B A B ..., one process, after a warm-up run), and reports the median seconds
 of the dense ground stage, the level map's cells and the completed / refused depths. The
 clouds of the last runs are written to ``--out`` and scored with ``edgerecon evaluate``
-(arc7: against the ground truth at t=20, all points and ``--measured-only``); utrecht4cam
+(synthetic: against the ground truth at t=20, all points and ``--measured-only``); utrecht4cam
 (frame 200, real): floor points (within 100 mm of the board's z = 0), measured and inferred,
 and points more than 300 mm above the floor (the person on the chair).
 """
@@ -72,8 +72,8 @@ def evaluate(ply: Path, gt: Path, time_index: int, measured_only: bool) -> dict[
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--arc7", type=Path, help="synthetic arc7 dataset folder (with gt/)")
-    ap.add_argument("--time", type=int, default=20, help="arc7 time index (default 20)")
+    ap.add_argument("--synth", type=Path, nargs="*", default=[], help="synthetic datasets")
+    ap.add_argument("--time", type=int, default=20, help="synthetic time index (default 20)")
     ap.add_argument("--no-utrecht", action="store_true")
     ap.add_argument("--repeat", type=int, default=2, help="A/B pairs per dataset")
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_inferred"))
@@ -81,8 +81,8 @@ def main() -> None:
     args = ap.parse_args()
     warm_up()
     sets = []
-    if args.arc7 is not None:
-        sets.append(("arc7", args.arc7, args.time))
+    for folder in args.synth:
+        sets.append((folder.name, folder, args.time))
     if not args.no_utrecht and (SHARED / "utrecht4cam").exists():
         sets.append(("utrecht4cam", SHARED / "utrecht4cam", 200))
     report: dict[str, Any] = {"load_before": os.getloadavg(), "datasets": {}}
@@ -117,7 +117,7 @@ def main() -> None:
                 row["floor_inferred"] = int((floor & inf).sum())
                 row["above_300mm"] = int((P[:, 2] < -300).sum())
                 row["median_abs_z_floor_mm"] = float(np.median(np.abs(P[floor, 2])))
-            elif name == "arc7":
+            else:
                 for mo in (False, True):
                     ev = evaluate(ply, folder, t_index, mo)
                     row["measured_only" if mo else "all"] = [

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edgerecon.dense.planes import Plane, complete_with_plane, level_map
+from edgerecon.dense.planes import Plane, complete_with_plane, keep_off_levels, level_map
 from tests.conftest import ring_rig
 from tests.dense.scene import Rect, noise_texture, render
 
@@ -71,8 +71,10 @@ def _complete(two_levels, z, levels):
     out = complete_with_plane(
         plane, measured, {i: RIG[i] for i in IDS}, images,
         {i: np.ones(d.shape, bool) for i, d in measured.items()}, {i: 20.0 for i in IDS},
-        0.01, 20.0, 1, levels=lm, refused=refused,
+        0.01, 20.0, 1,
     )  # fmt: skip
+    if lm is not None:
+        out, refused = keep_off_levels(lm, out, {i: RIG[i] for i in IDS})
     return {i: _world(RIG[i], d)[d > 0] for i, (d, _) in out.items()}, lm, refused
 
 

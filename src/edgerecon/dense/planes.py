@@ -391,8 +391,6 @@ def complete_with_plane(
     region: PlaneRegion | None = None,
     stereo_on_plane: Mapping[int, int] | None = None,
     num_threads: int = 1,
-    levels: LevelMap | None = None,
-    refused: dict[int, int] | None = None,
 ) -> dict[int, tuple[DepthMap, NDArray[np.int16]]]:
     """Per view, (depth map of the accepted plane pixels, number of confirming views).
 
@@ -402,8 +400,7 @@ def complete_with_plane(
     points in the plane. A view whose stereo pixels on the plane (``stereo_on_plane``)
     outnumber its candidates is left alone: its floor is textured and already matched, and
     its blank pixels that meet the plane are other things (walls, furniture, occluders).
-    ``levels`` (``level_map``) keeps completion off other measured levels; ``refused``, when
-    given, receives per view the pixels it refused. Views run on ``num_threads`` threads."""
+    Views run on ``num_threads`` threads (``keep_off_levels`` then verifies the result)."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
 
     def one(i: int) -> tuple[DepthMap, NDArray[np.int16]]:
@@ -465,15 +462,42 @@ def complete_with_plane(
             agree[idx[good]] += 1
             deny[idx[bad]] += 1
         ok = ~contra & (agree >= min_views) & (agree > deny)
-        if levels is not None and ok.any():
-            idx = np.nonzero(ok)[0]
-            off = levels.refused(X[idx], cam_i.center)
-            ok[idx[off]] = False
-            if refused is not None:
-                refused[i] = int(off.sum())
         result[rows[ok], cols[ok]] = z[ok]
         support[rows[ok], cols[ok]] = agree[ok]
         return result, support
 
     ids = list(cameras)
     return dict(zip(ids, thread_map(one, ids, num_threads), strict=True))
+
+
+def keep_off_levels(
+    levels: LevelMap,
+    completed: Mapping[int, tuple[DepthMap, NDArray[np.int16]]],
+    cameras: Mapping[int, Camera],
+    num_threads: int = 1,
+) -> tuple[dict[int, tuple[DepthMap, NDArray[np.int16]]], dict[int, int]]:
+    """``complete_with_plane``'s result without the pixels ``levels`` refuses (another
+    measured level is there, or hides the plane from the view), and per view how many."""
+
+    def one(i: int) -> tuple[tuple[DepthMap, NDArray[np.int16]], int]:
+        depth, support = completed[i]
+        rows, cols = np.nonzero(depth > 0)
+        if len(rows) == 0:
+            return (depth, support), 0
+        X = cameras[i].backproject(
+            np.stack([cols, rows], axis=1).astype(np.float64), depth[rows, cols]
+        )
+        off = levels.refused(X, cameras[i].center)
+        if not off.any():
+            return (depth, support), 0
+        depth, support = depth.copy(), support.copy()
+        depth[rows[off], cols[off]] = 0.0
+        support[rows[off], cols[off]] = 0
+        return (depth, support), int(off.sum())
+
+    ids = [i for i in completed if i in cameras]
+    results = thread_map(one, ids, num_threads)
+    return (
+        {i: r[0] for i, r in zip(ids, results, strict=True)},
+        {i: r[1] for i, r in zip(ids, results, strict=True)},
+    )

@@ -26,6 +26,7 @@ from edgerecon.dense.planes import (
     color_model,
     complete_with_plane,
     fit_ground_plane,
+    keep_off_levels,
     level_map,
     support_region,
 )
@@ -601,10 +602,12 @@ def _complete_ground(
     # (support counts scaled alike): the same plane for a third of the stage's time.
     step = max(1, len(pts) // _GROUND_SAMPLE)
     sub = slice(None, None, step)
+    sub_normals = np.concatenate([p.normals for p in parts])[sub]
+    sub_views = np.concatenate([p.num_views for p in parts])[sub]
     plane = fit_ground_plane(
         pts[sub],
-        np.concatenate([p.normals for p in parts])[sub],
-        np.concatenate([p.num_views for p in parts])[sub],
+        sub_normals,
+        sub_views,
         up,
         3.0 * voxel,
         max(3, config.ground_min_support // step),
@@ -618,23 +621,6 @@ def _complete_ground(
     sizes = np.cumsum([0] + [len(p.points3D) for p in parts])
     on_plane_count = {i: int(on_plane[sizes[k] : sizes[k + 1]].sum()) for k, i in enumerate(kept)}
     by_index = {p["index"]: p for p in plans}
-    levels = None
-    if config.ground_level_cell > 0:
-        t0 = time.perf_counter()
-        levels = level_map(
-            plane,
-            pts[sub],
-            np.concatenate([p.normals for p in parts])[sub],
-            np.concatenate([p.num_views for p in parts])[sub],
-            3.0 * voxel,
-            config.ground_level_cell * voxel,
-            config.ground_level_min_points,
-            max(3, config.ground_min_support // step),
-        )
-        if stats is not None:
-            stats.update(levels.stats())
-            stats["level_map_s"] = time.perf_counter() - t0
-    refused: dict[int, int] = {}
 
     def region_of(i: int) -> NDArray[np.bool_]:
         """The view's pixels to complete: in its bounds and mask, and textureless."""
@@ -661,12 +647,31 @@ def _complete_ground(
         hull,
         on_plane_count,
         num_threads=config.num_threads,
-        levels=levels,
-        refused=refused,
     )
+    completed = int(sum(int((d > 0).sum()) for d, _ in extra.values()))
+    refused: dict[int, int] = {}
+    if config.ground_level_cell > 0 and completed:
+        # Verified against the measured levels (built only when there is something to check).
+        t0 = time.perf_counter()
+        levels = level_map(
+            plane,
+            pts[sub],
+            sub_normals,
+            sub_views,
+            3.0 * voxel,
+            config.ground_level_cell * voxel,
+            config.ground_level_min_points,
+            max(3, config.ground_min_support // step),
+        )
+        extra, refused = keep_off_levels(
+            levels, extra, {i: cams[i] for i in kept}, config.num_threads
+        )
+        if stats is not None:
+            stats.update(levels.stats())
+            stats["level_map_s"] = time.perf_counter() - t0
     if stats is not None:
         stats["refused_depths"] = int(sum(refused.values()))
-        stats["completed_depths"] = int(sum(int((d > 0).sum()) for d, _ in extra.values()))
+        stats["completed_depths"] = completed - stats["refused_depths"]
     logger.info("dense: ground plane %s", plane)
     return plane, extra
 
