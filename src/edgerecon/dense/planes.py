@@ -249,15 +249,36 @@ class LevelMap:
             # No raised level, or a camera not above it (no ray passes over it): column test.
             return out | (inside & (self.raised[i, j] > self.band))
         # The ray X -> C is at height s * h_cam at X + s (C - X); above ``top`` nothing hides.
+        # In grid units, only the 2D footprint matters; rays whose footprint misses the box
+        # of the raised cells are not marched.
         s_max = top / h_cam
-        run = np.linalg.norm((center - X) @ self.basis, axis=1) * s_max
-        steps = int(min(64, np.ceil(run.max() / (0.5 * self.cell)))) + 1
+        uv0 = (X @ self.basis - self.origin) / self.cell
+        duv = (np.asarray(center, np.float64) @ self.basis - self.origin) / self.cell - uv0
+        end = uv0 + s_max * duv
+        ri, rj = np.nonzero(self.raised > self.band)
+        near = (
+            (np.maximum(uv0[:, 0], end[:, 0]) >= ri.min() - 1)
+            & (np.minimum(uv0[:, 0], end[:, 0]) <= ri.max() + 2)
+            & (np.maximum(uv0[:, 1], end[:, 1]) >= rj.min() - 1)
+            & (np.minimum(uv0[:, 1], end[:, 1]) <= rj.max() + 2)
+        )
+        idx = np.nonzero(near)[0]
+        if len(idx) == 0:
+            return out
+        uv0, duv = uv0[idx], duv[idx]
+        steps = int(min(64, np.ceil(2.0 * s_max * np.abs(duv).max()))) + 1
+        shape = self.raised.shape
+        hit = np.zeros(len(idx), bool)
         for k in range(steps + 1):
             s = s_max * k / steps
-            P = X + s * (center - X)
-            i, j = self.cells(P)
-            ok = self._inside(P)
-            out |= ok & (self.raised[i, j] > s * h_cam + self.band)
+            uv = np.floor(uv0 + s * duv)
+            inside = (
+                (uv[:, 0] >= 0) & (uv[:, 0] < shape[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < shape[1])
+            )
+            i = np.clip(uv[:, 0], 0, shape[0] - 1).astype(np.intp)
+            j = np.clip(uv[:, 1], 0, shape[1] - 1).astype(np.intp)
+            hit |= inside & (self.raised[i, j] > s * h_cam + self.band)
+        out[idx] |= hit
         return out
 
     def stats(self) -> dict[str, Any]:
