@@ -72,3 +72,19 @@ def test_inferred_points_are_the_completed_ones(runs):
     hoff = off.cloud.points3D @ np.asarray(plane["normal"]) - plane["offset"]
     expected = int((hoff >= -band).sum())  # completion drops stereo points below the plane
     assert abs(len(measured) - expected) <= 0.002 * expected
+
+
+def test_voxel_grid_is_fixed_in_the_world():
+    # Fusion's voxels do not depend on which other points are fused: a subset keyed alone
+    # is partitioned as it is within the whole (completion never moves measured points).
+    from edgerecon.dense import kernels
+
+    X = np.random.default_rng(0).uniform(-2, 3, (20000, 3))
+    whole = kernels.voxel_keys(X, 0.05)
+    part = kernels.voxel_keys(X[::3] + 0.0, 0.05)
+    _, a = np.unique(whole[::3], return_inverse=True)
+    _, b = np.unique(part, return_inverse=True)
+    np.testing.assert_array_equal(a, b)
+    # Corners at multiples of the edge: points just either side of 0.05 differ.
+    k = kernels.voxel_keys(np.array([[0.0499, 0, 0], [0.0501, 0, 0], [0.0, 0, 0]]), 0.05)
+    assert k[0] == k[2] != k[1]

@@ -150,7 +150,7 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
     V = np.concatenate([p.num_views for p in parts]).astype(np.int32)
     S = np.concatenate([p.score for p in parts]).astype(np.float32)
     inferred = np.concatenate([np.full(len(p.points3D), p.inferred, bool) for p in parts])
-    flat = world_voxel_keys(X, float(voxel))
+    flat = kernels.voxel_keys(X, float(voxel))
     if inferred.any() and not inferred.all():
         # Inferred points in a voxel that holds a measured point are left out.
         keep = ~inferred | ~np.isin(flat, flat[~inferred])
@@ -168,14 +168,3 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
         confidence=conf,
         attributes={"num_views": views, INFERRED: flag},
     )
-
-
-def world_voxel_keys(X: NDArray[np.float64], voxel: float) -> NDArray[np.int64]:
-    """One int64 key per point: its voxel of edge ``voxel`` in a grid fixed in the world
-    (voxel corners at integer multiples of ``voxel``). Points fall into the same voxels
-    whatever else is fused with them: completion, or points dropped below the ground plane,
-    never move a measured point."""
-    c = np.floor(X * (1.0 / voxel)).astype(np.int64)
-    c -= c.min(axis=0)
-    span = c.max(axis=0) + 1
-    return np.asarray((c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2], np.int64)
