@@ -154,7 +154,8 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
     if inferred.any() and not inferred.all():
         # Inferred points in a voxel that holds a measured point are left out.
         keep = ~inferred | ~np.isin(flat, flat[~inferred])
-        X, C, N, V, S, inferred, flat = (a[keep] for a in (X, C, N, V, S, inferred, flat))
+        X, C, N, V, S = X[keep], C[keep], N[keep], V[keep], S[keep]
+        inferred, flat = inferred[keep], flat[keep]
     order = np.argsort(flat)
     fs = flat[order]
     starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1]).astype(np.int64)

@@ -506,7 +506,8 @@ def keep_off_levels(
         if len(rows) == 0:
             return (depth, support), 0
         X = cameras[i].backproject(
-            np.stack([cols, rows], axis=1).astype(np.float64), depth[rows, cols]
+            np.stack([cols, rows], axis=1).astype(np.float64),
+            depth[rows, cols].astype(np.float64),
         )
         off = levels.refused(X, cameras[i].center)
         if not off.any():
