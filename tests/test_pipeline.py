@@ -34,6 +34,12 @@ def test_golden_reconstruction_matches_ground_truth(tiny):
     (s,) = evaluate_clouds(result.dense.cloud, ref, 0.08)
     assert s.precision > 0.7, s
     assert {"prepare", "sparse.features", "dense.depth"} <= set(result.timings.seconds)
+    # Points of the ground completion are flagged (this floor is textured: none), and the
+    # flag is in the cloud (tests/dense/test_inferred.py: a blank floor).
+    cloud, stats = result.dense.cloud, result.dense.stats
+    assert stats["ground_plane"] is not None and "inferred" in cloud.attributes
+    assert cloud.num_inferred == stats["inferred_points"] == stats["ground"]["completed_points"]
+    assert result.summary()["num_inferred_points"] == cloud.num_inferred
 
 
 def test_scale_and_camera_subset_reduce_work(tiny):
@@ -83,6 +89,10 @@ def test_split_pipeline_labels_foreground_and_background(tiny, tiny_dataset):
     assert result.foreground.dense.num_points < 0.5 * len(bg_pts)
     s = result.summary()
     assert s["num_objects"] >= 1 and s["num_foreground_points"] == len(fg_pts)
+    # Inferred points (ground completion) stay flagged from the dense stages to the merge.
+    assert "inferred" in merged.attributes
+    flagged = result.foreground.cloud.num_inferred + result.background.num_inferred
+    assert s["num_inferred_points"] == merged.num_inferred <= flagged
 
 
 def test_split_pipeline_with_empty_foreground(tiny):

@@ -27,6 +27,10 @@ DepthMap = NDArray[np.float32]  # (H, W) depth along the optical axis, 0 or NaN 
 BACKGROUND_LABEL = 0
 #: Label of points whose foreground/background status is unknown.
 UNKNOWN_LABEL = -1
+#: Per-point attribute (uint8 0/1) of points that were inferred, not measured: 1 = the point
+#: was synthesised (e.g. ground-plane completion of a blank floor), 0 = measured by stereo.
+#: Absent = all measured (clouds from before the flag existed).
+INFERRED = "inferred"
 
 
 class EdgereconError(Exception):
@@ -59,7 +63,8 @@ class PointCloud:
     confidence: NDArray[np.float32] | None = None
     """(N,) float32 in [0, 1] or a count of supporting views, stage-specific."""
     attributes: dict[str, NDArray[Any]] = field(default_factory=dict)
-    """Further named (N,) arrays (e.g. ``bg_version``, ``num_views``), written to PLY."""
+    """Further named (N,) arrays (e.g. ``bg_version``, ``num_views``, ``inferred``: see
+    ``INFERRED``), written to PLY."""
 
     def __post_init__(self) -> None:
         pts = np.ascontiguousarray(np.asarray(self.points3D, dtype=np.float64).reshape(-1, 3))
@@ -85,6 +90,12 @@ class PointCloud:
         for key, value in self.attributes.items():
             if np.asarray(value).shape[:1] != (n,):
                 raise ValueError(f"PointCloud attribute {key!r} must have {n} rows")
+        flag = self.attributes.get(INFERRED)
+        if flag is not None and np.asarray(flag).dtype != np.uint8:
+            # One dtype everywhere (PLY ``uchar inferred``), whatever the producer used.
+            attrs = dict(self.attributes)
+            attrs[INFERRED] = (np.asarray(flag) != 0).astype(np.uint8)
+            object.__setattr__(self, "attributes", attrs)
 
     def __len__(self) -> int:
         return int(self.points3D.shape[0])
@@ -92,6 +103,30 @@ class PointCloud:
     @property
     def num_points(self) -> int:
         return len(self)
+
+    @property
+    def inferred(self) -> NDArray[np.bool_]:
+        """(N,) True for inferred points (``attributes["inferred"]``), all False without it."""
+        flag = self.attributes.get(INFERRED)
+        if flag is None:
+            return np.zeros(len(self), bool)
+        return np.asarray(flag) != 0
+
+    @property
+    def num_inferred(self) -> int:
+        return int(np.count_nonzero(self.inferred))
+
+    def with_inferred(self, inferred: NDArray[np.bool_] | bool) -> PointCloud:
+        """The same cloud with ``attributes["inferred"]`` set (a mask or one value for all)."""
+        flag = np.broadcast_to(np.asarray(inferred, bool), (len(self),)).astype(np.uint8)
+        return PointCloud(
+            points3D=self.points3D,
+            colors=self.colors,
+            normals=self.normals,
+            labels=self.labels,
+            confidence=self.confidence,
+            attributes={**self.attributes, INFERRED: flag},
+        )
 
     @classmethod
     def empty(cls) -> PointCloud:

@@ -82,3 +82,35 @@ def test_evaluate_unlabelled_cloud_against_the_foreground(tiny_dataset, tmp_path
     assert out["scores"][0]["fscore"] == 1.0
     assert main([*base, "--part", "foreground", "-d", "0.01"]) == 0
     assert "has no labels" in capsys.readouterr().out
+
+
+def test_evaluate_measured_only_leaves_out_inferred_points(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0, 1, (1000, 3))
+    wrong = ref[:250] + [0.2, 0, 0]  # a completed "floor" 20 cm off the truth
+    pred = PointCloud(points3D=np.concatenate([ref, wrong])).with_inferred(
+        np.r_[np.zeros(1000, bool), np.ones(250, bool)]
+    )
+    write_ply(tmp_path / "pred.ply", pred)
+    write_ply(tmp_path / "ref.ply", PointCloud(points3D=ref))
+    args = ["evaluate", str(tmp_path / "pred.ply"), str(tmp_path / "ref.ply"), "-d", "0.01"]
+    assert main([*args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["inferred"] == 250 and out["num_pred"] == 1250 and not out["measured_only"]
+    assert abs(out["scores"][0]["precision"] - 0.8) < 0.01  # the wrong fifth
+    assert main([*args, "--json", "--measured-only"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["inferred"] == 250 and out["num_pred"] == 1000 and out["measured_only"]
+    assert out["scores"][0]["precision"] == 1.0
+    assert main([*args, "--measured-only"]) == 0
+    text = capsys.readouterr().out
+    assert "250 of 1,250 points inferred" in text and "--measured-only" in text
+    # A cloud without the property: all measured, nothing left out.
+    (tmp_path / "old.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n0 0 0\n"
+    )
+    old = ["evaluate", str(tmp_path / "old.ply"), str(tmp_path / "ref.ply"), "-d", "0.01"]
+    assert main([*old, "--json", "--measured-only"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["inferred"] == 0 and out["num_pred"] == 1

@@ -61,6 +61,10 @@ def test_run_refuses_a_used_folder_resumes_and_overwrites(tiny_dataset, tmp_path
     assert _run(tiny_dataset, out, "--frames", "0:2", "--fixed", "0.6", "--json") == 0
     first = json.loads(capsys.readouterr().out)
     assert [t["time_index"] for t in first["tasks"]] == [0, 1]
+    # The task clouds say which points are inferred (PLY 'uchar inferred').
+    from edgerecon.io.ply import read_ply_meta
+
+    assert "inferred" in read_ply_meta(out / "tasks" / "000001" / "merged.ply").vertex_properties
     # A finished run is not replaced silently.
     assert _run(tiny_dataset, out, "--frames", "0:2", "--fixed", "0.6") == 2
     assert "not empty" in capsys.readouterr().err

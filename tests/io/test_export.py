@@ -161,8 +161,17 @@ def test_export_ply_z_up_metres(reconstruction, tmp_path, capsys):
     assert meta.unit == "m" and meta.up == (0.0, 0.0, 1.0)
     assert any("exported by edgerecon from dense.ply" in c for c in meta.comments)
     assert len(read_ply(out)) == len(read_ply(reconstruction / "dense.ply"))
-    # The clouds reconstruct writes record their unit and up too.
+    # The clouds reconstruct writes record their unit and up too, and which points are
+    # inferred; the export keeps that.
     assert read_ply_meta(reconstruction / "dense.ply").unit == "m"
+    assert "inferred" in meta.vertex_properties
+    assert "inferred" in read_ply_meta(reconstruction / "dense.ply").vertex_properties
+    np.testing.assert_array_equal(
+        read_ply(out).inferred, read_ply(reconstruction / "dense.ply").inferred
+    )
+    flagged = read_ply(reconstruction / "dense.ply").with_inferred(True)
+    moved = z_up_metres("m", (0.0, 0.0, 1.0)).cloud(flagged)
+    assert moved.inferred.all()
     assert main(["export", str(reconstruction), "--to", "colmap", "-o", str(tmp_path / "x"),
                  "--cloud", "nope"]) == 2  # fmt: skip
     assert "not found" in capsys.readouterr().err

@@ -127,4 +127,33 @@ def test_ply_records_unit_and_up(tmp_path):
     meta = read_ply_meta(tmp_path / "u.ply")
     assert meta.unit == "mm" and meta.up == (0.0, 0.0, -1.0)
     assert "frame rig" in meta.comments
-    assert read_ply_meta(tmp_path / "u.ply").vertex_properties == ("x", "y", "z")
+    # Every written cloud says which points are inferred (none here).
+    assert read_ply_meta(tmp_path / "u.ply").vertex_properties == ("x", "y", "z", "inferred")
+
+
+def test_inferred_flag_round_trips_and_old_files_read_as_measured(tmp_path):
+    flag = np.array([0, 1, 1, 0, 1], bool)
+    cloud = PointCloud(points3D=np.arange(15.0).reshape(5, 3)).with_inferred(flag)
+    assert cloud.num_inferred == 3 and cloud.attributes["inferred"].dtype == np.uint8
+    write_ply(tmp_path / "i.ply", cloud)
+    back = read_ply(tmp_path / "i.ply")
+    np.testing.assert_array_equal(back.inferred, flag)
+    assert back.attributes["inferred"].dtype == np.uint8
+    header = (tmp_path / "i.ply").read_bytes().split(b"end_header")[0]
+    assert b"property uchar inferred" in header
+    # Selection, concatenation with an unflagged cloud and a rewrite keep the flag.
+    plain = PointCloud(points3D=np.zeros((2, 3)))
+    both = PointCloud.concatenate([back.select(np.array([4, 0, 1])), plain])
+    np.testing.assert_array_equal(both.inferred, [True, False, True, False, False])
+    write_ply(tmp_path / "j.ply", both)
+    np.testing.assert_array_equal(read_ply(tmp_path / "j.ply").inferred, both.inferred)
+    # A bool attribute is stored as uint8 0/1.
+    b = PointCloud(points3D=np.zeros((2, 3)), attributes={"inferred": np.array([True, False])})
+    assert b.attributes["inferred"].dtype == np.uint8 and b.num_inferred == 1
+    # A PLY without the property (another tool, or edgerecon before the flag): all measured.
+    (tmp_path / "old.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n0 0 0\n1 2 3\n"
+    )
+    old = read_ply(tmp_path / "old.ply")
+    assert "inferred" not in old.attributes and not old.inferred.any() and old.num_inferred == 0

@@ -85,6 +85,7 @@ def test_surface_cloud_normals_and_colours(rig: Rig, box_hull) -> None:  # type:
     cloud = hull_cloud(hull, rig.cameras, images)
     assert len(cloud) == int(hull.surface.sum()) > 0
     np.testing.assert_array_equal(cloud.labels, 1)
+    assert cloud.inferred.all()  # silhouettes bound the shape; no depth measured it
     assert cloud.colors is not None and cloud.normals is not None
     seen = cloud.attributes["num_views"] > 0
     assert seen.mean() > 0.9

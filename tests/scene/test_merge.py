@@ -88,3 +88,16 @@ def test_write_merged(tmp_path: Path) -> None:
     np.testing.assert_array_equal(back.attributes[BG_VERSION], merged.attributes[BG_VERSION])
     assert len(read_ply(paths["fg"])) == 300
     assert len(read_ply(paths["bg"])) == len(merged) - 300
+
+
+def test_merge_keeps_which_points_are_inferred(tmp_path: Path) -> None:
+    fg, bg = _clouds()
+    # The background's completed floor (every other floor point) is inferred; the
+    # foreground carries no flag (all measured).
+    flag = np.r_[np.arange(1000) % 2 == 0, np.zeros(50, bool)]
+    merged = merge_clouds(fg, bg.with_inferred(flag), bg_version=4)
+    assert merged.num_inferred == 500
+    assert not merged.inferred[merged.labels >= 1].any()
+    paths = write_merged(tmp_path / "out", merged)
+    np.testing.assert_array_equal(read_ply(paths["merged"]).inferred, merged.inferred)
+    assert read_ply(paths["bg"]).num_inferred == 500 and read_ply(paths["fg"]).num_inferred == 0

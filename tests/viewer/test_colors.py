@@ -28,6 +28,8 @@ def test_available_colorings_follow_the_cloud():
     merged = _cloud([0, 1, 2], bg_version=[1, 1, 1])
     assert available_colorings(merged) == ["rgb", "fg_bg", "object", "bg_version"]
     assert "inferred" in available_colorings(_cloud([0, 1], inferred=[0, 1]))
+    # Every PLY edgerecon writes has the attribute; all measured: nothing to show.
+    assert "inferred" not in available_colorings(_cloud([0, 1], inferred=[0, 0]))
 
 
 def test_colorings_give_known_colours():

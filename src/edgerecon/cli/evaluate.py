@@ -88,6 +88,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="with --gt and --part foreground/background, do not drop PRED points whose "
         "label says the other part (labels >= 1 are foreground, 0 background)",
     )
+    p.add_argument(
+        "--measured-only",
+        action="store_true",
+        help="score only PRED's measured points: drop those its 'inferred' property marks "
+        "(ground-plane completion); a PLY without the property is all measured",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -187,13 +193,35 @@ def _dataset_rig(path: str | None) -> Rig | None:
     return open_dataset(path).rig
 
 
+def read_pred(path: str, measured_only: bool) -> tuple[PointCloud, dict[str, Any]]:
+    """PRED, without its inferred points when ``measured_only``, and the counts: ``inferred``
+    (points PRED marks inferred), ``measured_only`` and ``num_pred_read``."""
+    cloud = read_ply(path)
+    info = {
+        "num_pred_read": len(cloud),
+        "inferred": cloud.num_inferred,
+        "measured_only": bool(measured_only),
+    }
+    if measured_only and info["inferred"]:
+        cloud = cloud.select(~cloud.inferred)
+    return cloud, info
+
+
+def _inferred_note(info: dict[str, Any]) -> str:
+    n, k = info["num_pred_read"], info["inferred"]
+    share = f" ({100.0 * k / n:.1f} %)" if n else ""
+    if info["measured_only"]:
+        return f"PRED: {k:,} of {n:,} points inferred{share}, left out (--measured-only)"
+    return f"PRED: {k:,} of {n:,} points inferred{share}, scored with the measured ones"
+
+
 def run(args: argparse.Namespace) -> int:
     if args.gt is not None:
         return _run_gt(args)
     if args.ref is None:
         raise DataError("give a reference cloud REF or a synthetic scene with --gt SCENE_DIR")
     t0 = time.perf_counter()
-    pred = read_ply(args.pred)
+    pred, inferred = read_pred(args.pred, args.measured_only)
     ref = read_ply(args.ref)
     unit = read_ply_meta(args.ref).unit or read_ply_meta(args.pred).unit
     th = resolve_thresholds(args.threshold, _dataset_rig(args.dataset), ref, args.max_distance)
@@ -207,6 +235,8 @@ def run(args: argparse.Namespace) -> int:
                 "unit": unit,
                 **th.to_dict(),
                 "seconds": round(seconds, 3),
+                "num_pred": len(pred),
+                **inferred,
                 "scores": [s.to_dict() for s in scores],
             }
         )
@@ -216,6 +246,7 @@ def run(args: argparse.Namespace) -> int:
         _COLUMNS,
         _rows(scores),
     )
+    console.print(_inferred_note(inferred), soft_wrap=True)
     console.print(f"{th.describe(unit)}; {seconds:.1f} s", soft_wrap=True)
     return 0
 
@@ -250,7 +281,7 @@ def _run_gt(args: argparse.Namespace) -> int:
     gt = GroundTruth.open(args.gt)
     if args.part != "background" and args.time is None:
         raise DataError(f"--part {args.part} needs --time T (0..{gt.num_frames - 1})")
-    pred_all = read_ply(args.pred)
+    pred_all, inferred = read_pred(args.pred, args.measured_only)
     th = resolve_thresholds(args.threshold, gt.rig, None, args.max_distance, "ground truth's rig")
     ref_all = gt.reference_cloud(args.time, part=args.part, min_views=1)
     seen = np.asarray(ref_all.attributes["num_views"]) >= args.min_views
@@ -283,6 +314,7 @@ def _run_gt(args: argparse.Namespace) -> int:
                 **th.to_dict(),
                 "num_pred": len(pred),
                 "num_pred_total": len(pred_all),
+                **inferred,
                 "pred_selection": "labels"
                 if pred_all.labels is not None and not args.no_label_filter
                 else ("crop" if note else "all"),
@@ -307,5 +339,6 @@ def _run_gt(args: argparse.Namespace) -> int:
     )
     if note:
         console.print(note, soft_wrap=True)
+    console.print(_inferred_note(inferred), soft_wrap=True)
     console.print(f"{th.describe(unit)}; {seconds:.1f} s", soft_wrap=True)
     return 0

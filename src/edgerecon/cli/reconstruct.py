@@ -189,7 +189,9 @@ def _run_whole(
         "cameras": [rig[i].name for i in result.camera_ids],
         **result.summary(),
     }
-    dense_n = "-" if result.dense is None else f"{result.dense.num_points:,}"
+    dense_n = "-"
+    if result.dense is not None:
+        dense_n = f"{result.dense.num_points:,} ({result.dense.cloud.num_inferred:,} inferred)"
     return summary, (
         f"{dataset.name} t={args.time} r={config.scale:g} cameras={summary['cameras']}",
         [*result.timings.seconds.items(), ("total", result.timings.total)],
@@ -253,5 +255,6 @@ def _run_split(
         [*result.timings.seconds.items(), ("total", result.timings.total)],
         f"sparse: {result.sparse.num_points:,} ({summary['num_sparse_foreground']:,} foreground)"
         f"   foreground: {len(result.foreground.cloud):,}   background: "
-        f"{len(result.background):,}   merged: {len(result.merged):,}   -> {out}",
+        f"{len(result.background):,}   merged: {len(result.merged):,} "
+        f"({result.merged.num_inferred:,} inferred)   -> {out}",
     )

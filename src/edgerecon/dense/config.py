@@ -90,6 +90,13 @@ class DenseConfig:
     pixels without a consistent depth are occlusions or mismatches, not blank floor."""
     ground_min_support: int = 100
     """Stereo points on the ground needed before the plane is used."""
+    ground_level_cell: float = 16.0
+    """Cell edge, in fusion voxels, of the level map that keeps ground completion off other
+    measured levels (a raised deck, a platform, a step; ``dense.planes.level_map``); 0 turns
+    the map off."""
+    ground_level_min_points: int = 5
+    """Measured horizontal points off the plane (of at most 500,000 sampled) that make a
+    cell another level."""
     voxel_size: float | None = None
     """Fusion merges points within one voxel of this edge (rig units); None = ``voxel_rel``
     times the median pixel footprint (depth / focal) of the depth maps."""
@@ -135,6 +142,8 @@ class DenseConfig:
         )
         need(0.0 < self.plane_step_px <= 16.0, "plane_step_px", "in (0, 16]")
         need(self.max_planes >= 4, "max_planes", ">= 4")
+        need(self.ground_level_cell >= 0.0, "ground_level_cell", ">= 0")
+        need(self.ground_level_min_points >= 1, "ground_level_min_points", ">= 1")
         need(0 <= self.refine_radius <= 8, "refine_radius", "in 0..8")
         need(0.0 < self.refine_step_px <= 8.0, "refine_step_px", "in (0, 8]")
         need(0 <= self.propagation_iterations <= 8, "propagation_iterations", "in 0..8")

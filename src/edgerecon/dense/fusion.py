@@ -4,9 +4,13 @@
   pixels (skipping depth discontinuities), averaged over a small window by normalised
   convolution; the normal is their cross product, turned towards the camera. Pixels without
   usable neighbours get the direction towards the camera.
-* De-duplication: points of all views are binned in a voxel grid; each occupied voxel becomes
+* De-duplication: points of all views are binned in a voxel grid fixed in the world (corners
+  at multiples of the voxel edge, whatever the points' box); each occupied voxel becomes
   one point with the mean position, colour and normal of its members and the largest number
   of views that supported any of them.
+* Inferred points (``ViewPoints.inferred``: ground-plane completion) never move a measured
+  one: in a voxel that holds a measured point the inferred members are left out, and a
+  fused point is flagged inferred (``PointCloud.inferred``) only when all its members were.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from numpy.typing import NDArray
 
 from edgerecon.dense import kernels
 from edgerecon.geometry.camera import Camera
-from edgerecon.types import DepthMap, Image, PointCloud
+from edgerecon.types import INFERRED, DepthMap, Image, PointCloud
 
 #: Neighbouring depths that differ by more than this share are a discontinuity, not a slope.
 _MAX_REL_STEP = 0.05
@@ -94,6 +98,8 @@ class ViewPoints:
     """(N,) supporting views including this one."""
     score: NDArray[np.float32]
     """(N,) matching score (aggregated NCC)."""
+    inferred: bool = False
+    """All the points are inferred (not measured by stereo), e.g. ground-plane completion."""
 
 
 def view_points(
@@ -136,22 +142,30 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
             colors=np.zeros((0, 3), np.uint8),
             normals=np.zeros((0, 3), np.float32),
             confidence=np.zeros(0, np.float32),
-            attributes={"num_views": np.zeros(0, np.int32)},
+            attributes={"num_views": np.zeros(0, np.int32), INFERRED: np.zeros(0, np.uint8)},
         )
     X = np.concatenate([p.points3D for p in parts])
     C = np.concatenate([p.colors for p in parts])
     N = np.concatenate([p.normals for p in parts])
     V = np.concatenate([p.num_views for p in parts]).astype(np.int32)
     S = np.concatenate([p.score for p in parts]).astype(np.float32)
+    inferred = np.concatenate([np.full(len(p.points3D), p.inferred, bool) for p in parts])
     flat = kernels.voxel_keys(X, float(voxel))
+    if inferred.any() and not inferred.all():
+        # Inferred points in a voxel that holds a measured point are left out.
+        keep = ~inferred | ~np.isin(flat, flat[~inferred])
+        X, C, N, V, S = X[keep], C[keep], N[keep], V[keep], S[keep]
+        inferred, flat = inferred[keep], flat[keep]
     order = np.argsort(flat)
     fs = flat[order]
     starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1]).astype(np.int64)
     pts, cols, nrm, views, conf = kernels.merge_sorted(order, starts, X, C, N, V, S)
+    # A voxel's members are all measured or all inferred (see above): its first member says.
+    flag = inferred[order[starts]].astype(np.uint8)
     return PointCloud(
         points3D=pts,
         colors=cols,
         normals=nrm,
         confidence=conf,
-        attributes={"num_views": views},
+        attributes={"num_views": views, INFERRED: flag},
     )

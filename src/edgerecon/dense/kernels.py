@@ -563,27 +563,29 @@ def merge_sorted(
 
 @_jit
 def voxel_keys(X: NDArray[np.float64], voxel: float) -> NDArray[np.int64]:
-    """One int64 key per point: its voxel of edge ``voxel`` in a grid over the points' box."""
+    """One int64 key per point: its voxel of edge ``voxel`` in a grid fixed in the world
+    (corners at integer multiples of ``voxel``), numbered over the points' box. A point falls
+    into the same voxel whatever other points are keyed with it."""
     n = X.shape[0]
+    inv = 1.0 / voxel
     lo = np.empty(3)
     hi = np.empty(3)
     for i in range(3):
-        lo[i] = X[0, i] if n else 0.0
+        lo[i] = np.floor(X[0, i] * inv) if n else 0.0
         hi[i] = lo[i]
     for k in range(n):
         for i in range(3):
-            v = X[k, i]
+            v = np.floor(X[k, i] * inv)
             if v < lo[i]:
                 lo[i] = v
             if v > hi[i]:
                 hi[i] = v
-    inv = 1.0 / voxel
-    span1 = np.int64((hi[1] - lo[1]) * inv) + 1
-    span2 = np.int64((hi[2] - lo[2]) * inv) + 1
+    span1 = np.int64(hi[1] - lo[1]) + 1
+    span2 = np.int64(hi[2] - lo[2]) + 1
     keys = np.empty(n, np.int64)
     for k in range(n):
-        kx = np.int64((X[k, 0] - lo[0]) * inv)
-        ky = np.int64((X[k, 1] - lo[1]) * inv)
-        kz = np.int64((X[k, 2] - lo[2]) * inv)
+        kx = np.int64(np.floor(X[k, 0] * inv) - lo[0])
+        ky = np.int64(np.floor(X[k, 1] * inv) - lo[1])
+        kz = np.int64(np.floor(X[k, 2] * inv) - lo[2])
         keys[k] = (kx * span1 + ky) * span2 + kz
     return keys

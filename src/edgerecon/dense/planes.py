@@ -17,6 +17,15 @@ plane's stereo points never showed (walls above a floor), nor points outside the
 of the plane's stereo points (behind the walls of a room). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
 views confirm than deny, and none contradicts. Completed points lie exactly on the fitted
 plane, so they are only as good as the fit (reported in the stage's stats).
+
+A floor need not be one plane (a raised deck, a platform, a step). ``level_map`` bins the
+measured horizontal stereo points in cells of the plane's 2D coordinates: a cell whose
+measured points sit clearly above the plane holds another level (its height: their median),
+one whose points sit clearly below holds a lower level. Only the dominant level is completed,
+and never where another level is: a completed point must not lie in a lower level's cell, and
+its ray to its camera must not pass under a raised level (the pixel sees the deck, not the
+floor beneath it; a ray march through the map's height field). Raised cells with no measured
+point enclosed by raised cells count as raised (a blank deck measured only at its texture).
 """
 
 from __future__ import annotations
@@ -188,6 +197,190 @@ def support_region(
     return PlaneRegion(basis=basis, normals=eq[:, :2], offsets=-eq[:, 2])
 
 
+@dataclass(frozen=True, eq=False)
+class LevelMap:
+    """Measured levels other than ``plane`` on a grid of cells in the plane's coordinates."""
+
+    plane: Plane
+    basis: NDArray[np.float64]
+    """(3, 2) in-plane axes (``plane_basis``)."""
+    origin: NDArray[np.float64]
+    """(2,) plane coordinates of cell (0, 0)'s corner."""
+    cell: float
+    """Cell edge (rig units)."""
+    band: float
+    """Heights within +-band of the plane are on it (rig units)."""
+    raised: NDArray[np.float32]
+    """(I, J) height above the plane of a raised level in the cell (0: none)."""
+    lower: NDArray[np.bool_]
+    """(I, J) True where a measured level lies below the plane."""
+    on_plane: NDArray[np.int32]
+    """(I, J) measured horizontal points on the plane per cell."""
+
+    def cells(self, points3D: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """(rows, cols) cell indices of ``points3D`` (clipped to the grid)."""
+        uv = (np.asarray(points3D, np.float64) @ self.basis - self.origin) / self.cell
+        i = np.clip(np.floor(uv[:, 0]), 0, self.raised.shape[0] - 1).astype(np.intp)
+        j = np.clip(np.floor(uv[:, 1]), 0, self.raised.shape[1] - 1).astype(np.intp)
+        return i, j
+
+    def _inside(self, points3D: NDArray[np.float64]) -> NDArray[np.bool_]:
+        uv = (np.asarray(points3D, np.float64) @ self.basis - self.origin) / self.cell
+        shape = np.asarray(self.raised.shape)
+        return np.all((uv >= 0) & (uv < shape), axis=1)
+
+    def refused(
+        self, points3D: NDArray[np.float64], center: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
+        """(N,) True for plane points that another level hides or replaces as seen from the
+        camera at ``center``: in a lower level's cell, or behind a raised level on the ray
+        to the camera (a march through the height field in half-cell steps, at most 64)."""
+        X = np.asarray(points3D, np.float64)
+        out = np.zeros(len(X), bool)
+        if len(X) == 0:
+            return out
+        inside = self._inside(X)
+        i, j = self.cells(X)
+        out |= inside & self.lower[i, j]
+        top = float(self.raised.max())
+        n = np.asarray(self.plane.normal)
+        h_cam = float(center @ n - self.plane.offset)
+        if top <= self.band or h_cam <= top:
+            # No raised level, or a camera not above it (no ray passes over it): column test.
+            return out | (inside & (self.raised[i, j] > self.band))
+        # The ray X -> C is at height s * h_cam at X + s (C - X); above ``top`` nothing hides.
+        # In grid units, only the 2D footprint matters; rays whose footprint misses the box
+        # of the raised cells are not marched.
+        s_max = top / h_cam
+        uv0 = (X @ self.basis - self.origin) / self.cell
+        duv = (np.asarray(center, np.float64) @ self.basis - self.origin) / self.cell - uv0
+        end = uv0 + s_max * duv
+        ri, rj = np.nonzero(self.raised > self.band)
+        near = (
+            (np.maximum(uv0[:, 0], end[:, 0]) >= ri.min() - 1)
+            & (np.minimum(uv0[:, 0], end[:, 0]) <= ri.max() + 2)
+            & (np.maximum(uv0[:, 1], end[:, 1]) >= rj.min() - 1)
+            & (np.minimum(uv0[:, 1], end[:, 1]) <= rj.max() + 2)
+        )
+        idx = np.nonzero(near)[0]
+        if len(idx) == 0:
+            return out
+        uv0, duv = uv0[idx], duv[idx]
+        steps = int(min(64, np.ceil(2.0 * s_max * np.abs(duv).max()))) + 1
+        shape = self.raised.shape
+        hit = np.zeros(len(idx), bool)
+        for k in range(steps + 1):
+            s = s_max * k / steps
+            uv = np.floor(uv0 + s * duv)
+            inside = (
+                (uv[:, 0] >= 0) & (uv[:, 0] < shape[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < shape[1])
+            )
+            i = np.clip(uv[:, 0], 0, shape[0] - 1).astype(np.intp)
+            j = np.clip(uv[:, 1], 0, shape[1] - 1).astype(np.intp)
+            hit |= inside & (self.raised[i, j] > s * h_cam + self.band)
+        out[idx] |= hit
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        """Cell counts and the raised levels' heights (binned by the band)."""
+        r = self.raised[self.raised > self.band]
+        levels: dict[str, int] = {}
+        if len(r):
+            q = np.rint(r / self.band) * self.band
+            for h, c in zip(*np.unique(q, return_counts=True), strict=True):
+                levels[f"{float(h):.4g}"] = int(c)
+        return {
+            "cell": self.cell,
+            "cells_on_plane": int(np.count_nonzero(self.on_plane)),
+            "cells_raised": int(np.count_nonzero(self.raised > self.band)),
+            "cells_lower": int(np.count_nonzero(self.lower)),
+            "raised_levels": levels,
+        }
+
+
+def level_map(
+    plane: Plane,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float32],
+    num_views: NDArray[np.integer[Any]],
+    band: float,
+    cell: float,
+    min_points: int,
+    min_support: int = 0,
+) -> LevelMap:
+    """The coarse level map of the measured horizontal ``points`` around ``plane``.
+
+    A cell holds a raised (or lower) level when at least ``min_points`` of its horizontal
+    points lie more than ``band`` above (below) the plane and they are at least a quarter of
+    its points on the plane; so does a neighbouring cell with any point of that level (the
+    level's edge), and, for a raised level, a cell without points that it encloses. Only points confirmed by 3 views count when at least ``min_support`` are
+    (two-view ghosts below a floor are no level)."""
+    from scipy import ndimage
+
+    n = np.asarray(plane.normal)
+    basis = plane_basis(plane)
+    horiz = normals.astype(np.float64) @ n > np.cos(np.radians(_HORIZONTAL_DEG))
+    multi = horiz & (num_views >= 3)
+    if int(multi.sum()) >= max(min_support, 1):
+        horiz = multi
+    P = points[horiz]
+    h = P @ n - plane.offset
+    uv = P @ basis
+    origin = uv.min(axis=0) if len(uv) else np.zeros(2)
+    extent = (uv.max(axis=0) - origin) if len(uv) else np.zeros(2)
+    shape = tuple(int(x) for x in np.floor(extent / cell).astype(int) + 1)
+    ij = np.minimum(np.floor((uv - origin) / cell).astype(np.intp), np.asarray(shape) - 1)
+    flat = ij[:, 0] * shape[1] + ij[:, 1] if len(uv) else np.zeros(0, np.intp)
+    size = shape[0] * shape[1]
+
+    def count(sel: NDArray[np.bool_]) -> NDArray[np.int64]:
+        return np.bincount(flat[sel], minlength=size).reshape(shape)
+
+    on = count(np.abs(h) <= band)
+    up, down = h > band, h < -band
+    n_up, n_down = count(up), count(down)
+    # A level's cells: enough points off the plane, a fifth of the cell's at least (a few
+    # specks among a floor's points are no level) ...
+    raised_cells = (n_up >= min_points) & (4 * n_up >= on)
+    lower = (n_down >= min_points) & (4 * n_down >= on) & ~raised_cells
+    # ... and its edge: next to a level, any point on it (the grid ignores the level's edge).
+    ring = np.ones((3, 3), bool)
+    edge_up = ndimage.binary_dilation(raised_cells, ring) & (n_up > 0)
+    lower |= ndimage.binary_dilation(lower, ring) & (n_down > 0) & ~edge_up
+    core_up = raised_cells
+    raised_cells = edge_up | raised_cells
+    # Median height of the raised points per cell: sort by (cell, height), take the middle.
+    raised = np.zeros(shape, np.float32)
+    if raised_cells.any():
+        fu, hu = flat[up], h[up]
+        order = np.lexsort((hu, fu))
+        fu, hu = fu[order], hu[order]
+        first = np.searchsorted(fu, np.arange(size))
+        cnt = n_up.ravel()
+        mid = np.where(cnt > 0, first + cnt // 2, 0).clip(0, max(len(hu) - 1, 0))
+        med = np.where(cnt > 0, hu[mid] if len(hu) else 0.0, 0.0).reshape(shape)
+        raised = np.where(raised_cells, med, 0.0).astype(np.float32)
+        # Blank parts of a raised level (no measured point at all) enclosed by it: raised,
+        # at the height of the nearest raised cell.
+        filled = ndimage.binary_fill_holes(raised_cells) & ~raised_cells
+        filled &= (on == 0) & (n_down == 0)
+        grown = filled | (raised_cells & ~core_up)
+        if grown.any() and core_up.any():
+            # Edge and enclosed cells take the height of the nearest core cell (few points).
+            _, (ri, rj) = ndimage.distance_transform_edt(~core_up, return_indices=True)
+            raised[grown] = raised[ri[grown], rj[grown]]
+    return LevelMap(
+        plane=plane,
+        basis=basis,
+        origin=origin,
+        cell=float(cell),
+        band=float(band),
+        raised=raised,
+        lower=lower,
+        on_plane=on.astype(np.int32),
+    )
+
+
 def plane_depth(camera: Camera, plane: Plane) -> DepthMap:
     """(H, W) depth at which each pixel's ray meets the plane (0 where it does not, in front
     of the camera)."""
@@ -228,7 +421,7 @@ def complete_with_plane(
     points in the plane. A view whose stereo pixels on the plane (``stereo_on_plane``)
     outnumber its candidates is left alone: its floor is textured and already matched, and
     its blank pixels that meet the plane are other things (walls, furniture, occluders).
-    Views run on ``num_threads`` threads."""
+    Views run on ``num_threads`` threads (``keep_off_levels`` then verifies the result)."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
 
     def one(i: int) -> tuple[DepthMap, NDArray[np.int16]]:
@@ -296,3 +489,37 @@ def complete_with_plane(
 
     ids = list(cameras)
     return dict(zip(ids, thread_map(one, ids, num_threads), strict=True))
+
+
+def keep_off_levels(
+    levels: LevelMap,
+    completed: Mapping[int, tuple[DepthMap, NDArray[np.int16]]],
+    cameras: Mapping[int, Camera],
+    num_threads: int = 1,
+) -> tuple[dict[int, tuple[DepthMap, NDArray[np.int16]]], dict[int, int]]:
+    """``complete_with_plane``'s result without the pixels ``levels`` refuses (another
+    measured level is there, or hides the plane from the view), and per view how many."""
+
+    def one(i: int) -> tuple[tuple[DepthMap, NDArray[np.int16]], int]:
+        depth, support = completed[i]
+        rows, cols = np.nonzero(depth > 0)
+        if len(rows) == 0:
+            return (depth, support), 0
+        X = cameras[i].backproject(
+            np.stack([cols, rows], axis=1).astype(np.float64),
+            depth[rows, cols].astype(np.float64),
+        )
+        off = levels.refused(X, cameras[i].center)
+        if not off.any():
+            return (depth, support), 0
+        depth, support = depth.copy(), support.copy()
+        depth[rows[off], cols[off]] = 0.0
+        support[rows[off], cols[off]] = 0
+        return (depth, support), int(off.sum())
+
+    ids = [i for i in completed if i in cameras]
+    results = thread_map(one, ids, num_threads)
+    return (
+        {i: r[0] for i, r in zip(ids, results, strict=True)},
+        {i: r[1] for i, r in zip(ids, results, strict=True)},
+    )

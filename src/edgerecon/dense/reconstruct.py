@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -25,6 +26,8 @@ from edgerecon.dense.planes import (
     color_model,
     complete_with_plane,
     fit_ground_plane,
+    keep_off_levels,
+    level_map,
     support_region,
 )
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
@@ -59,8 +62,10 @@ class DenseReconstruction:
 
     cloud: PointCloud
     """Fused points (rig units) with RGB colours, unit normals facing the cameras,
-    ``confidence`` (mean aggregated NCC in [-1, 1]) and ``attributes["num_views"]`` (int32:
-    views that support the point, including the one it came from)."""
+    ``confidence`` (mean aggregated NCC in [-1, 1]), ``attributes["num_views"]`` (int32:
+    views that support the point, including the one it came from) and
+    ``attributes["inferred"]`` (uint8: 1 for points of the ground-plane completion, which no
+    stereo depth measured; ``PointCloud.inferred``)."""
     depth_maps: dict[int, DepthMap] = field(default_factory=dict)
     """Camera id -> (h, w) float32 depth after the consistency filter (0 = unknown), at the
     working resolution of ``depth_cameras``."""
@@ -71,7 +76,10 @@ class DenseReconstruction:
     refinement), ``consistency`` and ``fusion``."""
     stats: dict[str, Any] = field(default_factory=dict)
     """Counts: per-view sources, depth ranges, planes, ``work`` (pixel x source NCC
-    evaluations), raw and consistent depths; ``voxel_size``; ``num_points``."""
+    evaluations), raw and consistent depths; ``voxel_size``; ``num_points``;
+    ``inferred_points``; ``ground`` (with a ground plane: the level map's cells on the plane,
+    raised and lower, the raised levels' heights, depths completed and refused by the map,
+    ``completed_points`` in the cloud)."""
 
     def __len__(self) -> int:
         return len(self.cloud)
@@ -366,8 +374,9 @@ def reconstruct_dense(
     plane = None
     if config.ground_completion and up_vec is not None and voxel and parts:
         with timings.stage("ground"):
+            ground_stats: dict[str, Any] = {}
             plane, extra = _complete_ground(
-                parts, kept, cams, colors, masks, plans, up_vec, voxel, config
+                parts, kept, cams, colors, masks, plans, up_vec, voxel, config, ground_stats
             )
             if plane is not None:
                 band = 3.0 * voxel
@@ -384,7 +393,7 @@ def reconstruct_dense(
                 assert plane is not None
                 # Points on the plane get its normal (their neighbours may be stereo pixels).
                 vp.normals[:] = np.asarray(plane.normal, np.float32)
-                parts.append(vp)
+                parts.append(dataclasses.replace(vp, inferred=True))
                 stats["views"].setdefault(views[i].camera_id, {})["ground_depths"] = int(add.sum())
 
     with timings.stage("fusion"):
@@ -412,7 +421,10 @@ def reconstruct_dense(
         num_points=len(cloud),
         up=None if up_vec is None else [float(x) for x in up_vec],
         ground_plane=None if plane is None else dataclasses.asdict(plane),
+        inferred_points=cloud.num_inferred,
     )
+    if plane is not None:
+        stats["ground"] = {**ground_stats, "completed_points": cloud.num_inferred}
     logger.info(
         "dense: %d points from %d views in %.2f s (%s)",
         len(cloud),
@@ -581,17 +593,21 @@ def _complete_ground(
     up: NDArray[np.float64],
     voxel: float,
     config: DenseConfig,
+    stats: dict[str, Any] | None = None,
 ) -> tuple[Plane | None, dict[int, tuple[DepthMap, NDArray[np.int16]]]]:
-    """Fit the ground plane to the stereo points and fill textureless floor pixels."""
+    """Fit the ground plane to the stereo points and fill textureless floor pixels (not where
+    the level map finds another measured level; its counts go to ``stats``)."""
     pts = np.concatenate([p.points3D for p in parts])
     # The plane and its outline from an even subsample of the millions of depth points
     # (support counts scaled alike): the same plane for a third of the stage's time.
     step = max(1, len(pts) // _GROUND_SAMPLE)
     sub = slice(None, None, step)
+    sub_normals = np.concatenate([p.normals for p in parts])[sub]
+    sub_views = np.concatenate([p.num_views for p in parts])[sub]
     plane = fit_ground_plane(
         pts[sub],
-        np.concatenate([p.normals for p in parts])[sub],
-        np.concatenate([p.num_views for p in parts])[sub],
+        sub_normals,
+        sub_views,
         up,
         3.0 * voxel,
         max(3, config.ground_min_support // step),
@@ -632,6 +648,30 @@ def _complete_ground(
         on_plane_count,
         num_threads=config.num_threads,
     )
+    completed = int(sum(int((d > 0).sum()) for d, _ in extra.values()))
+    refused: dict[int, int] = {}
+    if config.ground_level_cell > 0 and completed:
+        # Verified against the measured levels (built only when there is something to check).
+        t0 = time.perf_counter()
+        levels = level_map(
+            plane,
+            pts[sub],
+            sub_normals,
+            sub_views,
+            3.0 * voxel,
+            config.ground_level_cell * voxel,
+            config.ground_level_min_points,
+            max(3, config.ground_min_support // step),
+        )
+        extra, refused = keep_off_levels(
+            levels, extra, {i: cams[i] for i in kept}, config.num_threads
+        )
+        if stats is not None:
+            stats.update(levels.stats())
+            stats["level_map_s"] = time.perf_counter() - t0
+    if stats is not None:
+        stats["refused_depths"] = int(sum(refused.values()))
+        stats["completed_depths"] = completed - stats["refused_depths"]
     logger.info("dense: ground plane %s", plane)
     return plane, extra
 
@@ -648,4 +688,5 @@ def _drop_below(part: ViewPoints, plane: Plane, band: float) -> ViewPoints:
         normals=part.normals[keep],
         num_views=part.num_views[keep],
         score=part.score[keep],
+        inferred=part.inferred,
     )

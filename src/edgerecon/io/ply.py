@@ -1,7 +1,9 @@
 """Binary little-endian PLY point clouds (read by Open3D, MeshLab, CloudCompare).
 
 Written properties: x y z (float32, or float64 with ``double=True``), nx ny nz (float32),
-red green blue (uchar), label (int), confidence (float), then any extra attributes.
+red green blue (uchar), label (int), confidence (float), then the extra attributes, always
+with ``uchar inferred`` (1 = inferred point, e.g. ground-plane completion; 0 = measured;
+``types.INFERRED``). A PLY without it reads as all measured (no attribute).
 The writer records the unit and up direction as header comments (``comment unit mm``,
 ``comment up 0 0 -1``; ``read_ply_meta`` reads them back). The reader accepts any PLY: ASCII
 or binary of either endianness, other elements (mesh faces) before or after the vertices,
@@ -22,7 +24,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from edgerecon.io.records import Item, walk_records
-from edgerecon.types import DataError, PointCloud
+from edgerecon.types import INFERRED, DataError, PointCloud
 
 _PLY_TYPES = {
     "char": "i1",
@@ -125,8 +127,12 @@ def write_ply(
 ) -> Path:
     """Write ``cloud`` as binary PLY, atomically. ``unit`` and ``up`` are recorded as header
     comments (``comment unit mm``, ``comment up 0 0 -1``) with any other ``comments``.
+    Every cloud gets the ``inferred`` property (all 0 when the cloud has no such attribute):
+    readers can tell measured points from inferred ones in any file edgerecon writes.
     Returns the path."""
     n = len(cloud)
+    if INFERRED not in cloud.attributes:
+        cloud = cloud.with_inferred(False)
     fields: list[tuple[str, str]] = []
     cols: list[np.ndarray] = []
     pos_t = "<f8" if double else "<f4"

@@ -36,6 +36,7 @@ from scipy.sparse.csgraph import connected_components
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import (
     BACKGROUND_LABEL,
+    INFERRED,
     DataError,
     DepthMap,
     Image,
@@ -803,13 +804,14 @@ def hull_cloud(
 ) -> PointCloud:
     """The hull's surface voxels as a point cloud: labels = 3D object ids, normals from the
     hull, colours = median over the cameras that see each point unoccluded (grey when none),
-    ``attributes["num_views"]`` = that number of cameras."""
+    ``attributes["num_views"]`` = that number of cameras. Every point is inferred
+    (``attributes["inferred"]`` = 1): silhouettes bound the shape, no depth measured it."""
     if hull.num_voxels == 0:
         return PointCloud(
             points3D=np.zeros((0, 3)),
             colors=np.zeros((0, 3), np.uint8),
             labels=np.zeros(0, np.int32),
-            attributes={"num_views": np.zeros(0, np.int32)},
+            attributes={"num_views": np.zeros(0, np.int32), INFERRED: np.zeros(0, np.uint8)},
         )
     if len(images) != len(cameras):
         raise DataError(f"hull_cloud: {len(images)} images for {len(cameras)} cameras")
@@ -840,7 +842,7 @@ def hull_cloud(
         colors=np.clip(np.rint(rgb), 0, 255).astype(np.uint8),
         normals=hull.normals[sel],
         labels=hull.labels[sel],
-        attributes={"num_views": num_views},
+        attributes={"num_views": num_views, INFERRED: np.ones(n, np.uint8)},
     )
 
 

@@ -12,7 +12,8 @@ Colourings (``COLORINGS``; :func:`available_colorings` lists those a cloud suppo
   (``attributes["bg_version"]``; oldest dark purple to newest yellow, viridis-like; version 0 =
   the initial reconstruction), foreground points dark grey;
 * ``inferred``: measured points blue, inferred points (``attributes["inferred"] == 1``) red;
-  offered only when the cloud has the attribute.
+  offered only when the cloud has inferred points (every PLY edgerecon writes has the
+  attribute, mostly all 0).
 """
 
 from __future__ import annotations
@@ -66,14 +67,14 @@ _VIRIDIS = np.array(
 
 
 def available_colorings(cloud: PointCloud) -> list[str]:
-    """The colourings that mean something for ``cloud`` (``inferred`` only with that
-    attribute, label-based ones only with labels)."""
+    """The colourings that mean something for ``cloud`` (``inferred`` only with inferred
+    points, label-based ones only with labels)."""
     names = ["rgb"]
     if cloud.labels is not None:
         names += ["fg_bg", "object"]
         if BG_VERSION in cloud.attributes:
             names.append("bg_version")
-    if INFERRED in cloud.attributes:
+    if INFERRED in cloud.attributes and np.any(np.asarray(cloud.attributes[INFERRED]) != 0):
         names.append("inferred")
     return names
 
