@@ -107,6 +107,29 @@ class DenseConfig:
     num_threads: int = 2
     """Reference views processed in parallel (OpenCV releases the GIL)."""
 
+    # ------------------------------------------------- precision filters (dense.filters)
+    consistent_view_share: float = 0.0
+    """A depth also needs this share of the other views that could have confirmed it (its
+    place in their image, not hidden behind what they measured) to agree: more agreement
+    where more views see the place; 0 = only ``min_consistent_views``."""
+    max_conflict_share: float = 1.0
+    """Depths that more than this share of those views contradict (the point floats in space
+    a view sees through) are dropped; 1 = no free-space test."""
+    min_weak_ncc: float = -1.0
+    """Depths confirmed by fewer than two other views need at least this matching score
+    (NCC); -1 = no extra test."""
+    depth_edge_rel: float = 0.0
+    """Depths whose 3x3 neighbourhood spans more than this share of the depth (a depth
+    discontinuity) are dropped; 0 = off."""
+    max_grazing_deg: float = 90.0
+    """Points whose surface normal is more than this angle from their view's ray are
+    dropped; 90 = off."""
+    outlier_k: int = 0
+    """Statistical outlier pass on the fused cloud with this many neighbours; 0 = off."""
+    outlier_std: float = 2.0
+    """... dropping points whose mean k-NN distance exceeds the mean by this many standard
+    deviations."""
+
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
             if not ok:
@@ -158,6 +181,13 @@ class DenseConfig:
         need(self.min_sparse_points >= 1, "min_sparse_points", ">= 1")
         need(self.roi_margin_px >= 0, "roi_margin_px", ">= 0")
         need(self.num_threads >= 1, "num_threads", ">= 1")
+        need(0.0 <= self.consistent_view_share <= 1.0, "consistent_view_share", "in [0, 1]")
+        need(0.0 <= self.max_conflict_share <= 1.0, "max_conflict_share", "in [0, 1]")
+        need(-1.0 <= self.min_weak_ncc < 1.0, "min_weak_ncc", "in [-1, 1)")
+        need(self.depth_edge_rel >= 0.0, "depth_edge_rel", ">= 0")
+        need(0.0 < self.max_grazing_deg <= 90.0, "max_grazing_deg", "in (0, 90]")
+        need(self.outlier_k >= 0, "outlier_k", ">= 0")
+        need(self.outlier_std > 0, "outlier_std", "> 0")
 
     @property
     def working_scale(self) -> float:
