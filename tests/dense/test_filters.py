@@ -60,14 +60,17 @@ def test_weak_depths_need_a_good_score():
     assert keep.tolist() == [[False, True], [True, False]]
 
 
-def test_depth_edges_are_found_at_discontinuities_only():
+def test_depth_edges_are_found_on_the_far_side_of_discontinuities_only():
     d = np.full((20, 20), 2.0, np.float32)
     d[:, 10:] = 3.0
     d[:, :3] = 0.0  # a hole: its border is not an edge
     d[5, 5] = 2.01  # noise below the threshold
     edge = depth_edge_mask(d, 0.05)
-    assert edge[:, 9:11].all()
-    assert edge.sum() == 2 * 20
+    assert edge[:, 10].all()  # the far side's first column
+    assert edge.sum() == 20  # the near side's rim is kept
+    d[8, 15] = 2.7  # a streak step between the two levels
+    edge = depth_edge_mask(d, 0.05)
+    assert not edge[8, 15] and edge[7:10, 14:17].sum() == 8
 
 
 def test_grazing_points_and_outliers_are_flagged():

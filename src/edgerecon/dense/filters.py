@@ -3,8 +3,8 @@ specks before (depth maps) and after (fused cloud) fusion. Each is off unless it
 ``DenseConfig`` option turns it on; ``benchmarks/bench_precision.py`` measures what each
 costs and buys (precision, recall, CPU seconds).
 
-* ``depth_edge_mask``: pixels at strong depth discontinuities (the windows there mix a near
-  and a far surface; their depths bridge the two).
+* ``depth_edge_mask``: pixels on the far side of strong depth discontinuities (the windows
+  there mix a near and a far surface; their depths bridge the two or fatten the near one).
 * ``grazing_mask``: points whose surface is seen nearly edge-on by their view.
 * ``consistency_keep``: support scaled with the views that could have confirmed a depth,
   free-space conflicts and the photometric score of weakly supported depths.
@@ -26,13 +26,13 @@ from edgerecon.types import DepthMap
 
 
 def depth_edge_mask(depth: DepthMap, rel: float) -> NDArray[np.bool_]:
-    """(H, W) True at depths whose 3x3 neighbourhood (valid depths only) spans more than
-    ``rel`` times the depth."""
+    """(H, W) True at depths with a valid 8-neighbour nearer by more than ``rel`` times the
+    depth: the far side of a depth discontinuity and the steps of streaks that bridge one
+    (windows there mix the near surface in and fatten it); the near side's rim is kept."""
     valid = depth > 0
     k = np.ones((3, 3), np.uint8)
-    dmax = cv2.dilate(depth, k)
     dmin = cv2.erode(np.where(valid, depth, np.float32(np.inf)).astype(np.float32), k)
-    return valid & (dmax - dmin > rel * depth)
+    return valid & (depth - dmin > rel * depth)
 
 
 def grazing_mask(vp: ViewPoints, center: NDArray[np.float64], max_deg: float) -> NDArray[np.bool_]:
