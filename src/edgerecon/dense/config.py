@@ -114,18 +114,19 @@ class DenseConfig:
     where more views see the place; 0 = only ``min_consistent_views``."""
     max_conflict_share: float = 0.67
     """Depths that more than this share of the agreeing + contradicting views contradict
-    (the point floats in space a view sees through) are dropped; 1 = no free-space test.
-    With ``depth_edge_rel`` 0.1, measured against neither (bench_precision, one process):
-    object preset mean/median accuracy 7.1 -> 2.6, P@0.1 % +5.6 points, recall -1.1 %; demo
-    P@1cm +1.0 point, recall -1.2 %. 0.5 gained more precision but lost 2.3 % of the
-    object's recall at 0.1 %."""
+    (the point floats in space a view sees through) are dropped; 1 = no free-space test
+    (with 4 or fewer cameras 0.67 never fires). With ``depth_edge_rel`` 0.1, measured against
+    neither (bench_precision, one process): object preset mean/median accuracy 7.1 -> 2.8,
+    P@0.1 % +4.8 points, recall -0.9 %; arc7 P@1cm +0.7 points, recall -0.2 %. 0.5 gained
+    more precision but lost over 2 % of the object's recall at 0.1 %."""
     min_weak_ncc: float = -1.0
     """Depths confirmed by fewer than two other views need at least this matching score
     (NCC); -1 = no extra test."""
     depth_edge_rel: float = 0.1
-    """Depths whose 3x3 neighbourhood spans more than this share of the depth (a depth
-    discontinuity: the window mixes two surfaces) are dropped; 0 = off. 0.05 and 0.02 buy
-    more precision (demo P@1cm +1.5 / +6 points) for 2.1 / 7 % of its recall at 2 cm."""
+    """Depths with an 8-neighbour nearer by more than this share of the depth (the far side
+    of a depth discontinuity, where windows mix the near surface in, and the steps of streaks
+    bridging one) are dropped; 0 = off. 0.02 buys more precision (demo P@1cm +2 points) for
+    1.9 % of its recall at 2 cm."""
     max_grazing_deg: float = 90.0
     """Points whose surface normal is more than this angle from their view's ray are
     dropped; 90 = off."""
