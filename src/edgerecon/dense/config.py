@@ -114,6 +114,35 @@ class DenseConfig:
     num_threads: int = 2
     """Reference views processed in parallel (OpenCV releases the GIL)."""
 
+    # ------------------------------------------------- precision filters (dense.filters)
+    consistent_view_share: float = 0.0
+    """A depth also needs this share of the other views that could have confirmed it (its
+    place in their image, not hidden behind what they measured) to agree: more agreement
+    where more views see the place; 0 = only ``min_consistent_views``."""
+    max_conflict_share: float = 0.67
+    """Depths that more than this share of the agreeing + contradicting views contradict
+    (the point floats in space a view sees through) are dropped; 1 = no free-space test
+    (with 4 or fewer cameras 0.67 never fires). With ``depth_edge_rel`` 0.1, measured against
+    neither (bench_precision, one process): object preset mean/median accuracy 7.1 -> 2.8,
+    P@0.1 % +4.8 points, recall -0.9 %; arc7 P@1cm +0.7 points, recall -0.2 %. 0.5 gained
+    more precision but lost over 2 % of the object's recall at 0.1 %."""
+    min_weak_ncc: float = -1.0
+    """Depths confirmed by fewer than two other views need at least this matching score
+    (NCC); -1 = no extra test."""
+    depth_edge_rel: float = 0.1
+    """Depths with an 8-neighbour nearer by more than this share of the depth (the far side
+    of a depth discontinuity, where windows mix the near surface in, and the steps of streaks
+    bridging one) are dropped; 0 = off. 0.02 buys more precision (demo P@1cm +2 points) for
+    1.9 % of its recall at 2 cm."""
+    max_grazing_deg: float = 90.0
+    """Points whose surface normal is more than this angle from their view's ray are
+    dropped; 90 = off."""
+    outlier_k: int = 0
+    """Statistical outlier pass on the fused cloud with this many neighbours; 0 = off."""
+    outlier_std: float = 2.0
+    """... dropping points whose mean k-NN distance exceeds the mean by this many standard
+    deviations."""
+
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
             if not ok:
@@ -167,6 +196,13 @@ class DenseConfig:
         need(self.min_sparse_points >= 1, "min_sparse_points", ">= 1")
         need(self.roi_margin_px >= 0, "roi_margin_px", ">= 0")
         need(self.num_threads >= 1, "num_threads", ">= 1")
+        need(0.0 <= self.consistent_view_share <= 1.0, "consistent_view_share", "in [0, 1]")
+        need(0.0 <= self.max_conflict_share <= 1.0, "max_conflict_share", "in [0, 1]")
+        need(-1.0 <= self.min_weak_ncc < 1.0, "min_weak_ncc", "in [-1, 1)")
+        need(self.depth_edge_rel >= 0.0, "depth_edge_rel", ">= 0")
+        need(0.0 < self.max_grazing_deg <= 90.0, "max_grazing_deg", "in (0, 90]")
+        need(self.outlier_k >= 0, "outlier_k", ">= 0")
+        need(self.outlier_std > 0, "outlier_std", "> 0")
 
     @property
     def working_scale(self) -> float:

@@ -40,14 +40,38 @@ def support_counts(
     j's depth there is read with a nearest-neighbour ``cv2.remap``. Views are checked on
     ``num_threads`` threads (NumPy and OpenCV release the GIL)."""
 
-    def one(i: int) -> tuple[NDArray[np.int16], DepthMap]:
+    out, averaged, _, _ = support_and_conflicts(depths, cameras, rel_tol, partners, num_threads)
+    return out, averaged
+
+
+def support_and_conflicts(
+    depths: Mapping[int, DepthMap],
+    cameras: Mapping[int, Camera],
+    rel_tol: float,
+    partners: Mapping[int, Sequence[int]] | None = None,
+    num_threads: int = 1,
+) -> tuple[
+    dict[int, NDArray[np.int16]],
+    dict[int, DepthMap],
+    dict[int, NDArray[np.int16]],
+    dict[int, NDArray[np.int16]],
+]:
+    """:func:`support_counts` plus, per view, (H, W) maps of how many other views
+    *contradict* each depth (the point lands in j's image in front of the surface j measured
+    there: space that j sees through, a floating speck or a streak unless j's own depth is the
+    wrong one) and how many *could have confirmed* it (the point lands in j's image, in front
+    of j, not behind a surface j measured: j agrees, contradicts or has no depth there)."""
+
+    def one(i: int) -> tuple[NDArray[np.int16], DepthMap, NDArray[np.int16], NDArray[np.int16]]:
         others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
         return _support_view(i, depths, cameras, rel_tol, others)
 
     results = thread_map(one, depths, num_threads)
     out = {i: r[0] for i, r in zip(depths, results, strict=True)}
     averaged = {i: r[1] for i, r in zip(depths, results, strict=True)}
-    return out, averaged
+    conflicts = {i: r[2] for i, r in zip(depths, results, strict=True)}
+    candidates = {i: r[3] for i, r in zip(depths, results, strict=True)}
+    return out, averaged, conflicts, candidates
 
 
 def _support_view(
@@ -56,11 +80,13 @@ def _support_view(
     cameras: Mapping[int, Camera],
     rel_tol: float,
     others: Sequence[int],
-) -> tuple[NDArray[np.int16], DepthMap]:
-    """``support_counts`` of view i against the views ``others``."""
+) -> tuple[NDArray[np.int16], DepthMap, NDArray[np.int16], NDArray[np.int16]]:
+    """``support_and_conflicts`` of view i against the views ``others``."""
     depth_i = depths[i]
     h, w = depth_i.shape
     support = np.zeros((h, w), np.int16)
+    conflicts = np.zeros((h, w), np.int16)
+    candidates = np.zeros((h, w), np.int16)
     averaged = depth_i.astype(np.float32).copy()
     # Only the pixels with a depth (a few percent of the image for a foreground), as
     # (N, 1) arrays.
@@ -70,6 +96,8 @@ def _support_view(
         v = rows.astype(np.float32)[:, None]
         z = depth_i[rows, cols].astype(np.float32)[:, None]
         count = np.zeros(z.shape, np.int16)
+        conflict = np.zeros(z.shape, np.int16)
+        seen = np.zeros(z.shape, np.int16)
         total = z.copy()
         weight = np.ones(z.shape, np.float32)
         cam_i = cameras[i]
@@ -93,6 +121,10 @@ def _support_view(
             dj = _sample(depths[j], mx, my, cv2.INTER_NEAREST)
             agree = ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
             count += agree
+            conflict += ok & (dj > 0) & (dj > (1 + rel_tol) * Z)
+            hj, wj_ = depths[j].shape
+            inside = ok & (mx > -0.5) & (mx < wj_ - 0.5) & (my > -0.5) & (my < hj - 0.5)
+            seen += agree | (inside & ~((dj > 0) & (dj < (1 - rel_tol) * Z)))
             # For the average, j's depth interpolated at the exact landing point (the nearest
             # pixel's depth is off by up to half a pixel's depth gradient on slanted
             # surfaces); near holes and edges the interpolation mixes in other depths and
@@ -111,8 +143,10 @@ def _support_view(
         # The average stays within the agreement tolerance of the view's own depth.
         avg = np.clip(avg, z * (1 - rel_tol), z * (1 + rel_tol))
         support[rows, cols] = count[:, 0]
+        conflicts[rows, cols] = conflict[:, 0]
+        candidates[rows, cols] = seen[:, 0]
         averaged[rows, cols] = avg[:, 0]
-    return support, averaged
+    return support, averaged, conflicts, candidates
 
 
 #: Width of the map images that ``_sample`` hands to ``cv2.remap`` (which needs sides

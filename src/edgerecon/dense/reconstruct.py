@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.dense import kernels
+from edgerecon.dense import filters, kernels
 from edgerecon.dense.config import DenseConfig
-from edgerecon.dense.consistency import support_counts
+from edgerecon.dense.consistency import support_and_conflicts
 from edgerecon.dense.cost import as_f32, to_grey
 from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid, estimate_depth
 from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
@@ -339,14 +339,18 @@ def reconstruct_dense(
 
     with timings.stage("consistency"):
         id_cams = {i: cams[i] for i in depths}
-        support, averaged = support_counts(
+        support, averaged, conflicts, candidates = support_and_conflicts(
             depths, id_cams, config.consistency_rel_depth, num_threads=config.num_threads
         )
         kept: dict[int, DepthMap] = {}
         keep_masks: dict[int, NDArray[np.bool_]] = {}
         by_index = {p["index"]: p for p in plans}
         for i, d in depths.items():
-            keep = (d > 0) & (support[i] >= config.min_consistent_views)
+            keep = filters.consistency_keep(
+                d, support[i], conflicts[i], candidates[i], scores[i], config
+            )
+            if config.depth_edge_rel > 0:
+                keep &= ~filters.depth_edge_mask(d, config.depth_edge_rel)
             keep_masks[i] = keep
             # The average over views stays within the view's own depth bounds.
             avg = np.clip(averaged[i], by_index[i]["near"], by_index[i]["far"])
@@ -366,6 +370,14 @@ def reconstruct_dense(
             kept,
             config.num_threads,
         )
+        if config.max_grazing_deg < 90:
+            centers = {views[i].camera_id: cams[i].center for i in kept}
+            parts = [
+                filters.select_points(
+                    vp, ~filters.grazing_mask(vp, centers[vp.camera_id], config.max_grazing_deg)
+                )
+                for vp in parts
+            ]
         voxel = config.voxel_size
         if voxel is None:
             foot = _auto_voxel(kept, cams)
@@ -398,6 +410,12 @@ def reconstruct_dense(
 
     with timings.stage("fusion"):
         cloud = voxel_merge(parts, voxel) if voxel else voxel_merge([], 1.0)
+        if config.outlier_k > 0 and len(cloud):
+            out = filters.outlier_mask(
+                cloud.points3D, config.outlier_k, config.outlier_std, config.num_threads
+            )
+            cloud = cloud.select(~out)
+            stats["outliers_removed"] = int(out.sum())
 
     for p in plans:
         i = p["index"]

@@ -22,6 +22,16 @@ class SparseConfig:
     weakly textured walls and floors of real rooms)."""
     edge_threshold: float = 10.0
     """SIFT edge threshold (OpenCV's default)."""
+    min_features: int = 400
+    """Feature budget: a view that yields fewer keypoints than this (scaled by the share of
+    the image its mask covers) at ``contrast_threshold`` is detected again with the threshold
+    multiplied by ``contrast_step`` (at most ``contrast_steps`` times) until it has them, so
+    that low-contrast images (grey objects, dim rooms) still give the sparse points that
+    depth ranges come from. 0 disables the budget."""
+    contrast_step: float = 0.4
+    """Factor applied to the contrast threshold at each step of the feature budget."""
+    contrast_steps: int = 2
+    """Most threshold reductions of the feature budget (0.02 -> 0.008 -> 0.0032)."""
     feature_max_size_px: int = 1100
     """Longest image side used for feature detection: larger views are downscaled first
     (OpenCV's SIFT doubles the image internally, so 1920x1080 costs ~15x more than 960x540
@@ -107,6 +117,9 @@ class SparseConfig:
         check("max_features", self.max_features >= 0, "must be >= 0")
         check("contrast_threshold", self.contrast_threshold > 0, "must be > 0")
         check("edge_threshold", self.edge_threshold > 0, "must be > 0")
+        check("min_features", self.min_features >= 0, "must be >= 0")
+        check("contrast_step", 0 < self.contrast_step < 1, "must be in (0, 1)")
+        check("contrast_steps", 0 <= self.contrast_steps <= 8, "must be in 0..8")
         check("feature_max_size_px", self.feature_max_size_px >= 0, "must be >= 0")
         check(
             "affine_simulation",

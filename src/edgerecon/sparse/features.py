@@ -4,6 +4,9 @@ Choices (measured on utrecht4cam 644x486 and 1920x1080 images, see the package d
 
 * OpenCV SIFT with a lower contrast threshold than OpenCV's default (0.02 instead of 0.04):
   real rooms have weakly textured walls and floors; twice as many keypoints on utrecht4cam.
+* A feature budget (``min_features``): a view with fewer keypoints is detected again at a
+  lower contrast threshold, a couple of steps at most. Low-contrast grey objects gave ~60-100
+  keypoints per view at 0.02, too few sparse points for depth ranges from the scene.
 * Large views are downscaled to ``feature_max_size_px`` before detection: OpenCV's SIFT
   upsamples the image 2x internally, so 1920x1080 costs ~1 s per image against ~0.07 s at
   960x540, for a similar count of keypoints that survive matching.
@@ -69,10 +72,10 @@ class Features:
         )
 
 
-def _detector(config: SparseConfig) -> cv2.Feature2D:
+def _detector(config: SparseConfig, contrast_threshold: float) -> cv2.Feature2D:
     return cv2.SIFT_create(  # type: ignore[attr-defined]
         nfeatures=config.max_features,
-        contrastThreshold=config.contrast_threshold,
+        contrastThreshold=contrast_threshold,
         edgeThreshold=config.edge_threshold,
     )
 
@@ -83,10 +86,10 @@ _CROP_MARGIN_PX = 24
 
 
 def _sift(
-    gray: NDArray[Any], mask: NDArray[Any] | None, config: SparseConfig
+    gray: NDArray[Any], mask: NDArray[Any] | None, config: SparseConfig, contrast_threshold: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float32], NDArray[np.float32]]:
     """Positions (N, 2), sizes (N,) and raw descriptors (N, 128) of SIFT on one image."""
-    keypoints, desc = _detector(config).detectAndCompute(gray, mask)
+    keypoints, desc = _detector(config, contrast_threshold).detectAndCompute(gray, mask)
     if not keypoints or desc is None:
         return np.zeros((0, 2)), np.zeros(0, np.float32), np.zeros((0, 128), np.float32)
     pts = np.array([k.pt for k in keypoints], dtype=np.float64)
@@ -147,10 +150,27 @@ def extract_features(
     if affine:
         t = 1.0 / config.affine_tilt
         simulations += [(base * t, base), (base, base * t)]
+    # Feature budget: scaled by the share of the image the mask keeps (a small foreground
+    # naturally has few keypoints), checked on the main simulation only.
+    budget = config.min_features
+    if budget and mask is not None:
+        budget = int(np.ceil(budget * np.count_nonzero(mask) / float(h * w)))
+    threshold = config.contrast_threshold
     parts = []
     for sx, sy in simulations:
         g, m = (gray, mask) if sx == sy == 1.0 else _resized(gray, mask, sx, sy)
-        pts, sizes, desc = _sift(g, m, config)
+        pts, sizes, desc = _sift(g, m, config, threshold)
+        if (sx, sy) == simulations[0]:
+            steps = 0
+            while budget and len(pts) < budget and steps < config.contrast_steps:
+                steps += 1
+                threshold *= config.contrast_step
+                pts, sizes, desc = _sift(g, m, config, threshold)
+            if steps:
+                logger.debug(
+                    "features: view %r: %d keypoints at contrast threshold %.4g (budget %d)",
+                    view.name, len(pts), threshold, budget,
+                )  # fmt: skip
         if len(pts) == 0:
             continue
         # Pixel centres: x_view = (x_small + 0.5) * (W / w) - 0.5, per axis.

@@ -4,7 +4,7 @@ Library API::
 
     from edgerecon.synth import preset_config, build_scene, Renderer, write_dataset, GroundTruth
 
-    config = preset_config("demo", seed=3)          # or "ring", "arc7", "hd4", "hd4p"
+    config = preset_config("demo", seed=3)          # or "ring", "arc7", "hd4", "hd4p", "object"
     summary = write_dataset(config, "work/demo")    # dataset.json + rig.json + frames + gt/
     gt = GroundTruth.open("work/demo")
     gt.depth("cam0", 5); gt.object_mask("cam0", 5); gt.reference_cloud(5, "foreground")

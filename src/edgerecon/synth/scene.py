@@ -14,6 +14,9 @@ Presets (``preset_config(name, **overrides)``):
 * ``arc7``: 7 cameras at 1920x1080, ~1720 px focal length, 15 degrees apart on an arc, looking
   at the scene centre, with Dance1-like barrel distortion (the paper's studio rig).
 * ``demo``: 5 cameras at 640x480, 40 timestamps, 2 actors (the README's main job).
+* ``object``: small-object capture: a carved object (millimetre relief, low-contrast faces)
+  on a table, 12 cameras on a ring 0.55 m from it at 800x600, looking down at ~25 degrees;
+  static (no actors), ground truth at 0.5 mm (see ``_object``).
 * ``hd4`` / ``hd4p``: people in a room as real phone/webcam rigs film them: 4 cameras 90
   degrees apart at 1920x1080 (``hd4p``: 1080x1920, phones held upright), no background clip,
   250 frames at 25 fps of scripted actors (``ROOM_SCRIPTS``: one stands still for 6 s, one
@@ -37,7 +40,7 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig, look_at
 from edgerecon.synth import motion
-from edgerecon.synth.primitives import Box, Cylinder, Room
+from edgerecon.synth.primitives import Box, Cylinder, Ellipsoid, Room
 from edgerecon.synth.scripts import ROOM_LIGHTS, ROOM_SCRIPTS, ActorScript, scripted_path
 from edgerecon.synth.textures import Texture, make_texture
 
@@ -198,6 +201,10 @@ class SceneConfig:
     actor_scripts: tuple[ActorScript, ...] = ()
     """Scripted motion of actors 1, 2, ... (keys, still intervals, presence, posture); actors
     beyond the scripts walk at random, scripts beyond ``num_actors`` are not used."""
+    centerpiece: bool = False
+    """Put a small carved object (~15 cm, relief of 2-4 mm, low-contrast faces) on a table
+    under the rig's target (the ``object`` preset); the table top is at the target's height
+    minus 6 cm."""
 
     def __post_init__(self) -> None:
         _check(bool(self.name), "name", self.name, "must be non-empty")
@@ -214,10 +221,10 @@ class SceneConfig:
         _check(0 <= self.num_furniture <= 40, "num_furniture", self.num_furniture, "0..40")
         _check(self.capture_radius_m > 0.3, "capture_radius_m", self.capture_radius_m, "> 0.3 m")
         _check(
-            self.texel_m is None or 0.0005 <= self.texel_m <= 0.05,
+            self.texel_m is None or 0.0002 <= self.texel_m <= 0.05,
             "texel_m",
             self.texel_m,
-            "None or 0.0005..0.05 m",
+            "None or 0.0002..0.05 m",
         )
         _check(
             self.gt_voxel_foreground_m > 0,
@@ -320,7 +327,35 @@ def _demo() -> SceneConfig:
     )
 
 
-PRESETS = {"ring": _ring, "arc7": _arc7, "demo": _demo}
+def _object() -> SceneConfig:
+    """Small-object capture (a turntable-like ring, as real object scans use): 0.1 % of the
+    camera distance is ~0.6 mm, ~1.7 pixels at full resolution."""
+    return SceneConfig(
+        name="synthetic-object",
+        rig=RigSpec(
+            layout="ring",
+            num_cameras=12,
+            width=800,
+            height=600,
+            focal_px=1700.0,
+            radius_m=0.55,
+            camera_height_m=1.05,
+            target=(0.0, 0.0, 0.80),
+            jitter_m=0.005,
+        ),
+        num_frames=3,
+        num_actors=0,
+        background_frames=0,
+        room_size_m=(3.0, 3.0, 2.5),
+        num_furniture=0,
+        texel_m=0.00025,
+        gt_voxel_foreground_m=0.0005,
+        gt_voxel_background_m=0.0005,
+        centerpiece=True,
+    )
+
+
+PRESETS = {"ring": _ring, "arc7": _arc7, "demo": _demo, "object": _object}
 """Named scene presets."""
 
 
@@ -459,7 +494,7 @@ class SynthScene:
     config: SceneConfig
     rig: Rig
     room: Room
-    furniture: tuple[Box | Cylinder, ...]
+    furniture: tuple[Box | Cylinder | Ellipsoid, ...]
     textures: tuple[Texture, ...]
     texture_kinds: tuple[str, ...]
     actors: tuple[motion.Actor, ...]
@@ -561,6 +596,13 @@ class SynthScene:
                 }
                 if isinstance(f, Box)
                 else {
+                    "kind": "ellipsoid",
+                    "center": f.center.tolist(),
+                    "radii": f.radii.tolist(),
+                    "rotation": f.rotation.tolist(),
+                }
+                if isinstance(f, Ellipsoid)
+                else {
                     "kind": "cylinder",
                     "center_xy": list(f.center_xy),
                     "radius": f.radius,
@@ -650,7 +692,10 @@ def build_scene(config: SceneConfig) -> SynthScene:
         height=sz,
         materials=(floor, ceiling, walls[0], walls[1], walls[2], walls[3]),
     )
-    furniture = _place_furniture(rng, config, rig, bank)
+    furniture: list[Box | Cylinder | Ellipsoid] = []
+    if config.centerpiece:
+        furniture += _centerpiece(np.asarray(config.rig.target, float), bank)
+    furniture += _place_furniture(rng, config, rig, bank)
     actors = _make_actors(rng, config, bank, target)
     furniture += _chairs(actors, bank)
 
@@ -749,6 +794,106 @@ def _place_furniture(
         logger.info(
             "placed %d of %d furniture items (no free space)", len(items), config.num_furniture
         )
+    return items
+
+
+def _centerpiece(target: F64, bank: _TextureBank) -> list[Box | Cylinder | Ellipsoid]:
+    """A table whose top is 6 cm below ``target`` and, on it, a carved object: a round base
+    with studs (3 mm), a body with low-contrast faces carrying ribs (3 mm proud) and plaques
+    (4 mm proud), a column and an elliptic dome."""
+    tx, ty, tz = (float(v) for v in target)
+    top = tz - 0.06
+    items: list[Box | Cylinder | Ellipsoid] = [
+        Box(
+            center=np.array([tx, ty, top / 2]),
+            half=np.array([0.8, 0.8, top / 2]),
+            yaw=0.0,
+            side_material=bank.add("paint", (1.6, 1.6)),
+            top_material=bank.add("planks", (1.6, 1.6)),
+        )
+    ]
+    base_top = top + 0.012
+    items.append(
+        Cylinder(
+            center_xy=(tx, ty),
+            radius=0.07,
+            z0=top,
+            z1=base_top,
+            side_material=bank.add("stone", (0.45, 0.02)),
+            top_material=bank.add("tiles", (0.14, 0.14)),
+        )
+    )
+    stud = bank.add("stone", (0.05, 0.05))
+    for k in range(10):
+        a = 2 * np.pi * k / 10 + 0.2
+        items.append(
+            Cylinder(
+                center_xy=(tx + 0.062 * np.cos(a), ty + 0.062 * np.sin(a)),
+                radius=0.004,
+                z0=base_top - 0.001,
+                z1=base_top + 0.003,
+                side_material=stud,
+                top_material=stud,
+            )
+        )
+    yaw = 0.3
+    rot = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0, 0, 1]])
+    half = np.array([0.045, 0.032, 0.05])
+    center = np.array([tx, ty, base_top + half[2]])
+    # Low-contrast faces (skin: 4 % variation; paint: 1.5 %), as plaster or grey plastic.
+    items.append(
+        Box(
+            center=center,
+            half=half,
+            yaw=yaw,
+            side_material=bank.add("skin", (0.3, 0.3)),
+            top_material=bank.add("paint", (0.1, 0.1)),
+        )
+    )
+    rib = bank.add("stone", (0.1, 0.1))
+    for sign in (-1.0, 1.0):
+        for y in (-0.018, 0.0, 0.018):
+            local = np.array([sign * (half[0] + 0.0015), y, 0.0])
+            items.append(
+                Box(
+                    center=center + rot @ local,
+                    half=np.array([0.0015, 0.003, 0.042]),
+                    yaw=yaw,
+                    side_material=rib,
+                    top_material=rib,
+                )
+            )
+        local = np.array([0.0, sign * (half[1] + 0.002), 0.005])
+        items.append(
+            Box(
+                center=center + rot @ local,
+                half=np.array([0.028, 0.002, 0.03]),
+                yaw=yaw,
+                side_material=bank.add("posters", (0.1, 0.1)),
+                top_material=rib,
+            )
+        )
+    col = rot @ np.array([0.0, 0.05, 0.0])
+    items.append(
+        Cylinder(
+            center_xy=(tx + col[0] + 0.03, ty + col[1]),
+            radius=0.011,
+            z0=base_top,
+            z1=base_top + 0.085,
+            side_material=bank.add("bricks", (0.08, 0.1)),
+            top_material=rib,
+        )
+    )
+    radii = np.array([0.04, 0.028, 0.028])
+    items.append(
+        Ellipsoid(
+            center=center + np.array([0.0, 0.0, half[2]]),
+            rotation=rot,
+            radii=radii,
+            material=bank.add("fabric", (0.26, 0.1)),
+            u_period_m=float(bank.textures[-1].period_m[0]),
+        )
+    )
     return items
 
 
