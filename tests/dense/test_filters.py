@@ -3,6 +3,8 @@ of the consistency check."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -13,7 +15,6 @@ from edgerecon.dense.filters import (
     depth_edge_mask,
     grazing_mask,
     outlier_mask,
-    select_points,
 )
 from edgerecon.dense.fusion import ViewPoints
 from tests.conftest import ring_rig
@@ -86,7 +87,10 @@ def test_grazing_points_and_outliers_are_flagged():
     )
     g = grazing_mask(vp, np.zeros(3), 80.0)
     assert g.tolist() == [False, True, False]
-    assert select_points(vp, ~g).points3D.shape == (2, 3)
+    kept = vp.select(~g)
+    assert kept.points3D.shape == (2, 3) and not kept.inferred
+    # A selection keeps the part's inferred flag (ground completion is filtered too).
+    assert dataclasses.replace(vp, inferred=True).select(~g).inferred
     rng = np.random.default_rng(0)
     cloud = np.vstack([rng.uniform(0, 1, (2000, 3)) * [1, 1, 0.01], [[0.5, 0.5, 0.5]]])
     out = outlier_mask(cloud, 8, 3.0)

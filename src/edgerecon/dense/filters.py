@@ -44,18 +44,6 @@ def grazing_mask(vp: ViewPoints, center: NDArray[np.float64], max_deg: float) ->
     return cos < math.cos(math.radians(max_deg))
 
 
-def select_points(vp: ViewPoints, keep: NDArray[np.bool_]) -> ViewPoints:
-    """The points of ``vp`` at ``keep``."""
-    return ViewPoints(
-        camera_id=vp.camera_id,
-        points3D=vp.points3D[keep],
-        colors=vp.colors[keep],
-        normals=vp.normals[keep],
-        num_views=vp.num_views[keep],
-        score=vp.score[keep],
-    )
-
-
 def consistency_keep(
     depth: DepthMap,
     support: NDArray[np.int16],

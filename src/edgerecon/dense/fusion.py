@@ -101,6 +101,18 @@ class ViewPoints:
     inferred: bool = False
     """All the points are inferred (not measured by stereo), e.g. ground-plane completion."""
 
+    def select(self, keep: NDArray[np.bool_]) -> ViewPoints:
+        """The points at ``keep`` (same view, same flag)."""
+        return ViewPoints(
+            camera_id=self.camera_id,
+            points3D=self.points3D[keep],
+            colors=self.colors[keep],
+            normals=self.normals[keep],
+            num_views=self.num_views[keep],
+            score=self.score[keep],
+            inferred=self.inferred,
+        )
+
 
 def view_points(
     camera_id: int,

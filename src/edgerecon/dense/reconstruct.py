@@ -373,9 +373,7 @@ def reconstruct_dense(
         if config.max_grazing_deg < 90:
             centers = {views[i].camera_id: cams[i].center for i in kept}
             parts = [
-                filters.select_points(
-                    vp, ~filters.grazing_mask(vp, centers[vp.camera_id], config.max_grazing_deg)
-                )
+                vp.select(~filters.grazing_mask(vp, centers[vp.camera_id], config.max_grazing_deg))
                 for vp in parts
             ]
         voxel = config.voxel_size
@@ -699,12 +697,4 @@ def _drop_below(part: ViewPoints, plane: Plane, band: float) -> ViewPoints:
     keep = ~below_plane(part.points3D, plane, band)
     if keep.all():
         return part
-    return ViewPoints(
-        camera_id=part.camera_id,
-        points3D=part.points3D[keep],
-        colors=part.colors[keep],
-        normals=part.normals[keep],
-        num_views=part.num_views[keep],
-        score=part.score[keep],
-        inferred=part.inferred,
-    )
+    return part.select(keep)
