@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -175,13 +176,20 @@ class TaskMetrics:
         return cls(**{k: v for k, v in d.items() if k in names})
 
 
+#: The installed package's folder (``.../edgerecon``): frames in it are the product's.
+_PACKAGE_DIR = Path(__file__).resolve().parent.parent
+
+
 def describe_exception(exc: BaseException) -> str:
     """``"Type: message (in function, file:line)"`` of the innermost edgerecon frame: the
     reason a failed task records."""
     where = ""
     for frame in reversed(traceback.extract_tb(exc.__traceback__)):
-        if "edgerecon" in frame.filename:
-            short = frame.filename.split("edgerecon/", 1)[-1]
+        # The package's own files, not any path that happens to contain its name (a clone
+        # in ~/edgerecon holds its virtual environment and tests too).
+        path = Path(frame.filename).resolve()
+        if path.is_relative_to(_PACKAGE_DIR):
+            short = path.relative_to(_PACKAGE_DIR).as_posix()
             where = f" (in {frame.name}, {short}:{frame.lineno})"
             break
     return f"{type(exc).__name__}: {exc}{where}"
