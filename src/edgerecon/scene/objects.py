@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -202,9 +203,8 @@ def _group_components(
     """Group id per component (0-based) for one k-means run with k clusters."""
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 30, 0.5)
     cv2.setRNGSeed(rng_seed)
-    _, _, centers = cv2.kmeans(  # type: ignore[call-overload]
-        coords[sample], k, None, criteria, 1, cv2.KMEANS_PP_CENTERS
-    )
+    kmeans: Any = cv2.kmeans  # OpenCV's stubs differ between releases on this overload
+    _, _, centers = kmeans(coords[sample], k, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
     cluster = np.argmin(_sqdist(coords.astype(np.float64), centers.astype(np.float64)), axis=1)
     share = np.bincount(comp * k + cluster, minlength=num_comp * k).reshape(num_comp, k)
     share = share / np.maximum(share.sum(axis=1, keepdims=True), 1)

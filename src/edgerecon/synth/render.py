@@ -20,7 +20,7 @@ import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -344,7 +344,8 @@ class Renderer:
         gain = scene.camera_gains[index] * np.float32(255.0 * scene.illumination(t))
         scalar = (float(gain[0]), float(gain[1]), float(gain[2]), 0.0)
         with timings.stage("compose"):
-            image = cv2.multiply(st.bg_blurred, scalar)  # type: ignore[call-overload]
+            multiply: Any = cv2.multiply  # OpenCV's stubs differ between releases here
+            image: NDArray[np.float32] = multiply(st.bg_blurred, scalar)
             depth = st.bg_depth.copy()
             mask = np.zeros(depth.shape, np.uint8)
             clean = st.bg_radiance.copy() if want_clean else None
