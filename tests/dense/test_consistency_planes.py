@@ -33,12 +33,12 @@ def test_exact_depths_support_each_other_and_outliers_do_not(rendered):
     _, depths = rendered
     cams = {i: RIG[i] for i in IDS}
     noisy = {i: d.copy() for i, d in depths.items()}
-    noisy[0][70:90, 60:90] *= 1.08  # a wrong patch in the middle view (floor and cube)
+    noisy[0][90:110, 60:90] *= 1.08  # a wrong patch in the middle view (floor and cube)
     support, averaged = support_counts(noisy, cams, 0.01)
     s = support[0]
     has = depths[0] > 0
     patch = np.zeros_like(has)
-    patch[70:90, 60:90] = True
+    patch[90:110, 60:90] = True
     assert np.count_nonzero(patch & has) > 500  # the patch corrupts real depths
     # The injected outliers find no support; almost every correct depth finds both others
     # (except near occlusion boundaries and the image borders).
