@@ -119,7 +119,7 @@ def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_p
     ds = open_dataset(src)
     _, metrics = run_online(
         ds,
-        runtime_config(background_updates=False),
+        runtime_config(),  # everything on: bad frames must not upset background rebuilds
         SessionOptions(frames=FrameRange(start=1, stop=4)),
         tmp_path / "a",
     )
@@ -130,7 +130,7 @@ def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_p
     (src / "frames" / "cam4" / "000003.png").write_bytes(b"")
     _, metrics = run_online(
         ds,
-        runtime_config(background_updates=False),
+        runtime_config(),  # everything on: bad frames must not upset background rebuilds
         SessionOptions(frames=FrameRange(start=2, stop=5)),
         tmp_path / "b",
     )

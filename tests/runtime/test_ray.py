@@ -44,7 +44,9 @@ def tiny(tiny_dataset):
 
 
 def _config(**kw):
-    return RuntimeConfig(deadline_s=20.0, golden_timeout_s=30.0, background_updates=False, **kw)
+    # Everything on, background rebuilds included: the recovery paths must hold with them.
+    kw.setdefault("background_scale", 0.5)
+    return RuntimeConfig(deadline_s=20.0, golden_timeout_s=30.0, **kw)
 
 
 def test_roles_run_on_their_nodes_and_match_embedded(cluster, tiny, tmp_path):

@@ -309,7 +309,7 @@ def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, mon
         return real(path, cloud, **kw)
 
     monkeypatch.setattr(session_module, "write_ply", full)
-    config = runtime_config(background_updates=False)
+    config = runtime_config()  # background rebuilds on: their files are written too
     with pytest.raises(EdgereconError, match=r"No space left.*after 1 committed tasks.*--resume"):
         run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None))
     assert RunState.load(tmp_path).tasks_done == 1
