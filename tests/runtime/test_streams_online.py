@@ -30,7 +30,8 @@ def test_online_run_on_three_live_streams_with_a_stall(tiny_dataset, tmp_path):
     try:
         ds = open_dataset(tmp_path / "live")
         assert ds.is_live and len(ds.rig) == 3
-        config = RuntimeConfig(deadline_s=5.0, golden_timeout_s=20.0, background_updates=False)
+        # Everything on, background rebuilds included, while a camera stalls and returns.
+        config = RuntimeConfig(deadline_s=5.0, golden_timeout_s=20.0, background_scale=0.5)
         options = SessionOptions(policy="newest", duration_s=10.0, frames=FrameRange(start=0))
         summary, metrics = run_online(
             ds, config, options, tmp_path / "run", fixed=(1.0, None), on_task=on_task
