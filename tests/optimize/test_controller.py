@@ -308,6 +308,25 @@ def test_infeasible_deadline_is_reported_once(caplog):
     assert not ctrl.feasible
 
 
+def test_a_workload_that_outgrows_the_fastest_configuration_is_reported_once(caplog):
+    import logging
+
+    # Three cameras (N' can go no lower); no re-search rules, so only the adjustment sees it.
+    model = PipelineModel(SimulatorConfig(num_cameras=3, time_noise=0.0, quality_noise=0.0))
+    config = ControllerConfig(deadline_s=5.0, research_jump=0.0, research_drift=0.0)
+    ctrl = BisectionController(config, LOWEST, 3)
+    run_search(ctrl, model, np.random.default_rng(0))
+    assert ctrl.feasible and ctrl.phase == "adjust"
+    with caplog.at_level(logging.INFO, logger="edgerecon.optimize.controller"):
+        for _ in range(60):  # the scene fills up: every configuration now takes 3x as long
+            c = ctrl.next_config()
+            ctrl.observe(3.0 * model.time_s(c.scale, c.num_cameras), 0.5)
+    assert ctrl.next_config().scale == pytest.approx(0.3)
+    said = [r for r in caplog.records if "no configuration met the deadline" in r.getMessage()]
+    assert len(said) == 1 and said[0].levelno == logging.WARNING
+    assert "the fastest one (r=0.30, N'=3)" in said[0].getMessage()
+
+
 def test_set_deadline_and_cameras_restart_the_search():
     ctrl = BisectionController(ControllerConfig(deadline_s=10), LOWEST, 7)
     ctrl.next_config()

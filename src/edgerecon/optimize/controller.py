@@ -604,6 +604,23 @@ class BisectionController:
         s.saturation_high = s.saturation_high + 1 if (want > 0 and at_max) else 0
         s.r_history.append(s.r_star)
         del s.r_history[:-_R_HISTORY]
+        if (
+            s.saturation_low >= c.research_window
+            and s.n_star <= c.min_cameras
+            and not s.infeasible_reported
+        ):
+            # The workload grew after the search (more foreground, more people): the fastest
+            # configuration itself misses now. Said once per run, as after a search.
+            logger.warning(
+                "no configuration met the deadline of %.3fs: the fastest one (r=%.2f, N'=%d) "
+                "averaged %.3fs over the last %d tasks",
+                c.deadline_s,
+                s.r_star,
+                s.n_star,
+                avg,
+                len(s.adjust_times) if c.adjust_window else s.adjust_count,
+            )
+            s.infeasible_reported = True
         reason = self._research_reason()
         if reason is not None:
             self._begin_search(golden=False, reason=reason)
