@@ -1,7 +1,9 @@
 """Precision filters of the dense stage: tests that separate good depths from streaks and
-specks before (depth maps) and after (fused cloud) fusion. Each is off unless its
-``DenseConfig`` option turns it on; ``benchmarks/bench_precision.py`` measures what each
-costs and buys (precision, recall, CPU seconds).
+specks before (depth maps) and after (fused cloud) fusion. Each has a ``DenseConfig``
+option; the free-space test (``max_conflict_share``) and the depth-edge test
+(``depth_edge_rel``) are on by default, the others off (they cost recall or time for little
+precision); ``benchmarks/bench_precision.py`` measures what each costs and buys (precision,
+recall, CPU seconds).
 
 * ``depth_edge_mask``: pixels on the far side of strong depth discontinuities (the windows
   there mix a near and a far surface; their depths bridge the two or fatten the near one).
