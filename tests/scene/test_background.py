@@ -233,3 +233,24 @@ def test_bad_input_raises_data_error(background: np.ndarray) -> None:
 def test_config_validation_names_the_field(field: str, value: float) -> None:
     with pytest.raises(ValueError, match=field):
         BackgroundConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_unsettled_marks_where_something_moved_while_learning(background: np.ndarray) -> None:
+    rng = np.random.default_rng(7)
+    # An empty-scene clip: nothing is unsettled (the hull fill never touches such a camera).
+    assert not _learn(background, rng).unsettled.any()
+    frames = []
+    crossed = np.zeros((H, W), bool)
+    for t in range(8):
+        truth = square_mask(H, W, 10 * t, 40, 30)
+        crossed |= truth
+        frames.append(noisy(paint(background, truth, (0, 255, 0)), 3.0, rng))
+    model = BackgroundModel.learn(frames, camera="stream")
+    unsettled = at_resolution(model.unsettled, (H, W))
+    assert unsettled[crossed].mean() > 0.95
+    far = ~(cv2.dilate(crossed.view(np.uint8), np.ones((15, 15), np.uint8)) > 0)
+    assert not unsettled[far].any()
+    # Cached, and the same after a round trip through the state.
+    assert model.unsettled is model.unsettled
+    again = BackgroundModel.from_state(model.state)
+    assert np.array_equal(again.unsettled, model.unsettled)

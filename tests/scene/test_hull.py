@@ -15,6 +15,7 @@ from edgerecon.scene.hull import (
     hull_cloud,
     hull_consistent_masks,
     hull_depth_range,
+    hull_filled_masks,
     hull_silhouette,
     rig_region,
     visual_hull,
@@ -247,3 +248,29 @@ def test_phantoms_of_two_objects_seen_by_three_cameras_are_removed() -> None:
     assert sorted(hull.label_points(centres).tolist()) == [1, 2]
     for k, (lo, hi) in zip(hull.label_points(centres), boxes, strict=True):
         assert (hull.label_points(box_surface_points(lo, hi, 6)) == k).all()
+
+
+def test_a_hole_in_one_camera_is_filled_from_the_others(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    _, masks = box_hull
+    holed = [m.copy() for m in masks]
+    ys, xs = np.nonzero(masks[1])
+    cy, cx = int(ys.mean()), int(xs.mean())
+    hole = np.zeros_like(masks[1])
+    hole[cy - 6 : cy + 6, cx - 6 : cx + 6] = True  # a still actor's part the model holds
+    holed[1] &= ~hole
+    cfg = HullConfig(voxel_size=VOXEL)
+    exact = visual_hull(rig.cameras, holed, cfg)
+    filled = hull_filled_masks(exact, rig.cameras, holed, holed, cfg)
+    assert filled[1][hole].mean() > 0.9
+    for c, (m, f) in enumerate(zip(masks, filled, strict=True)):
+        assert not (f & ~m).any(), f"camera {c} gained pixels outside its silhouette"
+    assert mask_iou(filled[1], masks[1]) > mask_iou(holed[1], masks[1])
+    # Only where allowed (the background model's unsettled pixels) ...
+    none = [np.zeros_like(m) for m in masks]
+    kept = hull_filled_masks(exact, rig.cameras, holed, holed, cfg, allowed=none)
+    assert all(np.array_equal(k, h) for k, h in zip(kept, holed, strict=True))
+    # ... and never from fewer than 4 cameras (a 2-of-3 hull is too loose to vouch).
+    three = [holed[i] if i < 3 else None for i in range(len(holed))]
+    exact3 = visual_hull(rig.cameras, three, cfg)
+    same = hull_filled_masks(exact3, rig.cameras, three, three, cfg)
+    assert np.array_equal(same[1], holed[1])

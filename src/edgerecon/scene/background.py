@@ -297,6 +297,7 @@ class BackgroundModel:
     def __init__(self, state: BackgroundState, config: BackgroundConfig | None = None) -> None:
         self.config = config or BackgroundConfig()
         self._state = state
+        self._unsettled: Mask | None = None
         self._stats: (
             tuple[
                 NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]
@@ -420,6 +421,28 @@ class BackgroundModel:
     @property
     def version(self) -> int:
         return self._state.version
+
+    @property
+    def unsettled(self) -> Mask:
+        """(h, w) working-resolution pixels whose learning frames disagree (something moved
+        through them while the model was learned from the stream): there the model may hold
+        part of an actor, whom it then cannot see while they stand still. Dilated by
+        ``update_guard_px``; all False for a model learned from fewer than 3 frames or from
+        an empty-scene clip."""
+        if self._unsettled is None:
+            seen = self._state.seen
+            h, w = self._state.mean.shape[:2]
+            if seen is None or len(seen) < 3:
+                self._unsettled = np.zeros((h, w), bool)
+            else:
+                med = np.median(seen, axis=0)
+                dev = np.abs(seen.astype(np.float32) - med).max(axis=(0, 3))
+                moved = (dev > 2.0 * self.config.min_abs_diff).view(np.uint8)
+                guard = self.config.update_guard_px
+                if guard > 0:
+                    moved = cv2.dilate(moved, disk(guard))
+                self._unsettled = np.asarray(moved, bool)
+        return self._unsettled
 
     def background_image(self, *, working: bool = False) -> Image:
         """The background colour as a BGR image at the frame (or the working) resolution."""
