@@ -30,8 +30,15 @@ class View:
     """(H, W, 3) BGR uint8, undistorted and resized."""
     mask: Mask | None = None
     """(H, W) bool region of interest (True = reconstruct here); None = whole image."""
+    scale: float = 1.0
+    """The task's image scale r: the image is r x the camera's frames (the dense stage picks
+    its resolution level from the frames' size, ``DenseConfig.level_for``)."""
 
     def __post_init__(self) -> None:
+        if not 0.0 < self.scale <= 1.0:
+            raise ValueError(
+                f"view {self.camera.name!r}: scale must be in (0, 1], got {self.scale}"
+            )
         h, w = self.image.shape[:2]
         if (w, h) != self.camera.size:
             raise ValueError(
@@ -46,6 +53,11 @@ class View:
     @property
     def name(self) -> str:
         return self.camera.name
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(w, h) of the camera's frames (the view's size at r = 1)."""
+        return (round(self.camera.width / self.scale), round(self.camera.height / self.scale))
 
 
 def resize_mask(mask: Mask, size: tuple[int, int]) -> Mask:
@@ -148,6 +160,7 @@ def prepare_views(
                 camera=cam.scaled(scale).undistorted(),
                 image=cam.prepare_image(image, scale),
                 mask=mask,
+                scale=scale,
             )
         )
     return views

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense
+from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
 from edgerecon.types import DataError
 from edgerecon.views import View
 from tests.conftest import ring_rig
@@ -111,7 +111,13 @@ def test_bad_inputs_are_clear_errors(scene):
 
 @pytest.mark.parametrize(
     "field,value",
-    [("resolution_level", -1), ("window_radius", 0), ("min_ncc", 1.5), ("sweep_families", ("x",))],
+    [
+        ("resolution_level", -1),
+        ("min_resolution_px", -1),
+        ("window_radius", 0),
+        ("min_ncc", 1.5),
+        ("sweep_families", ("x",)),
+    ],
 )
 def test_config_validation(field, value):
     with pytest.raises(ValueError, match=field):
@@ -173,3 +179,25 @@ def test_per_pixel_depth_bounds_restrict_depths_and_work(scene, result):
         assert has.sum() > 2000
         assert not np.any(has & (near == 0))
         assert np.all(d[has] >= near[has] * 0.999) and np.all(d[has] <= far[has] * 1.001)
+
+
+def test_resolution_level_follows_the_frames_not_the_task_scale() -> None:
+    cfg = DenseConfig()  # resolution_level 1, min_resolution_px 640 (openMVS's)
+    assert cfg.level_for((640, 480)) == 0  # half would be 320 px: full resolution
+    assert cfg.level_for((1280, 720)) == 1
+    assert cfg.level_for((1920, 1080)) == 1
+    assert DenseConfig(resolution_level=2).level_for((1920, 1080)) == 1
+    assert DenseConfig(min_resolution_px=0).level_for((640, 480)) == 1
+    image = np.zeros((120, 160, 3), np.uint8)
+    small = RIG[0].scaled(0.5)  # a 320x240 camera's view at r = 0.5
+    view = View(camera_id=0, camera=small, image=image, scale=0.5)
+    assert view.frame_size == (320, 240)
+    # The frames are small: the depth map is at the view's own size (level 0) ...
+    assert working_camera(view, cfg).size == (160, 120)
+    # ... while a 1920x1080 camera's view at r = 1/12 (160x90) gets level 1: r scales the
+    # cost at every r, the level never undoes it.
+    big = dataclasses.replace(RIG[0], width=1920, height=1080).scaled(1 / 12)
+    view = View(camera_id=0, camera=big, image=np.zeros((90, 160, 3), np.uint8), scale=1 / 12)
+    assert working_camera(view, cfg).size == (80, 45)
+    with pytest.raises(ValueError, match="scale"):
+        View(camera_id=0, camera=small, image=image, scale=0.0)

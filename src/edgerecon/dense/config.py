@@ -17,6 +17,13 @@ class DenseConfig:
     resolution_level: int = 1
     """Depth maps are computed at ``2**-resolution_level`` of the view images (openMVS also
     densifies at half resolution by default); 0 = full view resolution."""
+    min_resolution_px: int = 640
+    """... but the level is lowered (finer depth maps) while the larger side of a camera's
+    *frames* (the golden image, r = 1) at that level would be under this many pixels, as
+    openMVS's ``--min-resolution`` (also 640): a 640x480 rig densifies at full resolution,
+    a 1920x1080 one at half. The level comes from the frames, not from the task's views, so
+    the image scale r still scales the cost (``View.scale``). 0 = always
+    ``resolution_level``."""
     coarse_levels: int = 3
     """At most this many octaves below the working resolution for the plane sweep; each finer
     octave refines the depths by propagation and a local search (coarse-to-fine)."""
@@ -149,6 +156,7 @@ class DenseConfig:
                 raise ValueError(f"DenseConfig.{name} must be {what}, got {getattr(self, name)!r}")
 
         need(0 <= self.resolution_level <= 4, "resolution_level", "in 0..4")
+        need(self.min_resolution_px >= 0, "min_resolution_px", ">= 0")
         need(0 <= self.coarse_levels <= 4, "coarse_levels", "in 0..4")
         need(self.sweep_min_side_px >= 16, "sweep_min_side_px", ">= 16")
         need(self.max_source_views >= 1, "max_source_views", ">= 1")
@@ -206,5 +214,16 @@ class DenseConfig:
 
     @property
     def working_scale(self) -> float:
-        """Scale of the depth maps relative to the view images."""
+        """Scale of the depth maps relative to the view images at ``resolution_level`` (see
+        ``level_for`` for the level a view actually gets)."""
         return 0.5**self.resolution_level
+
+    def level_for(self, frame_size: tuple[int, int]) -> int:
+        """The resolution level for a camera whose frames are ``frame_size`` (w, h) pixels:
+        ``resolution_level``, lowered while the larger side at that level would be under
+        ``min_resolution_px``."""
+        level = self.resolution_level
+        side = max(frame_size)
+        while level > 0 and side * 0.5**level < self.min_resolution_px:
+            level -= 1
+        return level

@@ -119,8 +119,9 @@ def _check_views(views: Sequence[View]) -> None:
 
 
 def working_camera(view: View, config: DenseConfig) -> Camera:
-    """The pinhole camera of ``view``'s depth map (``config.working_scale`` of the view)."""
-    return view.camera.scaled(config.working_scale)
+    """The pinhole camera of ``view``'s depth map (``2**-level`` of the view, the level from
+    ``config.level_for`` of the view's frame size)."""
+    return view.camera.scaled(0.5 ** config.level_for(view.frame_size))
 
 
 def _bounds_maps(
@@ -246,8 +247,12 @@ def reconstruct_dense(
         raise DataError(f"dense: depth ranges given for cameras {sorted(unknown)} not in the views")
 
     with timings.stage("prepare"):
-        scale = config.working_scale
         cams = [working_camera(v, config) for v in views]
+        scale = (
+            float(np.median([c.width / v.camera.width for v, c in zip(views, cams, strict=True)]))
+            if views
+            else config.working_scale
+        )
         colors: list[Image] = [
             v.image
             if c.size == v.camera.size
