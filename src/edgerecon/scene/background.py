@@ -37,6 +37,7 @@ import dataclasses
 import logging
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -204,6 +205,9 @@ class BackgroundState:
     seen: NDArray[np.uint8] | None = None
     """(n, h, w, 3) the frames the model was learned from (working resolution; read only):
     what each pixel looked like then, for the ghost test (None: fewer than 3 frames)."""
+    unsettled: NDArray[np.bool_] | None = None
+    """(h, w) pixels whose learning frames disagree (``BackgroundModel.unsettled``; read
+    only; None: computed on first use)."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -225,6 +229,20 @@ class Segmentation:
     def slim(self) -> Segmentation:
         """The same segmentation without its working image."""
         return dataclasses.replace(self, image=None)
+
+
+def _unsettled(
+    stack: NDArray[np.uint8], median: NDArray[np.floating[Any]], config: BackgroundConfig
+) -> Mask:
+    """(h, w) pixels where some learning frame of ``stack`` differs from their median by
+    more than twice ``min_abs_diff`` in a channel, dilated by ``update_guard_px``."""
+    dev = np.zeros(stack.shape[1:3], np.float32)
+    for frame in stack:  # frame by frame: no (n, h, w, 3) float copy
+        np.maximum(dev, np.abs(frame.astype(np.float32) - median).max(axis=2), out=dev)
+    moved: Any = (dev > 2.0 * config.min_abs_diff).view(np.uint8)
+    if config.update_guard_px > 0:
+        moved = cv2.dilate(moved, disk(config.update_guard_px))
+    return np.asarray(moved, bool)
 
 
 def working_size(frame_size: tuple[int, int], max_pixels: int) -> tuple[int, int]:
@@ -354,6 +372,7 @@ class BackgroundModel:
         var = std * std
         h, w = mean.shape[:2]
         seen = stack if len(frames) >= 3 else None
+        unsettled = np.zeros((h, w), bool) if seen is None else _unsettled(stack, mean, config)
         state = BackgroundState(
             camera=camera,
             frame_size=size,
@@ -364,6 +383,7 @@ class BackgroundModel:
             num_frames=0,
             version=version,
             seen=seen,
+            unsettled=unsettled,
         )
         logger.debug(
             "camera %s: background learned from %d frames at %s", camera, len(frames), wsize
@@ -430,18 +450,16 @@ class BackgroundModel:
         ``update_guard_px``; all False for a model learned from fewer than 3 frames or from
         an empty-scene clip."""
         if self._unsettled is None:
-            seen = self._state.seen
-            h, w = self._state.mean.shape[:2]
-            if seen is None or len(seen) < 3:
-                self._unsettled = np.zeros((h, w), bool)
-            else:
-                med = np.median(seen, axis=0)
-                dev = np.abs(seen.astype(np.float32) - med).max(axis=(0, 3))
-                moved = (dev > 2.0 * self.config.min_abs_diff).view(np.uint8)
-                guard = self.config.update_guard_px
-                if guard > 0:
-                    moved = cv2.dilate(moved, disk(guard))
-                self._unsettled = np.asarray(moved, bool)
+            if self._state.unsettled is not None:
+                self._unsettled = self._state.unsettled
+            else:  # a state from before the field: once, from the learning frames
+                seen = self._state.seen
+                h, w = self._state.mean.shape[:2]
+                self._unsettled = (
+                    np.zeros((h, w), bool)
+                    if seen is None or len(seen) < 3
+                    else _unsettled(seen, np.median(seen, axis=0), self.config)
+                )
         return self._unsettled
 
     def background_image(self, *, working: bool = False) -> Image:
