@@ -1,7 +1,8 @@
 """What the scene stage costs per camera and per task, at three sensor resolutions (issue 11).
 
 The scene stage of one task: every camera's background subtraction, the visual hull of the
-masks and the masks made consistent with it, and the objects of each mask (all at the working
+masks and the masks made consistent with it, their holes filled from the other cameras, and
+the objects of each mask (all at the working
 resolution, ``BackgroundConfig.working_pixels``), plus the scheduled background update. Its
 share of the golden task is measured against the golden reconstruction of the same frames
 (``pipeline.reconstruct`` at r = 1 with all cameras, the product's own stage timings).
@@ -32,7 +33,7 @@ from edgerecon.scene.stream import bootstrap_indices
 from edgerecon.synth import Renderer, build_scene, preset_config
 from edgerecon.types import FrameSet
 
-STAGES = ("background_subtraction", "visual_hull", "hull_consistency", "objects")
+STAGES = ("background_subtraction", "visual_hull", "hull_consistency", "hull_fill", "objects")
 
 
 def measure(
