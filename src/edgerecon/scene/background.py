@@ -450,8 +450,9 @@ class BackgroundModel:
         ``update_guard_px``; all False for a model learned from fewer than 3 frames or from
         an empty-scene clip."""
         if self._unsettled is None:
-            if self._state.unsettled is not None:
-                self._unsettled = self._state.unsettled
+            known = getattr(self._state, "unsettled", None)  # a state pickled before it
+            if known is not None:
+                self._unsettled = known
             else:  # a state from before the field: once, from the learning frames
                 seen = self._state.seen
                 h, w = self._state.mean.shape[:2]
