@@ -48,6 +48,8 @@ VARIANTS: dict[str, dict[str, object]] = {
     "grazing80": {"max_grazing_deg": 80.0},
     "outlier8": {"outlier_k": 8, "outlier_std": 2.0},
     "mcv2": {"min_consistent_views": 2},
+    "px2": {"consistency_px": 2.0},
+    "px2topk2": {"consistency_px": 2.0, "ncc_top_k": 2},
     "strict": {
         "consistent_view_share": 0.5,
         "max_conflict_share": 0.3,

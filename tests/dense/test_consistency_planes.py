@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from edgerecon.dense.consistency import support_counts
+from edgerecon.dense.consistency import support_and_conflicts, support_counts
 from edgerecon.dense.planes import (
     Plane,
     below_plane,
@@ -155,3 +155,21 @@ def test_ground_plane_is_never_above_most_of_the_scene():
         pts2, normals2, np.full(len(pts2), 3), np.array([0, 0, 1.0]), 0.03, 100
     )
     assert plane is not None and abs(plane.offset) < 0.01
+
+
+def test_reprojection_test_rejects_depths_the_relative_tolerance_lets_through(rendered):
+    _, depths = rendered
+    cams = {i: RIG[i] for i in IDS}
+    off = {i: d.copy() for i, d in depths.items()}
+    off[0][90:110, 60:90] *= 1.04  # within a 5 % depth tolerance, pixels off in the others
+    has = depths[0] > 0
+    patch = np.zeros_like(has)
+    patch[90:110, 60:90] = True
+    loose = support_and_conflicts(off, cams, 0.05)[0][0]
+    strict = support_and_conflicts(off, cams, 0.05, max_reproj_px=1.0)[0][0]
+    # The depth test alone supports the shifted patch; one pixel of reprojection does not
+    # (4 % of ~4 m moves the point about 2.5 pixels in views 30 degrees away).
+    assert np.mean(loose[patch & has] >= 1) > 0.95
+    assert np.mean(strict[patch & has] >= 1) < 0.05
+    # Exact depths keep their support under the reprojection test.
+    assert np.mean(strict[~patch & has] >= 1) > 0.9

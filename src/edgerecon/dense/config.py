@@ -85,6 +85,9 @@ class DenseConfig:
     z = 0 (27 vs 31 mm median)."""
     consistency_rel_depth: float = 0.01
     """A depth agrees with another view when their depths differ by less than this share."""
+    consistency_px: float = 0.0
+    """... and, when > 0, when the other view's point reprojects within this many working
+    pixels of the pixel (COLMAP's fusion: 2 px and 1 %); 0 = the depth test alone."""
     min_consistent_views: int = 1
     """A depth is kept only if at least this many other views agree (1 -> seen by >= 2 views)."""
     ground_completion: bool = True
@@ -157,6 +160,7 @@ class DenseConfig:
 
         need(0 <= self.resolution_level <= 4, "resolution_level", "in 0..4")
         need(self.min_resolution_px >= 0, "min_resolution_px", ">= 0")
+        need(self.consistency_px >= 0, "consistency_px", ">= 0")
         need(0 <= self.coarse_levels <= 4, "coarse_levels", "in 0..4")
         need(self.sweep_min_side_px >= 16, "sweep_min_side_px", ">= 16")
         need(self.max_source_views >= 1, "max_source_views", ">= 1")

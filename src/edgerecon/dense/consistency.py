@@ -50,6 +50,7 @@ def support_and_conflicts(
     rel_tol: float,
     partners: Mapping[int, Sequence[int]] | None = None,
     num_threads: int = 1,
+    max_reproj_px: float = 0.0,
 ) -> tuple[
     dict[int, NDArray[np.int16]],
     dict[int, DepthMap],
@@ -60,11 +61,14 @@ def support_and_conflicts(
     *contradict* each depth (the point lands in j's image in front of the surface j measured
     there: space that j sees through, a floating speck or a streak unless j's own depth is the
     wrong one) and how many *could have confirmed* it (the point lands in j's image, in front
-    of j, not behind a surface j measured: j agrees, contradicts or has no depth there)."""
+    of j, not behind a surface j measured: j agrees, contradicts or has no depth there).
+    ``max_reproj_px`` > 0 also asks an agreeing view's point to reproject within that many
+    pixels of the reference pixel (COLMAP's fusion test; the relative depth tolerance alone
+    is many pixels wide at close range)."""
 
     def one(i: int) -> tuple[NDArray[np.int16], DepthMap, NDArray[np.int16], NDArray[np.int16]]:
         others = [j for j in (depths if partners is None else partners.get(i, ())) if j != i]
-        return _support_view(i, depths, cameras, rel_tol, others)
+        return _support_view(i, depths, cameras, rel_tol, others, max_reproj_px)
 
     results = thread_map(one, depths, num_threads)
     out = {i: r[0] for i, r in zip(depths, results, strict=True)}
@@ -80,6 +84,7 @@ def _support_view(
     cameras: Mapping[int, Camera],
     rel_tol: float,
     others: Sequence[int],
+    max_reproj_px: float = 0.0,
 ) -> tuple[NDArray[np.int16], DepthMap, NDArray[np.int16], NDArray[np.int16]]:
     """``support_and_conflicts`` of view i against the views ``others``."""
     depth_i = depths[i]
@@ -120,6 +125,17 @@ def _support_view(
             my = np.where(ok, Y / Zs, -1e6).astype(np.float32)
             dj = _sample(depths[j], mx, my, cv2.INTER_NEAREST)
             agree = ok & (dj > 0) & (np.abs(dj - Z) <= rel_tol * Z)
+            if max_reproj_px > 0:
+                # j's point (its nearest pixel at its depth) seen from i again.
+                Mb = (cam_i.K @ R.T @ np.linalg.inv(cam_j.K)).astype(np.float32)
+                cb = (-cam_i.K @ R.T @ t).astype(np.float32)
+                pu, pv = np.rint(mx), np.rint(my)
+                Xb = dj * (Mb[0, 0] * pu + Mb[0, 1] * pv + Mb[0, 2]) + cb[0]
+                Yb = dj * (Mb[1, 0] * pu + Mb[1, 1] * pv + Mb[1, 2]) + cb[1]
+                Zb = dj * (Mb[2, 0] * pu + Mb[2, 1] * pv + Mb[2, 2]) + cb[2]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    err2 = (Xb / Zb - u) ** 2 + (Yb / Zb - v) ** 2
+                agree &= (Zb > 0) & (err2 <= max_reproj_px**2)
             count += agree
             conflict += ok & (dj > 0) & (dj > (1 + rel_tol) * Z)
             hj, wj_ = depths[j].shape

@@ -345,7 +345,11 @@ def reconstruct_dense(
     with timings.stage("consistency"):
         id_cams = {i: cams[i] for i in depths}
         support, averaged, conflicts, candidates = support_and_conflicts(
-            depths, id_cams, config.consistency_rel_depth, num_threads=config.num_threads
+            depths,
+            id_cams,
+            config.consistency_rel_depth,
+            num_threads=config.num_threads,
+            max_reproj_px=config.consistency_px,
         )
         kept: dict[int, DepthMap] = {}
         keep_masks: dict[int, NDArray[np.bool_]] = {}
