@@ -147,3 +147,29 @@ def test_reduced_frames_give_the_same_masks(scene, segmented) -> None:  # type: 
     b.update(small)
     for sa, sb in zip(a.states(), b.states(), strict=True):
         np.testing.assert_array_equal(sa.mean, sb.mean)
+
+
+def test_hull_fill_adds_only_unsettled_pixels_inside_the_masks_outline(scene) -> None:  # type: ignore[no-untyped-def]
+    """Models learned from the stream (the actors walk through the learning frames): the
+    fill adds foreground only where the learning frames disagreed, never removes any, and
+    does not cost quality against the truth."""
+    sc, _, frames = scene
+    sets = [FrameSet(time_index=f.time_index, images=f.images) for f in frames]
+    with_fill = RigForeground.learn_from_framesets(sc.rig, sets, ForegroundConfig())
+    without = RigForeground.learn_from_framesets(sc.rig, sets, ForegroundConfig(hull_fill=False))
+    assert any(m.unsettled.any() for m in with_fill.models)
+    added = 0
+    for f, fs in zip(frames, sets, strict=True):
+        a, b = with_fill.segment(fs), without.segment(fs)
+        assert "hull_fill" in a.timings.seconds and "hull_fill" not in b.timings.seconds
+        for m_a, m_b, model in zip(a.masks, b.masks, with_fill.models, strict=True):
+            assert not (m_b & ~m_a).any()  # never removes
+            new = m_a & ~m_b
+            assert not (new & ~model.unsettled).any()  # only where the model is unsettled
+            added += int(new.sum())
+        gts = list(f.masks)
+        assert (
+            score_mask_set(list(a.masks), gts).foreground_iou
+            >= score_mask_set(list(b.masks), gts).foreground_iou - 0.01
+        )
+    assert added > 0
