@@ -138,11 +138,7 @@ def run_deadline(
     # The truth without the actors seated and still from the first frame (no motion cue
     # ever separates them from the room: they are reconstructed as background).
     vs_moving: list[list[float]] = []
-    seated = (
-        sorted({int(x["actor"]) for x in gt.stretches["seated"] if x["start"] == 0})
-        if gt is not None
-        else []
-    )
+    seated = gt.seated_from_start if gt is not None else []
     for m in ok:
         merged = read_ply(out / "tasks" / f"{m.time_index:06d}" / "merged.ply")
         fg = merged.select(merged.labels > 0)

@@ -321,9 +321,9 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
         step = max(1, ds.num_frames // 40)
         tasks = list(range(0, ds.num_frames, step))[:40]
     ids = gt.actor_ids
-    # Actors seated and still from the first frame: no motion cue ever tells them from the
-    # room; "moving IoU" scores the others (those pixels neither count nor cost).
-    seated = sorted({int(s["actor"]) for s in gt.stretches["seated"] if s["start"] == 0})
+    # "moving IoU" scores the actors other than those seated from the first frame (their
+    # pixels neither count nor cost).
+    seated = gt.seated_from_start
     rows: list[dict[str, Any]] = []
     with ds.open_frames() as source:
         for t in tasks:

@@ -250,7 +250,7 @@ def test_unsettled_marks_where_something_moved_while_learning(background: np.nda
     assert unsettled[crossed].mean() > 0.95
     far = ~(cv2.dilate(crossed.view(np.uint8), np.ones((15, 15), np.uint8)) > 0)
     assert not unsettled[far].any()
-    # Cached, and the same after a round trip through the state.
+    # Stored with the model (never recomputed), and the same after a round trip.
     assert model.unsettled is model.unsettled
     again = BackgroundModel.from_state(model.state)
     assert np.array_equal(again.unsettled, model.unsettled)

@@ -130,6 +130,7 @@ def test_synth_cli_people_in_a_room_preset(tmp_path, capsys):
     assert report["stretches"]["still"] == [] and report["stretches"]["dimming"] == []
     gt = GroundTruth.open(out)
     assert gt.stretches == report["stretches"] and gt.illumination(2) == 1.0
+    assert gt.seated_from_start == [3]
     assert not (out / "background").exists()
     # The table form lists the stretches.
     assert main([*args, "--overwrite"]) == 0

@@ -207,7 +207,7 @@ class BackgroundState:
     what each pixel looked like then, for the ghost test (None: fewer than 3 frames)."""
     unsettled: NDArray[np.bool_] | None = None
     """(h, w) pixels whose learning frames disagree (``BackgroundModel.unsettled``; read
-    only; None: computed on first use)."""
+    only), computed when the model learns."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -315,7 +315,6 @@ class BackgroundModel:
     def __init__(self, state: BackgroundState, config: BackgroundConfig | None = None) -> None:
         self.config = config or BackgroundConfig()
         self._state = state
-        self._unsettled: Mask | None = None
         self._stats: (
             tuple[
                 NDArray[np.float32], NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]
@@ -448,20 +447,11 @@ class BackgroundModel:
         through them while the model was learned from the stream): there the model may hold
         part of an actor, whom it then cannot see while they stand still. Dilated by
         ``update_guard_px``; all False for a model learned from fewer than 3 frames or from
-        an empty-scene clip."""
-        if self._unsettled is None:
-            known = getattr(self._state, "unsettled", None)  # a state pickled before it
-            if known is not None:
-                self._unsettled = known
-            else:  # a state from before the field: once, from the learning frames
-                seen = self._state.seen
-                h, w = self._state.mean.shape[:2]
-                self._unsettled = (
-                    np.zeros((h, w), bool)
-                    if seen is None or len(seen) < 3
-                    else _unsettled(seen, np.median(seen, axis=0), self.config)
-                )
-        return self._unsettled
+        an empty-scene clip (and for a state without the map)."""
+        known = getattr(self._state, "unsettled", None)
+        if known is None:
+            return np.zeros(self._state.mean.shape[:2], bool)
+        return np.asarray(known, bool)
 
     def background_image(self, *, working: bool = False) -> Image:
         """The background colour as a BGR image at the frame (or the working) resolution."""

@@ -1192,19 +1192,18 @@ def hull_filled_masks(
 
 
 def _coarse_silhouette(hull: VisualHull, camera: Camera, max_radius_px: float = 2.0) -> Mask:
-    """``hull_silhouette`` drawn on a smaller canvas where the median voxel disc has at most
+    """``hull_silhouette`` drawn on a smaller canvas where the voxel disc at the hull's centre has at most
     ``max_radius_px`` pixels, then enlarged (nearest): what large discs cost is the
     dilations that draw them, and a caller that clips the result to an outline of its own
     does not need the silhouette's outline to the pixel."""
-    sel = hull.surface
-    if not sel.any():
+    if not hull.surface.any():
         return np.zeros((camera.height, camera.width), bool)
-    pts = hull.origin + (hull.indices[sel] + 0.5) * hull.voxel_size
-    _, depth = camera.project(pts)
-    depth = depth[depth > 0]
-    if len(depth) == 0:
-        return np.zeros((camera.height, camera.width), bool)
-    radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * camera.focal_px / float(np.median(depth))
+    # The disc size at the hull's centre sets the canvas (``hull_silhouette`` projects the
+    # voxels themselves).
+    _, depth = camera.project(hull.centers.mean(axis=0, keepdims=True))
+    if not depth[0] > 0:
+        return hull_silhouette(hull, camera)
+    radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * camera.focal_px / float(depth[0])
     factor = int(np.clip(np.floor(radius / max_radius_px), 1, 8))
     if factor == 1:
         return hull_silhouette(hull, camera)

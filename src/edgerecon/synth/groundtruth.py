@@ -357,6 +357,13 @@ class GroundTruth:
         recorded = self.meta.get("stretches", {})
         return {k: list(recorded.get(k, [])) for k in ("still", "away", "seated", "dimming")}
 
+    @property
+    def seated_from_start(self) -> list[int]:
+        """Ids of the actors seated from the first frame: no motion cue ever separates them
+        from the room, so scores that leave them out (``bench_scene``'s moving IoU,
+        ``bench_online``'s moving F) say what the scene model can do with the others."""
+        return sorted({int(s["actor"]) for s in self.stretches["seated"] if s["start"] == 0})
+
     def illumination(self, t: int) -> float:
         """Global light level at time ``t`` (1 = the scene's full light)."""
         levels = self.meta.get("scene", {}).get("illumination")
