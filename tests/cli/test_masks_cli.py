@@ -40,6 +40,8 @@ def test_masks_cli_writes_masks_and_scores(scene_dir: Path, tmp_path: Path, caps
         assert int((mask > 0).sum()) == c["area_px"]
         assert (out / f"{c['camera']}_overlay.png").is_file()
         assert c["num_objects"] == len(c["objects"])
+        # With a background clip nothing is unsettled: the hull fill adds nothing.
+        assert c["filled_by_hull_px"] == 0 and c["removed_by_hull_px"] >= 0
     # Masks match the ground truth of the synthetic scene.
     ious = [c["iou_vs_ground_truth"] for c in cams]
     # 320x240 is a hard, low-resolution case (native demo resolution: see tests/scene).
@@ -56,6 +58,7 @@ def test_masks_cli_table_and_hull_ply(scene_dir: Path, tmp_path: Path, capsys) -
     assert rc == 0
     text = capsys.readouterr().out
     assert "IoU vs GT" in text and "cam0" in text and "visual hull" in text
+    assert "hull-filled px" in text
     cloud = read_ply(out / "hull.ply")
     assert len(cloud) > 100 and cloud.labels is not None and cloud.labels.min() >= 1
 

@@ -5,7 +5,7 @@ The background models are the ones the online system has at time T (one definiti
 every command: :mod:`edgerecon.scene.stream`). Segments frame T and writes per camera
 ``<cam>_mask.png`` (0/255, upsampled from the working resolution to the frame's),
 ``<cam>_overlay.png`` (the frame with the foreground tinted, foreground removed by the hull
-consistency in red, object ROIs boxed) and ``masks.json``; with ``--hull-ply`` also the coloured visual-hull surface (``hull.ply``).
+consistency in red, foreground the hull fill added in yellow, object ROIs boxed) and ``masks.json``; with ``--hull-ply`` also the coloured visual-hull surface (``hull.ply``).
 Synthetic datasets with ground truth also get the mask IoU per camera.
 """
 
@@ -55,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def overlay(image: Image, result: ForegroundResult, camera_id: int) -> Image:
-    """The frame with its objects tinted, hull-rejected foreground in red, ROIs boxed."""
+    """The frame with its objects tinted, hull-rejected foreground in red, hull-filled
+    foreground in yellow, ROIs boxed."""
     out = image.copy()
     seg = result.objects[camera_id]
     model = result.model_masks[camera_id]
@@ -78,6 +79,8 @@ def overlay(image: Image, result: ForegroundResult, camera_id: int) -> Image:
         cv2.putText(
             out, str(obj.id), (x + 2, y + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1
         )
+    filled = at_resolution(final & ~model, shape)
+    out[filled] = (0.4 * out[filled] + (0, 150, 150)).astype(np.uint8)
     return out
 
 
@@ -147,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
             "area_px": int(mask.sum()),
             "area_fraction": float(mask.mean()),
             "removed_by_hull_px": int((model_mask & ~mask).sum()) if model_mask is not None else 0,
+            "filled_by_hull_px": int((mask & ~model_mask).sum()) if model_mask is not None else 0,
             "num_objects": seg.num_objects,
             "objects": [o.to_dict() for o in seg.objects],
         }
@@ -186,13 +190,15 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(summary)
         return 0
-    columns = ["camera", "area px", "area %", "objects", "hull-removed px"]
+    columns = ["camera", "area px", "area %", "objects", "hull-removed px", "hull-filled px"]
     if ious is not None:
         columns.append("IoU vs GT")
     rows = []
     for c in cameras:
         if not c["available"]:
-            rows.append([c["camera"], "-", "-", "-", "-"] + (["-"] if ious is not None else []))
+            rows.append(
+                [c["camera"], "-", "-", "-", "-", "-"] + (["-"] if ious is not None else [])
+            )
             continue
         row = [
             c["camera"],
@@ -200,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
             100 * c["area_fraction"],
             c["num_objects"],
             c["removed_by_hull_px"],
+            c["filled_by_hull_px"],
         ]
         if ious is not None:
             row.append(c.get("iou_vs_ground_truth"))
