@@ -5,6 +5,7 @@ defaults, on synthetic scenes with ground truth.
     python benchmarks/bench_precision.py                        # arc7 t=20, demo t=20, object
     python benchmarks/bench_precision.py --scenes demo --variants base edge
     python benchmarks/bench_precision.py --data /tmp/h13        # where the scenes are written
+    python benchmarks/bench_precision.py --scenes arc7 --variants default --breakdown
 
 The scenes are written once under ``--data`` (``edgerecon synth`` presets, 21 frames; object
 3). The sparse stage runs once per scene (its CPU seconds are added to every row); each
@@ -14,6 +15,11 @@ camera distance, 2 and 5 mm, both clouds cropped to the object and the table wit
 ``OBJECT_RADIUS_M`` of it: the table's far reaches are not what small-object capture is
 measured on). CPU seconds: the least of ``--repeat`` runs. "mean/med" is the mean / median accuracy (predicted point to
 truth) over all points; "CPU s" is process CPU time of sparse + dense (all threads).
+
+``--breakdown`` adds, per variant, the precision at the first threshold by the fused points'
+``num_views`` and that of the depth maps' own points before fusion (every 10th kept pixel of
+every view): fusion keeps one point per voxel, so it weighs a surface by its area, not by
+how many views measured it, and the few-view regions weigh more in the fused cloud.
 """
 
 from __future__ import annotations
@@ -22,13 +28,16 @@ import argparse
 import dataclasses
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from _report import report_header
 from edgerecon.config import ReconstructionConfig
-from edgerecon.dense import DenseConfig, reconstruct_dense
+from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense
+from edgerecon.dense.fusion import camera_points
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import prepare_task_views
 from edgerecon.quality.metrics import evaluate_against
@@ -73,12 +82,47 @@ def scene(data: Path, name: str) -> tuple[Path, int]:
     return path, t
 
 
+def breakdown(
+    dense: DenseReconstruction,
+    cloud_points: np.ndarray,
+    num_views: np.ndarray,
+    ref: np.ndarray,
+    threshold: float,
+    region: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> str:
+    """Precision at ``threshold`` by the fused points' number of views, and of the depth
+    maps' points before fusion (see the module docstring)."""
+    tree = cKDTree(ref)
+    d, _ = tree.query(cloud_points, distance_upper_bound=2 * threshold, workers=-1)
+    parts = []
+    for lo, hi in ((1, 2), (3, 3), (4, 4), (5, 5), (6, 10**6)):
+        sel = (num_views >= lo) & (num_views <= hi)
+        if sel.any():
+            label = f"{lo}" if lo == hi else (f"{lo}+" if hi > 100 else f"<={hi}")
+            parts.append(f"{label} views {sel.mean():.2f} P {np.mean(d[sel] < threshold):.3f}")
+    pts = []
+    for i, depth in dense.depth_maps.items():
+        cam = dense.depth_cameras[i]
+        X = camera_points(cam, depth).reshape(-1, 3)[(depth > 0).ravel()][::10]
+        pts.append((X.astype(np.float64) - cam.t) @ cam.R)  # camera -> world
+    if pts:
+        X = np.concatenate(pts)
+        if region is not None:
+            X = X[region(X)]
+        dm, _ = tree.query(X, distance_upper_bound=2 * threshold, workers=-1)
+        parts.append(f"depth maps before fusion P {np.mean(dm < threshold):.3f}")
+    return "; ".join(parts)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
     parser.add_argument("--data", default="/tmp/bench_precision")
     parser.add_argument("--repeat", type=int, default=2, help="runs per variant (least CPU)")
+    parser.add_argument(
+        "--breakdown", action="store_true", help="precision by views and before fusion"
+    )
     args = parser.parse_args()
     variants = {}
     for v in args.variants:
@@ -142,6 +186,12 @@ def main() -> None:
             ratio = scores[0].accuracy_mean / max(scores[0].accuracy_median, 1e-12)
             print(f"{label:14s} {len(cloud):9,d}  {prf}  {ratio:8.2f}  {cpu:5.1f}",
                   flush=True)  # fmt: skip
+            if args.breakdown:
+                views_of = cloud.attributes["num_views"]
+                print(
+                    "    "
+                    + breakdown(dense, cloud.points3D, views_of, ref.points3D, ths[0], region)
+                )
 
 
 if __name__ == "__main__":
