@@ -284,10 +284,13 @@ def reconstruct_foreground(
                     np.nan_to_num(dr.far, nan=0.0),
                 )
     # Foreground is never floor: no ground-plane completion (nor a plane fitted to the tops
-    # of the actors' heads that would cut away everything below them).
+    # of the actors' heads that would cut away everything below them). The local search
+    # steps from the map itself: from its median (``DenseConfig.refine_median_px``, which
+    # gains precision on whole scenes) the foreground lost recall (hd4 golden foreground,
+    # 5 tasks: F at 2 % 0.882 -> 0.866, recall 0.872 -> 0.843).
     dense = reconstruct_dense(
         fg_views,
-        dataclasses.replace(dense_config, ground_completion=False),
+        dataclasses.replace(dense_config, ground_completion=False, refine_median_px=0),
         fg_sparse if len(fg_sparse) else None,
         depth_ranges=ranges,
         up=rig.up,

@@ -253,3 +253,21 @@ def test_run_jobs_lends_the_threads_without_a_job_and_raises_after_all():
     with RowBands(2) as bands, pytest.raises(ValueError, match="job 2"):
         run_jobs(failing, [1, 2, 3, 4], 2, bands, "test")
     assert sorted(done) == [1, 3, 4]  # the other jobs still ran
+
+
+def test_local_search_base_is_the_median_away_from_depth_edges():
+    from edgerecon.dense.depth import _median_base
+
+    rng = np.random.default_rng(0)
+    # Inverse depth of two surfaces (a step at column 20) with 0.5 % noise.
+    clean = np.where(np.arange(40)[None, :] < 20, 0.5, 0.25).astype(np.float32).repeat(30, 0)
+    noisy = (clean * (1 + 0.005 * rng.standard_normal(clean.shape))).astype(np.float32)
+    base = _median_base(noisy, 5, 0.05)
+    inner = np.s_[2:-2, 2:17]
+    # The noise is cut where the neighbourhood is one surface ...
+    assert np.std(base[inner] - clean[inner]) < 0.6 * np.std(noisy[inner] - clean[inner])
+    # ... and no pixel moves by more than the tolerance: the edge keeps both depths.
+    assert np.all(np.abs(base - noisy) <= 0.05 * noisy + 1e-7)
+    assert np.all(np.abs(base[:, 18:22] - clean[:, 18:22]) < 0.02 * clean[:, 18:22])
+    # Kernel 0: the map itself (no copy).
+    assert _median_base(noisy, 0, 0.05) is noisy

@@ -117,6 +117,9 @@ def test_bad_inputs_are_clear_errors(scene):
         ("window_radius", 0),
         ("min_ncc", 1.5),
         ("sweep_families", ("x",)),
+        ("refine_median_px", 4),
+        ("refine_median_rel", 0.0),
+        ("refine_passes", 0),
     ],
 )
 def test_config_validation(field, value):

@@ -19,7 +19,9 @@ For one reference view and a few source views:
    step moves its image in the most sensitive source by ``refine_step_px`` pixels) with a
    parabola fit. Sources are resampled through the whole hypothesis map, so neighbouring
    pixels carry neighbouring hypotheses and each NCC window is compared along the current
-   surface estimate: slanted surfaces match without explicit normals.
+   surface estimate: slanted surfaces match without explicit normals. The steps start from
+   the map's median where it is close (``refine_median_px``): the noise of the neighbours'
+   depths would otherwise warp each window unevenly.
 
 All work happens on the crop of the reference that holds the region of interest, so cost
 scales with the ROI's area; ``DepthEstimate.work`` counts pixel x source NCC evaluations.
@@ -594,28 +596,51 @@ def _refine(
             inv = np.where(better, cand, inv)
             score = np.where(better, s, score)
     K = config.refine_radius
-    if K > 0 and local_search:
-        step = _step_map(inv, src, config.refine_step_px)
+    for _ in range(config.refine_passes if K > 0 and local_search else 0):
+        # The search steps from a smoothed surface (see ``_median_base``); where the base is
+        # the map itself, its scores are known already.
+        base = _median_base(inv, config.refine_median_px, config.refine_median_rel)
+        step = _step_map(base, src, config.refine_step_px)
         scores = np.empty((2 * K + 1, *inv.shape), np.float32)
         for i, k_off in enumerate(range(-K, K + 1)):
-            if k_off == 0:
+            if k_off == 0 and base is inv:
                 scores[i] = score
                 continue
-            scores[i] = _evaluate(inv + k_off * step, src, stats, k, w_lo, w_hi, bands)
+            scores[i] = _evaluate(base + k_off * step, src, stats, k, w_lo, w_hi, bands)
             work += npix * n_src
         idx = np.argmax(scores, axis=0)
         s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
         sm = np.take_along_axis(scores, np.clip(idx - 1, 0, 2 * K)[None], axis=0)[0]
         sp = np.take_along_axis(scores, np.clip(idx + 1, 0, 2 * K)[None], axis=0)[0]
         offsets = _subplane(s0, idx, sm, sp, np.arange(-K, K + 1, dtype=np.float64))
-        cand = (inv + offsets * step).astype(np.float32)
+        cand = (base + offsets * step).astype(np.float32)
         # The sub-step position is a prediction: keep it only where it scores as well.
         s_sub = _evaluate(cand, src, stats, k, w_lo, w_hi, bands)
         work += npix * n_src
         use_sub = s_sub >= s0 - 1e-3
-        inv = np.where(use_sub, cand, inv + (idx - K).astype(np.float32) * step)
-        score = np.where(use_sub, s_sub, s0)
+        new = np.where(use_sub, cand, base + (idx - K).astype(np.float32) * step)
+        new_score = np.where(use_sub, s_sub, s0)
+        # From a smoothed base, a pixel whose own depth scored better keeps it.
+        keep = score > new_score if base is not inv else np.zeros(inv.shape, bool)
+        inv = np.where(keep, inv, new)
+        score = np.where(keep, score, new_score)
     return inv.astype(np.float32), score.astype(np.float32), work
+
+
+def _median_base(inv: F32, kernel: int, rel: float) -> F32:
+    """Where the local search starts: the inverse-depth map median-filtered with ``kernel``
+    (3 or 5; 0 = the map itself, returned as is), kept where it is within ``rel`` of the
+    pixel's own value (depth edges keep theirs).
+
+    Each NCC window is compared along the hypothesis map of its pixels (``_Sources``), so
+    noise in the neighbours' depths warps the window unevenly and blurs the match of the
+    pixel's own depth; from a median-smoothed map every window sees one coherent surface,
+    shifted as a whole."""
+    if kernel <= 0:
+        return inv
+    med = np.asarray(cv2.medianBlur(np.ascontiguousarray(inv, np.float32), kernel), np.float32)
+    far = np.abs(med - inv) > np.float32(rel) * np.abs(inv)
+    return np.where(far, inv, med).astype(np.float32)
 
 
 def _upsample(inv: F32, roi_c: Roi, cam_c: Camera, roi_f: Roi, cam_f: Camera) -> F32:
