@@ -121,3 +121,26 @@ def test_utrecht_frame_200_golden():
     # The floor plane fitted to the stereo points lies 27-31 mm below the board's z = 0
     # (measured; about 3 working-resolution pixels of depth at 4-5 m).
     assert np.median(np.abs(pts[near_floor, 2])) < 40
+
+
+def test_foreground_dense_settings():
+    from edgerecon.dense import DenseConfig
+    from edgerecon.pipeline import SplitPipelineConfig, foreground_dense_config
+
+    base = DenseConfig(window_radius=3, resolution_level=1, refine_median_px=5)
+    fg = foreground_dense_config(base)
+    # 5x5 windows, the dense level kept, no floor completion, the search from the map itself.
+    assert fg.window_radius == 2
+    assert fg.resolution_level == 1
+    assert not fg.ground_completion
+    assert fg.refine_median_px == 0
+    # The whole-scene settings are not changed.
+    assert base.window_radius == 3 and base.ground_completion
+    full = foreground_dense_config(
+        base, SplitPipelineConfig(fg_resolution_level=0, fg_window_radius=None)
+    )
+    assert full.resolution_level == 0 and full.window_radius == 3
+    assert full.level_for((1920, 1080)) == 0
+    for bad in ({"fg_resolution_level": 5}, {"fg_window_radius": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SplitPipelineConfig(**bad)

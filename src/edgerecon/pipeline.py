@@ -157,10 +157,34 @@ class SplitPipelineConfig:
     min_fg_votes: float = 1.5
     """A dense foreground point is kept when at least this much camera weight puts it inside
     the foreground (one noisy mask cannot keep or reject a point alone)."""
+    fg_resolution_level: int | None = None
+    """Resolution level of the foreground's depth maps (0 = the views' own resolution, so the
+    image scale r alone sets it); None = the dense configuration's (``DenseConfig.level_for``:
+    half resolution from 1280 px up). Level 0 gains quality where the deadline leaves time
+    but doubles the golden task's foreground: hd4's golden foreground (5 tasks, moving
+    actors) F at 2 % 0.904 -> 0.928 for 3x its CPU; online at 40 % of the original pipeline
+    moving F 0.876 -> 0.912 at r 0.63, but on caliscope_charuco the first task (r = 1) was
+    slower than the original pipeline and online/original rose 0.39 -> 0.44."""
+    fg_window_radius: int | None = 2
+    """NCC window half-size of the foreground's depth maps (2 = 5x5); None = the dense
+    configuration's (7x7). Smaller windows straddle fewer depth edges of the actors: hd4
+    golden foreground F at 2 % 0.882 -> 0.904 (at 1 % 0.659 -> 0.699) for 10 % less CPU;
+    caliscope_charuco's foreground 2 % fewer points. (For whole scenes 5x5 windows cost
+    caliscope_charuco 23 % of its points: docs/BENCHMARKS.md.)"""
 
     def __post_init__(self) -> None:
         if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
             raise ValueError("SplitPipelineConfig mask dilations must be >= 0")
+        if self.fg_resolution_level is not None and not 0 <= self.fg_resolution_level <= 4:
+            raise ValueError(
+                "SplitPipelineConfig.fg_resolution_level must be None or in 0..4, got "
+                f"{self.fg_resolution_level}"
+            )
+        if self.fg_window_radius is not None and not 1 <= self.fg_window_radius <= 15:
+            raise ValueError(
+                "SplitPipelineConfig.fg_window_radius must be None or in 1..15, got "
+                f"{self.fg_window_radius}"
+            )
         if self.min_fg_votes < 0:
             raise ValueError(
                 f"SplitPipelineConfig.min_fg_votes must be >= 0, got {self.min_fg_votes}"
@@ -262,6 +286,7 @@ def reconstruct_foreground(
             cloud=_empty_labelled_cloud(),
             timings=timings,
         )
+    fg_dense_config = foreground_dense_config(dense_config, config)
     with timings.stage("fg_prepare"):
         masks = [
             None if m is None else _dilate(m, config.fg_mask_dilation_px, c)
@@ -278,19 +303,14 @@ def reconstruct_foreground(
             ranges = {}
             for v in fg_views:
                 # At the depth maps' resolution: a quarter of the pixels to splat.
-                dr = hull_depth_range(foreground.hull, working_camera(v, dense_config))
+                dr = hull_depth_range(foreground.hull, working_camera(v, fg_dense_config))
                 ranges[v.camera_id] = (
                     np.nan_to_num(dr.near, nan=0.0),
                     np.nan_to_num(dr.far, nan=0.0),
                 )
-    # Foreground is never floor: no ground-plane completion (nor a plane fitted to the tops
-    # of the actors' heads that would cut away everything below them). The local search
-    # steps from the map itself: from its median (``DenseConfig.refine_median_px``, which
-    # gains precision on whole scenes) the foreground lost recall (hd4 golden foreground,
-    # 5 tasks: F at 2 % 0.882 -> 0.866, recall 0.872 -> 0.843).
     dense = reconstruct_dense(
         fg_views,
-        dataclasses.replace(dense_config, ground_completion=False, refine_median_px=0),
+        fg_dense_config,
         fg_sparse if len(fg_sparse) else None,
         depth_ranges=ranges,
         up=rig.up,
@@ -303,6 +323,25 @@ def reconstruct_foreground(
     return ForegroundReconstruction(
         labels=split.labels, fg_sparse=fg_sparse, dense=dense, cloud=cloud, timings=timings
     )
+
+
+def foreground_dense_config(
+    dense_config: DenseConfig, config: SplitPipelineConfig | None = None
+) -> DenseConfig:
+    """The dense settings of the foreground: ``dense_config`` with the foreground's resolution
+    and window (``SplitPipelineConfig``), no ground-plane completion (foreground is never floor,
+    and a plane fitted to the tops of the actors' heads would cut away everything below
+    them), and the local search from the map itself: from its median
+    (``DenseConfig.refine_median_px``, which gains precision on whole scenes) the foreground
+    lost recall (hd4 golden foreground, 5 tasks: F at 2 % 0.882 -> 0.866, recall 0.872 ->
+    0.843)."""
+    config = config or SplitPipelineConfig()
+    over: dict[str, object] = {"ground_completion": False, "refine_median_px": 0}
+    if config.fg_resolution_level is not None:
+        over["resolution_level"] = config.fg_resolution_level
+    if config.fg_window_radius is not None:
+        over["window_radius"] = config.fg_window_radius
+    return dataclasses.replace(dense_config, **over)  # type: ignore[arg-type]
 
 
 def reconstruct_background(
