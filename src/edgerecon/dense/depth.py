@@ -620,10 +620,12 @@ def _refine(
         use_sub = s_sub >= s0 - 1e-3
         new = np.where(use_sub, cand, base + (idx - K).astype(np.float32) * step)
         new_score = np.where(use_sub, s_sub, s0)
-        # From a smoothed base, a pixel whose own depth scored better keeps it.
-        keep = score > new_score if base is not inv else np.zeros(inv.shape, bool)
-        inv = np.where(keep, inv, new)
-        score = np.where(keep, score, new_score)
+        if base is not inv:
+            # From a smoothed base, a pixel whose own depth scored better keeps it.
+            keep = score > new_score
+            new = np.where(keep, inv, new)
+            new_score = np.where(keep, score, new_score)
+        inv, score = new, new_score
     return inv.astype(np.float32), score.astype(np.float32), work
 
 
