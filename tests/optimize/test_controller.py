@@ -126,12 +126,39 @@ def test_rule1_baseline_check_skips_a_camera_count():
     ctrl.observe(20.0, 1.0)  # golden too slow
     cfg = ctrl.next_config()
     assert (cfg.phase, cfg.scale, cfg.num_cameras) == ("search", 0.3, 6)
-    ctrl.observe(6.0, 0.4)  # even r_min too slow with 6 cameras
+    ctrl.observe(6.0, 0.4)  # even r_min too slow with 6 cameras...
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (0.3, 6)  # ... measured once more (noise?)
+    ctrl.observe(6.2, 0.4)  # ... and too slow again: skip N' = 6
     cfg = ctrl.next_config()
     assert (cfg.scale, cfg.num_cameras) == (0.3, 5)
     ctrl.observe(4.0, 0.4)  # feasible: bisection between r_min and r_max
     cfg = ctrl.next_config()
     assert cfg.num_cameras == 5 and cfg.scale == pytest.approx(0.65)
+
+
+def test_rule1_a_noisy_baseline_keeps_its_camera_count():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(9.0, 1.0)  # golden too slow
+    ctrl.next_config()
+    ctrl.observe(5.5, 0.4)  # r_min slowed down by another process
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (0.3, 4)
+    ctrl.observe(3.0, 0.4)  # the second measurement fits: bisection with 4 cameras
+    cfg = ctrl.next_config()
+    assert cfg.num_cameras == 4 and cfg.scale == pytest.approx(0.65)
+    # A clear miss (over baseline_confirm x the deadline) skips the level at once, and a
+    # saved state from before the field existed loads.
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(20.0, 1.0)
+    ctrl.next_config()
+    ctrl.observe(8.0, 0.4)
+    assert ctrl.next_config().num_cameras == 3
+    saved = ctrl.to_dict()
+    del saved["state"]["baseline_misses"]
+    assert BisectionController.from_dict(saved).next_config().num_cameras == 3
 
 
 def test_rule2_stops_when_fewer_cameras_cannot_win():
