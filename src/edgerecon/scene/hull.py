@@ -944,13 +944,15 @@ def hull_silhouette(hull: VisualHull, camera: Camera, *, object_id: int | None =
     sel = hull.surface if object_id is None else hull.surface & (hull.labels == object_id)
     pts = hull.origin + (hull.indices[sel] + 0.5) * hull.voxel_size
     uv, depth = camera.project(pts)
-    ok = depth > 0
+    # (Voxels near the camera's plane project to huge or non-finite pixels: never drawn.)
+    ok = (depth > 0) & np.all(np.abs(uv) < 1e9, axis=1)
     if not ok.any():
         return out.astype(bool)
     uv, depth = uv[ok], depth[ok]
     radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * camera.focal_px / depth
     # Group by integer radius: one dilation per distinct radius.
-    r_int = np.maximum(np.ceil(radius).astype(np.int64), 0)
+    # (At most the image's size: a voxel at the camera's centre covers it all.)
+    r_int = np.clip(np.ceil(radius), 0, max(h, w)).astype(np.int64)
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
     for r in np.unique(r_int):
