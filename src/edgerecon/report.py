@@ -182,7 +182,7 @@ def plot_quality(ax: Axes, runs: Sequence[RunData]) -> None:
     ax.set_ylim(0, 1.02)
     ax.set_xlabel("task")
     ax.set_ylabel("F-score (foreground)")
-    ax.set_title("quality per task (online: vs golden sparse; offline: vs ground truth)")
+    ax.set_title("quality per task (online: the estimate; offline: vs ground truth)")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
 

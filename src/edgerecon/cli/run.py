@@ -106,9 +106,11 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--sparse-scope",
         choices=SPARSE_SCOPES,
-        default="foreground",
-        help="foreground: SfM of the foreground masks only (default); "
-        "scene: the paper's SfM of the whole frames, then the split",
+        default="hull",
+        help="hull: SfM of the foreground masks on golden-configuration tasks only, the "
+        "others take their depth ranges from the visual hull (default); foreground: SfM of "
+        "the foreground masks on every task; scene: the paper's SfM of the whole frames, "
+        "then the split",
     )
     p.add_argument(
         "--online-quality",
@@ -241,7 +243,12 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("avg. time after convergence (s)", f(s.avg_time_converged_s, ".2f")),
         ("deadline misses after convergence", s.deadline_misses_converged),
         ("avg. F-score of FG (online)", f(s.avg_online_fscore)),
-        ("avg. F-score of FG (vs ground truth)", f(s.avg_offline_fscore)),
+        (
+            "avg. F-score of FG (vs ground truth"
+            + ("" if s.offline_threshold is None else f", d = {s.offline_threshold:.3g} {s.unit}")
+            + ")",
+            f(s.avg_offline_fscore),
+        ),
         ("# backgrounds pushed", s.backgrounds_pushed),
         ("# configuration search steps", s.search_steps),
         ("tasks / failed / degraded / empty", f"{s.tasks} / {s.failed} / {s.degraded} / {s.empty}"),
@@ -311,7 +318,7 @@ def resume_command(args: argparse.Namespace) -> str:
         ("--policy", None if args.policy == "all" else args.policy),
         ("--fixed", None if args.fixed is None else f"{args.fixed:g}"),
         ("--cameras", args.cameras),
-        ("--sparse-scope", None if args.sparse_scope == "foreground" else args.sparse_scope),
+        ("--sparse-scope", None if args.sparse_scope == "hull" else args.sparse_scope),
     ):
         if value is not None:
             words += [flag, str(value)]

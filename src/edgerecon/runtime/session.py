@@ -160,6 +160,10 @@ class RunSummary:
     deadline_misses_converged: int = 0
     avg_online_fscore: float | None = None
     avg_offline_fscore: float | None = None
+    offline_threshold: float | None = None
+    """Distance threshold of ``avg_offline_fscore`` (None: no ground truth)."""
+    unit: str = ""
+    """The rig's unit of length (that of ``offline_threshold``)."""
     backgrounds_pushed: int = 0
     """Backgrounds the front-end took over the whole run (resumes included)."""
     bg_version: list[int] = field(default_factory=lambda: [0, 0])
@@ -437,6 +441,8 @@ class Session:
             off = [m.offline_fscore for m in ok if m.offline_fscore is not None]
             s.avg_online_fscore = float(np.mean(on)) if on else None
             s.avg_offline_fscore = float(np.mean(off)) if off else None
+            s.offline_threshold = self.options.ground_truth_threshold if off else None
+            s.unit = self.dataset.rig.unit
             s.search_steps = max(m.search_steps for m in ok)
             stages: dict[str, list[float]] = {}
             for m in ok:
