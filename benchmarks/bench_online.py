@@ -46,7 +46,7 @@ import numpy as np
 from _report import SHARED, print_rows, report_header, write_report
 from edgerecon.io.dataset import open_dataset
 from edgerecon.io.ply import read_ply
-from edgerecon.pipeline import reconstruct, reconstruct_task, warm_up
+from edgerecon.pipeline import SPARSE_SCOPES, reconstruct, reconstruct_task, warm_up
 from edgerecon.quality import evaluate_clouds
 from edgerecon.quality.metrics import evaluate_against
 from edgerecon.quality.online import online_offline_correlation
@@ -121,7 +121,7 @@ def run_deadline(
     out: Path,
     golden_fg: dict[int, PointCloud],
     original_s: float,
-    sparse_scope: str = "foreground",
+    sparse_scope: str = "hull",
 ) -> dict[str, Any]:
     ds = open_dataset(root)
     dist = median_camera_distance(ds.rig)
@@ -239,9 +239,10 @@ def main() -> None:
     ap.add_argument("--work", default="/tmp/edgerecon-bench", help="synthetic scenes and runs")
     ap.add_argument(
         "--sparse-scope",
-        default="foreground",
-        choices=("foreground", "scene"),
-        help="SfM of the foreground only (default) or of the whole frames (the paper)",
+        default="hull",
+        choices=SPARSE_SCOPES,
+        help="SfM of the foreground on golden-configuration tasks only (hull, default), on "
+        "every task (foreground) or of the whole frames (scene, the paper)",
     )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()

@@ -7,11 +7,11 @@ import pytest
 
 from edgerecon.config import ReconstructionConfig
 from edgerecon.io.dataset import open_dataset
-from edgerecon.pipeline import reconstruct, reconstruct_task
+from edgerecon.pipeline import SplitPipelineConfig, reconstruct, reconstruct_task
 from edgerecon.quality import evaluate_clouds
 from edgerecon.scene.foreground import RigForeground
 from edgerecon.synth import GroundTruth
-from edgerecon.types import BACKGROUND_LABEL, DataError, FrameSet
+from edgerecon.types import BACKGROUND_LABEL, DataError, FrameSet, PointCloud
 from tests.conftest import shared_data
 
 
@@ -93,6 +93,37 @@ def test_split_pipeline_labels_foreground_and_background(tiny, tiny_dataset):
     assert "inferred" in merged.attributes
     flagged = result.foreground.cloud.num_inferred + result.background.num_inferred
     assert s["num_inferred_points"] == merged.num_inferred <= flagged
+
+
+def test_hull_scope_skips_sfm_with_the_same_foreground(tiny, tiny_dataset):
+    ds, frames, _ = tiny
+    with ds.open_background() as bg:
+        model = RigForeground.learn_from_framesets(ds.rig, bg.iter_frames())
+    fg = model.segment(frames)
+    assert fg.hull is not None and fg.hull.num_voxels > 0
+    background = PointCloud.empty()
+    with_sfm = reconstruct_task(frames, ds.rig, fg, background=background)
+    hull = reconstruct_task(frames, ds.rig, fg, background=background, sparse_scope="hull")
+    assert with_sfm.sparse.num_points > 0 and "sfm" in with_sfm.timings.to_dict()
+    # No SfM: the hull bounds the depth search, the sources are chosen from rays through the
+    # masks; with these 4 cameras every other view is a source either way.
+    assert hull.sparse.num_points == 0 and "sfm" not in hull.timings.to_dict()
+    assert "prepare" in hull.timings.to_dict()
+    assert len(hull.foreground.cloud) == len(with_sfm.foreground.cloud) > 300
+    np.testing.assert_array_equal(
+        hull.foreground.cloud.points3D, with_sfm.foreground.cloud.points3D
+    )
+    assert hull.summary()["num_sparse_points"] == 0
+    # Without hull bounds the task needs its sparse points (depth ranges): SfM runs.
+    no_hull = reconstruct_task(
+        frames,
+        ds.rig,
+        fg,
+        background=background,
+        split_config=SplitPipelineConfig(use_hull_ranges=False),
+        sparse_scope="hull",
+    )
+    assert no_hull.sparse.num_points > 0 and "sfm" in no_hull.timings.to_dict()
 
 
 def test_split_pipeline_with_empty_foreground(tiny):

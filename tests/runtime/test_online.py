@@ -47,17 +47,24 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
 
 def test_sfm_of_the_foreground_or_of_the_whole_scene(tiny, tmp_path):
     ds, scene = tiny
-    opts = SessionOptions(frames=FrameRange(start=2, stop=3))
+    opts = SessionOptions(frames=FrameRange(start=2, stop=4))
     runs = {}
-    for scope in ("foreground", "scene"):
+    for scope in ("foreground", "scene", "hull"):
         config = runtime_config(sparse_scope=scope, background_updates=False)
-        runs[scope] = run_online(ds, config, opts, tmp_path / scope, scene=scene)[1][0]
-    fg, whole = runs["foreground"], runs["scene"]
+        runs[scope] = run_online(ds, config, opts, tmp_path / scope, scene=scene)[1]
+    fg, whole = runs["foreground"][0], runs["scene"][0]
     # The paper's order reconstructs the whole scene and splits it; ours only the foreground
     # (nearly all of its points are foreground), with the same foreground cloud after it.
     assert whole.num_sparse > 2 * fg.num_sparse
     assert fg.num_sparse_fg >= 0.5 * fg.num_sparse
     assert fg.num_fg_points > 0 and whole.num_fg_points > 0
+    # "hull" (the default): SfM on the golden task (pi(N') from its visibility), none on the
+    # next, whose depth search the hull bounds; the objects are counted all the same.
+    golden, task = runs["hull"]
+    assert golden.phase == "golden" and golden.num_sparse > 0 and "sfm" in golden.stages
+    assert task.phase != "golden" and task.num_sparse == 0 and "sfm" not in task.stages
+    assert task.num_fg_points > 0 and task.num_objects >= 1
+    assert runtime_config().sparse_scope == "hull"
     with pytest.raises(ValueError, match="sparse_scope"):
         runtime_config(sparse_scope="everything")
 

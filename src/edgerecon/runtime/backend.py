@@ -240,7 +240,7 @@ class BackEnd:
         t1 = time.perf_counter()
         golden = ReconstructionConfig(sparse_config=self.config.sparse)
         views = prepare_task_views(frames, self.rig, golden)
-        if self.config.sparse_scope == "foreground":  # as the front-end's SfM
+        if self.config.sparse_scope != "scene":  # as the front-end's SfM
             views = foreground_views(
                 views, self.rig, fg.masks, self.config.split.fg_mask_dilation_px
             )

@@ -381,7 +381,7 @@ class FrontEnd:
             background=background,
             bg_version=bg_version.counter,
             split_config=self.config.split,
-            sparse_scope=self.config.sparse_scope,
+            sparse_scope=self._sparse_scope(plan.phase, want_golden),
             cancel=guard.cancel,
         )
         critical = time.perf_counter() - start
@@ -440,8 +440,17 @@ class FrontEnd:
             frame_defects=defects,
             num_sparse=result.sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
-            num_objects=num_objects(labels),
+            num_objects=max(num_objects(labels), _cloud_objects(fg_rec.cloud)),
         )
+
+    def _sparse_scope(self, phase: str, want_golden: bool) -> str:
+        """The task's ``sparse_scope``: "hull" skips SfM on the critical path, except on a
+        golden-configuration task (pi(N') is built from its sparse visibility) and when the
+        online estimate is the paper's (it compares foreground sparse clouds)."""
+        scope = self.config.sparse_scope
+        if scope == "hull" and (want_golden or phase == "golden"):
+            return "foreground"
+        return scope
 
     def _empty(self, job: _Job, defects: dict[str, str]) -> TaskOutput:
         """A task whose frames are unusable: no foreground, the background alone."""
@@ -511,3 +520,8 @@ class FrontEnd:
             time_index,
             len(vis),
         )
+
+
+def _cloud_objects(cloud: PointCloud) -> int:
+    """Objects among a foreground cloud's labels (a task without SfM has no sparse labels)."""
+    return 0 if cloud.labels is None else num_objects(cloud.labels)
