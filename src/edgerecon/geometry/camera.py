@@ -376,10 +376,14 @@ def _distort(
     xn: NDArray[np.float64], yn: NDArray[np.float64], dist: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     k1, k2, p1, p2, k3 = dist
-    r2 = xn * xn + yn * yn
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
-    yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+    # Points near the camera's plane (a hull voxel beside a camera) have huge normalised
+    # coordinates: their polynomial overflows to inf / nan, pixels no image holds, which
+    # callers drop like any other pixel outside the image.
+    with np.errstate(over="ignore", invalid="ignore"):
+        r2 = xn * xn + yn * yn
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
     return xd, yd
 
 
