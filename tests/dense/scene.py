@@ -96,14 +96,15 @@ def render(camera: Camera, rects: Sequence[Rect]) -> tuple[NDArray[np.uint8], ND
     for rect in rects:
         n = np.cross(rect.u, rect.v)
         denom = dirs @ n
+        # Rays parallel to the plane meet it nowhere (inf / nan): never a hit.
         with np.errstate(divide="ignore", invalid="ignore"):
             lam = ((rect.origin - C) @ n) / denom
-        P = C + dirs * lam[:, None]
-        rel = P - rect.origin
-        # Solve rel = s u + t v in the least-squares sense (u, v orthogonal here).
-        s = rel @ rect.u / (rect.u @ rect.u)
-        t = rel @ rect.v / (rect.v @ rect.v)
-        hit = (lam > 1e-6) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (lam < best)
+            P = C + dirs * lam[:, None]
+            rel = P - rect.origin
+            # Solve rel = s u + t v in the least-squares sense (u, v orthogonal here).
+            s = rel @ rect.u / (rect.u @ rect.u)
+            t = rel @ rect.v / (rect.v @ rect.v)
+            hit = (lam > 1e-6) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1) & (lam < best)
         if not hit.any():
             continue
         th, tw = rect.texture.shape[:2]
