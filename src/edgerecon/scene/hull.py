@@ -343,19 +343,21 @@ def _project_voxels(
     xc = A[0, 0] * i + A[0, 1] * j + A[0, 2] * k + b[0]
     yc = A[1, 0] * i + A[1, 1] * j + A[1, 2] * k + b[1]
     zc = A[2, 0] * i + A[2, 1] * j + A[2, 2] * k + b[2]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # Voxels in the camera's plane (zc = 0, beside a camera) get non-finite pixels, which no
+    # image holds: the callers drop them with the voxels behind the camera.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         xn = xc / zc
         yn = yc / zc
-    if cam.has_distortion:
-        k1, k2, p1, p2, k3 = (np.float32(x) for x in cam.dist)
-        r2 = xn * xn + yn * yn
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
-        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
-        xn, yn = xd, yd
-    K = cam.K.astype(np.float32)
-    u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
-    v = K[1, 1] * yn + K[1, 2]
+        if cam.has_distortion:
+            k1, k2, p1, p2, k3 = (np.float32(x) for x in cam.dist)
+            r2 = xn * xn + yn * yn
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+            yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+            xn, yn = xd, yd
+        K = cam.K.astype(np.float32)
+        u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
+        v = K[1, 1] * yn + K[1, 2]
     return u, v, zc
 
 
