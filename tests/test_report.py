@@ -73,3 +73,15 @@ def test_background_versions_with_back_end_epochs_plot_in_order(tmp_path):
     ax = figure("background", runs).axes[0]
     assert list(ax.lines[0].get_ydata()) == [0, 0, 1, 2]
     assert [t.get_text() for t in ax.get_yticklabels()] == ["v0.0", "v0.1", "v1.1"]
+
+
+def test_summary_names_the_distance_of_the_ground_truth_fscore(tmp_path):
+    import json
+
+    run = write_run(tmp_path / "run", num_tasks=2)
+    rows = dict(summary_rows(load_runs([run])[0]))
+    assert "avg. F-score of FG (vs ground truth)" in rows  # no ground truth: no distance
+    summary = {"tasks": 2, "avg_offline_fscore": 0.5, "offline_threshold": 0.0173, "unit": "m"}
+    (run / "summary.json").write_text(json.dumps(summary))
+    rows = dict(summary_rows(load_runs([run])[0]))
+    assert rows["avg. F-score of FG (vs ground truth, d = 0.0173 m)"] == "0.500"

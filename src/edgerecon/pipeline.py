@@ -484,29 +484,26 @@ def reconstruct_task(
         if cancel is not None and cancel.is_set():
             raise TaskCancelled(f"time {frames.time_index}: cancelled before {stage}")
 
-    def sfm(masks: Sequence[Mask | None] | None) -> tuple[list[View], SparseReconstruction]:
-        with timings.stage("prepare"):
-            views = prepare_task_views(frames, rig, config)
+    def sfm(views: list[View], masks: Sequence[Mask | None] | None) -> SparseReconstruction:
         with timings.stage("sfm"):
             sfm_views = (
                 views
                 if masks is None
                 else foreground_views(views, rig, masks, split_config.fg_mask_dilation_px)
             )
-            return views, reconstruct_sparse(sfm_views, config.sparse_config)
+            return reconstruct_sparse(sfm_views, config.sparse_config)
 
+    with timings.stage("prepare"):
+        views = prepare_task_views(frames, rig, config)
     if sparse_scope == "scene":
-        views, sparse = sfm(None)
+        sparse = sfm(views, None)
         checkpoint("the masks")
     fg = foreground if isinstance(foreground, ForegroundResult) else foreground(timings)
     if sparse_scope == "hull" and bounding_hull(fg, split_config) is not None:
-        checkpoint("the views")
-        with timings.stage("prepare"):
-            views = prepare_task_views(frames, rig, config)
         sparse = SparseReconstruction.empty(tuple(v.camera_id for v in views))
     elif sparse_scope != "scene":
         checkpoint("sfm")
-        views, sparse = sfm(fg.masks)
+        sparse = sfm(views, fg.masks)
     checkpoint("the foreground")
     fg_rec = reconstruct_foreground(views, rig, sparse, fg, config.dense_config, split_config)
     timings.merge(fg_rec.timings)

@@ -35,6 +35,7 @@ import numpy as np
 
 from edgerecon.io.ply import atomic_write_bytes
 from edgerecon.runtime.messages import TaskMetrics
+from edgerecon.runtime.session import offline_fscore_label
 from edgerecon.types import EdgereconError
 from edgerecon.viewer.rundir import read_run
 
@@ -292,7 +293,10 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
             f"{misses} / {s.get('deadline_misses_converged', '-')}",
         ),
         ("avg. F-score of FG (online)", fmt(s.get("avg_online_fscore"))),
-        ("avg. F-score of FG (vs ground truth)", fmt(s.get("avg_offline_fscore"))),
+        (
+            offline_fscore_label(s.get("offline_threshold"), s.get("unit") or ""),
+            fmt(s.get("avg_offline_fscore")),
+        ),
         ("# backgrounds pushed", str(s.get("backgrounds_pushed"))),
         ("# configuration search steps", str(s.get("search_steps"))),
         (

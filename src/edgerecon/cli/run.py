@@ -26,7 +26,7 @@ from edgerecon.pipeline import SPARSE_SCOPES
 from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetrics
 from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.online import run_online
-from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted
+from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted, offline_fscore_label
 
 #: Exit codes of ``run`` (and ``demo``), documented in the README and ``run --help``.
 EXIT_OK = 0
@@ -243,12 +243,7 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("avg. time after convergence (s)", f(s.avg_time_converged_s, ".2f")),
         ("deadline misses after convergence", s.deadline_misses_converged),
         ("avg. F-score of FG (online)", f(s.avg_online_fscore)),
-        (
-            "avg. F-score of FG (vs ground truth"
-            + ("" if s.offline_threshold is None else f", d = {s.offline_threshold:.3g} {s.unit}")
-            + ")",
-            f(s.avg_offline_fscore),
-        ),
+        (offline_fscore_label(s.offline_threshold, s.unit), f(s.avg_offline_fscore)),
         ("# backgrounds pushed", s.backgrounds_pushed),
         ("# configuration search steps", s.search_steps),
         ("tasks / failed / degraded / empty", f"{s.tasks} / {s.failed} / {s.degraded} / {s.empty}"),

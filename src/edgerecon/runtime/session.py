@@ -140,6 +140,12 @@ class SessionOptions:
 FAULT_KINDS = ("stall", "crash", "kill")
 
 
+def offline_fscore_label(threshold: float | None, unit: str = "") -> str:
+    """The summary row's name for ``RunSummary.avg_offline_fscore`` (with its distance)."""
+    at = "" if threshold is None else f", d = {threshold:.3g} {unit}".rstrip()
+    return f"avg. F-score of FG (vs ground truth{at})"
+
+
 @dataclass
 class RunSummary:
     """The run's aggregate (the shape of the paper's Table III, plus robustness counts)."""
