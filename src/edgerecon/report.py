@@ -161,6 +161,9 @@ def plot_configuration(ax_r: Axes, ax_n: Axes, runs: Sequence[RunData]) -> None:
     from matplotlib.ticker import MaxNLocator
 
     ax_n.yaxis.set_major_locator(MaxNLocator(integer=True))
+    counts = [m.num_cameras for run in runs for m in run.ok]
+    if counts:  # a constant N' would get ticks at fractions of a camera
+        ax_n.set_ylim(min(counts) - 1, max(counts) + 1)
     title = "configuration per task"
     if len(runs) == 1:
         title += " (grey: golden, orange: search, green: adjust)"
