@@ -477,6 +477,11 @@ def main() -> None:
     ap.add_argument("--max-missing", type=int, default=0, help="hull: cameras allowed to disagree")
     ap.add_argument("--no-hull", action="store_true", help="no hull consistency")
     ap.add_argument("--no-hull-fill", action="store_true", help="no hole filling from the hull")
+    ap.add_argument(
+        "--no-hull-rescue",
+        action="store_true",
+        help="no objects brought back from one camera's veto",
+    )
     ap.add_argument("--threshold-sigma", type=float, default=None)
     ap.add_argument("--min-abs-diff", type=float, default=None)
     ap.add_argument(
@@ -508,6 +513,7 @@ def main() -> None:
         hull=HullConfig(max_missing=args.max_missing),
         hull_consistency=not args.no_hull,
         hull_fill=not args.no_hull_fill,
+        hull_rescue=not args.no_hull_rescue,
     )
     results: list[dict[str, Any]] = []
     if args.utrecht:

@@ -16,6 +16,7 @@ from edgerecon.scene.hull import (
     hull_consistent_masks,
     hull_depth_range,
     hull_filled_masks,
+    hull_rescued,
     hull_silhouette,
     rig_region,
     visual_hull,
@@ -274,3 +275,59 @@ def test_a_hole_in_one_camera_is_filled_from_the_others(rig: Rig, box_hull) -> N
     exact3 = visual_hull(rig.cameras, three, cfg)
     same = hull_filled_masks(exact3, rig.cameras, three, three, cfg)
     assert np.array_equal(same[1], holed[1])
+
+
+def test_an_object_one_unsettled_camera_carved_away_comes_back(rig: Rig) -> None:
+    lo2, hi2 = LO + np.array([1.2, 0.8, 0.0]), HI + np.array([1.2, 0.8, -0.4])
+    box1 = [box_silhouette(c, LO, HI) for c in rig]
+    box2 = [box_silhouette(c, lo2, hi2) for c in rig]
+    model = [a | b for a, b in zip(box1, box2, strict=True)]
+    model[0] = box1[0].copy()  # camera 0's model learned box 2 while it stood there
+    unsettled = [np.zeros_like(m) for m in model]
+    unsettled[0] = cv2.dilate(box2[0].view(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    cfg = HullConfig(voxel_size=0.03)
+    exact = visual_hull(rig.cameras, model, cfg)
+    assert exact.num_objects == 1
+    consistent = hull_consistent_masks(exact, rig.cameras, model)
+    # ... and the hull consistency removes most of box 2 from the other cameras' masks.
+    kept = sum(int(c[b].sum()) for c, b in zip(consistent[1:], box2[1:], strict=True))
+    assert kept < 0.2 * sum(int(b.sum()) for b in box2[1:])
+
+    hull, masks, rescue = hull_rescued(exact, rig.cameras, consistent, model, unsettled, cfg)
+    assert rescue.objects == 1 and rescue.dissenters == (0,)
+    assert hull.num_objects == 2
+    assert hull.label_points(np.array([(lo2 + hi2) / 2, (LO + HI) / 2])).min() > 0
+    # The exact hull's own voxels are all still there.
+    assert hull.contains(exact.centers).all()
+    for c in range(1, len(rig)):
+        assert masks[c][box2[c]].mean() > 0.95
+        assert not (masks[c] & ~model[c]).any()  # only the models' own pixels come back
+    assert np.array_equal(masks[0], consistent[0])
+
+    def unchanged(*args, **kwargs):  # type: ignore[no-untyped-def]
+        h, m, r = hull_rescued(*args, **kwargs)
+        return (
+            h is exact
+            and all(np.array_equal(a, b) for a, b in zip(m, consistent, strict=True))
+            and r.objects == 0
+        )
+
+    # Where camera 0's model is settled, its veto stands.
+    settled = [np.zeros_like(m) for m in model]
+    assert unchanged(exact, rig.cameras, consistent, model, settled, cfg)
+    # Two cameras against the object: not brought back.
+    two = list(model)
+    two[3] = box1[3].copy()
+    exact2 = visual_hull(rig.cameras, two, cfg)
+    consistent2 = hull_consistent_masks(exact2, rig.cameras, two)
+    both = list(unsettled)
+    both[3] = cv2.dilate(box2[3].view(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    _, _, r2 = hull_rescued(exact2, rig.cameras, consistent2, two, both, cfg)
+    assert r2.objects == 0
+    # A hull that already tolerates a camera, or fewer than 4 cameras with a mask: nothing.
+    tolerant = dataclasses.replace(cfg, max_missing=1)
+    assert unchanged(exact, rig.cameras, consistent, model, unsettled, tolerant)
+    three = [m if i < 3 else None for i, m in enumerate(model)]
+    three_c = [m if i < 3 else None for i, m in enumerate(consistent)]
+    h3, _, r3 = hull_rescued(exact, rig.cameras, three_c, three, unsettled, cfg)
+    assert h3 is exact and r3.objects == 0

@@ -40,6 +40,7 @@ from edgerecon.scene.hull import (
     VisualHull,
     hull_consistent_masks,
     hull_filled_masks,
+    hull_rescued,
     silhouette_distances,
     visual_hull,
 )
@@ -69,6 +70,10 @@ class ForegroundConfig:
     outline (``hull.hull_filled_masks``): a still actor's parts that match the background
     model in one camera come back from the others (hd4: foreground recall of the moving and
     still actors 0.82 -> 0.94; see docs/BENCHMARKS.md)."""
+    hull_rescue: bool = True
+    """With 4 or more cameras, bring back an object that all cameras but one see and that the
+    one carves away where its model is unsettled (``hull.hull_rescued``): an actor whom one
+    camera's model learned while it stood there during the bootstrap."""
     hull_fill_close_px: int = 15
     """The outline a filled pixel must lie in: the mask closed by a disc of this diameter
     (working pixels), holes filled."""
@@ -295,6 +300,18 @@ class RigForeground:
                     None if m is None else (m if c is None else m & c)
                     for m, c in zip(model_masks, masks, strict=True)
                 ]
+            if cfg.hull_rescue:
+                with timings.stage("hull_rescue"):
+                    hull, masks, _ = hull_rescued(
+                        hull,
+                        list(cams),
+                        masks,
+                        list(model_masks),
+                        [m.unsettled for m in self.models],
+                        cfg.hull,
+                        occluders=occ,
+                        distances=dists,
+                    )
             if cfg.hull_fill:
                 with timings.stage("hull_fill"):
                     masks = hull_filled_masks(

@@ -490,6 +490,17 @@ def _empty_neighbours(idx: NDArray[np.int64]) -> NDArray[np.bool_]:
     return out
 
 
+def _surface_normals(idx: NDArray[np.int64]) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
+    """Per voxel (``idx`` sorted by key): whether it has an empty 6-neighbour, and its outward
+    unit normal (the sum of the directions towards empty neighbours; zero inside)."""
+    empty_nb = _empty_neighbours(idx)
+    surface = np.any(empty_nb, axis=1)
+    outward = empty_nb.astype(np.float64) @ _NEIGHBOURS6.astype(np.float64)
+    norm = np.linalg.norm(outward, axis=1, keepdims=True)
+    normals = np.where(norm > 0, outward / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    return surface, normals
+
+
 def visual_hull(
     cameras: Sequence[Camera],
     masks: Sequence[Mask | None],
@@ -604,12 +615,7 @@ def visual_hull(
 
     with timings.stage("hull_topology"):
         idx = idx[np.argsort(_pack(idx), kind="stable")]
-        empty_nb = _empty_neighbours(idx)
-        surface = np.any(empty_nb, axis=1)
-        # Outward normal: the sum of the directions towards empty neighbours.
-        outward = empty_nb.astype(np.float64) @ _NEIGHBOURS6.astype(np.float64)
-        norm = np.linalg.norm(outward, axis=1, keepdims=True)
-        normals = np.where(norm > 0, outward / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+        surface, normals = _surface_normals(idx)
         gap = (
             config.object_gap
             if config.object_gap is not None
@@ -1216,3 +1222,193 @@ def _coarse_silhouette(hull: VisualHull, camera: Camera, max_radius_px: float = 
         small.view(np.uint8), (camera.width, camera.height), interpolation=cv2.INTER_NEAREST
     )
     return np.asarray(big, bool)
+
+
+#: The tolerant hull of ``hull_rescued`` is carved with voxels 2^_RESCUE_LEVELS times the
+#: exact hull's: it only has to tell objects apart and count the cameras that see them.
+_RESCUE_LEVELS = 1
+_RESCUE_COARSEN = 1 << _RESCUE_LEVELS
+
+
+@dataclass(frozen=True, kw_only=True)
+class Rescue:
+    """What ``hull_rescued`` brought back."""
+
+    objects: int = 0
+    """Objects of the tolerant hull added to the hull."""
+    voxels: int = 0
+    """Finest voxels they added."""
+    dissenters: tuple[int, ...] = ()
+    """Per rescued object, the camera whose mask had carved it away."""
+
+
+def hull_rescued(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    model_masks: Sequence[Mask | None],
+    unsettled: Sequence[Mask | None],
+    config: HullConfig,
+    *,
+    occluders: Sequence[DepthMap | None] | None = None,
+    distances: SilhouetteDistances | None = None,
+    min_lost_fraction: float = 0.002,
+    min_support: float = 0.8,
+    min_unsettled: float = 0.5,
+) -> tuple[VisualHull, list[Mask | None], Rescue]:
+    """The hull and masks with the objects back that one camera's uncertain model carved away.
+
+    A background model learned from the stream may hold an actor who stood in one camera's
+    view while it learned: that camera then cannot see the actor, its mask carves the actor
+    out of the exact hull, and ``hull_consistent_masks`` removes the actor from every other
+    camera's mask too (6-camera hd4 rig: one actor lost in 16 of 100 tasks). Here a tolerant
+    hull (one camera may disagree, at least 3 agree; voxels twice the exact hull's, no
+    phantom removal) is carved from ``model_masks``; each of its objects that holds no
+    exact-hull voxel is brought back when
+
+    * every camera that sees it but one puts at least ``min_support`` of its voxels in its
+      mask (at least 3 cameras), and
+    * the one camera that carves it does so mostly (``min_unsettled`` of the voxels it puts
+      outside its mask) at its model's ``unsettled`` pixels: where something moved while the
+      model learned, so the model may hold the object.
+
+    A rescued object joins the hull (new object ids, by decreasing size with the others) and
+    gives back, in every camera, the pixels of its model mask that its projection covers. The
+    tolerant hull is only carved when at least two cameras lost ``min_lost_fraction`` of their
+    pixels to the hull consistency (``model_masks`` against ``masks``), never with a hull that
+    is already tolerant (``config.max_missing`` > 0) or fewer than 4 cameras with a mask. A
+    phantom of the tolerant hull would need the one camera that carves it to be unsettled
+    there as well; the exact hull's own objects are never changed.
+    """
+    cams = list(cameras)
+    _check_masks(cams, masks)
+    _check_masks(cams, model_masks)
+    _check_masks(cams, unsettled, "unsettled map")
+    out = [None if m is None else np.asarray(m, bool) for m in masks]
+    nothing = (hull, out, Rescue())
+    if config.max_missing > 0 or sum(m is not None for m in model_masks) < 4:
+        return nothing
+    if not any(u is not None and bool(np.any(u)) for u in unsettled):
+        return nothing
+    losing = 0
+    for m, mm, cam in zip(out, model_masks, cams, strict=True):
+        if m is not None and mm is not None:
+            lost = int(np.count_nonzero(np.asarray(mm, bool) & ~m))
+            losing += lost >= min_lost_fraction * cam.width * cam.height
+    if losing < 2:
+        return nothing
+    tolerant_cfg = dataclasses.replace(
+        config,
+        max_missing=1,
+        min_views=max(config.min_views, 3),  # what a rescue needs; fewer merge phantoms in
+        remove_phantoms=False,  # a phantom has no camera that carves it at unsettled pixels
+        voxel_size=_RESCUE_COARSEN * hull.voxel_size,
+        max_voxels=config.max_voxels // _RESCUE_COARSEN**3,
+    )
+    tolerant = visual_hull(
+        cams, model_masks, tolerant_cfg, occluders=occluders, distances=distances
+    )
+    if tolerant.num_voxels == 0:
+        return nothing
+    in_exact = hull.contains(tolerant.centers)
+    dists = silhouette_distances(model_masks) if distances is None else list(distances)
+    walls = _occluder_maps(occluders, len(cams))
+    half_diag = 0.5 * np.sqrt(3.0) * tolerant.voxel_size
+    tol = config.tolerance_px + 0.71
+    rescued: list[int] = []
+    dissenters: list[int] = []
+    for k in range(1, tolerant.num_objects + 1):
+        sel = tolerant.labels == k
+        pts = tolerant.centers[sel]
+        support: list[tuple[int, float, float]] = []  # (camera, share in mask, share unsettled)
+        for c, (cam, dist, wall, unset) in enumerate(
+            zip(cams, dists, walls, unsettled, strict=True)
+        ):
+            if dist is None:
+                continue
+            uv, depth = cam.project(pts)
+            vis = (depth > half_diag) & cam.in_image(uv)
+            u = np.clip(np.rint(np.where(vis, uv[:, 0], 0)), 0, cam.width - 1).astype(np.intp)
+            v = np.clip(np.rint(np.where(vis, uv[:, 1], 0)), 0, cam.height - 1).astype(np.intp)
+            if wall is not None:
+                vis &= ~(depth - half_diag > wall[v, u])
+            if vis.sum() < 0.5 * len(pts):
+                continue  # this camera does not see the object
+            u, v = u[vis], v[vis]
+            radius = half_diag * cam.focal_px * _FOOTPRINT_SLACK / depth[vis]
+            inside = dist[0][v, u] <= radius + tol
+            outside = ~inside
+            unsure = (
+                float(np.asarray(unset, bool)[v[outside], u[outside]].mean())
+                if unset is not None and outside.any()
+                else 0.0
+            )
+            support.append((c, float(inside.mean()), unsure))
+        against = [s for s in support if s[1] < min_support]
+        logger.debug(
+            "rescue: tolerant object %d (%d voxels, %.2f in exact): %s",
+            k,
+            len(pts),
+            float(in_exact[sel].mean()),
+            [(c, round(a, 2), round(b, 2)) for c, a, b in support],
+        )
+        if in_exact[sel].any():
+            continue  # the exact hull has this object (the fill's business)
+        if len(against) != 1 or len(support) - 1 < 3:
+            continue
+        c, _, unsure = against[0]
+        if unsure < min_unsettled:
+            continue
+        rescued.append(k)
+        dissenters.append(c)
+    if not rescued:
+        return nothing
+    # The rescued objects' voxels on the exact hull's (finer) grid.
+    sel = np.isin(tolerant.labels, rescued)
+    corners = tolerant.origin + tolerant.indices[sel] * tolerant.voxel_size
+    offsets = (_expand(np.zeros((1, 3), np.int64), _RESCUE_LEVELS) + 0.5) * hull.voxel_size
+    children = (corners[:, None, :] + offsets[None]).reshape(-1, 3)
+    new_idx = np.floor((children - hull.origin) / hull.voxel_size).astype(np.int64)
+    new_lab = np.repeat(tolerant.labels[sel], len(offsets))
+    _, first = np.unique(_pack(new_idx), return_index=True)
+    keep = (
+        _lookup(_pack(hull.indices), new_idx[first]) < 0
+        if hull.num_voxels
+        else np.ones(len(first), bool)
+    )
+    new_idx, new_lab = new_idx[first[keep]], new_lab[first[keep]]
+    lut = {k: hull.num_objects + 1 + i for i, k in enumerate(rescued)}
+    new_lab = np.array([lut[int(x)] for x in new_lab], np.int32)
+    idx = np.concatenate([hull.indices, new_idx])
+    labels = np.concatenate([hull.labels, new_lab])
+    order = np.argsort(_pack(idx), kind="stable")
+    idx, labels = idx[order], labels[order]
+    surface, normals = _surface_normals(idx)
+    merged = dataclasses.replace(
+        hull,
+        indices=idx,
+        labels=labels,
+        surface=surface,
+        normals=normals,
+        status="ok" if hull.status == "empty" else hull.status,
+    )
+    merged = _without_objects(merged, [])  # renumber by decreasing size
+    added = dataclasses.replace(
+        tolerant, surface=tolerant.surface & sel, labels=np.where(sel, 1, 0).astype(np.int32)
+    )
+    for c, cam in enumerate(cams):
+        mask, model = out[c], model_masks[c]
+        if mask is not None and model is not None:
+            out[c] = mask | (np.asarray(model, bool) & _coarse_silhouette(added, cam))
+    logger.info(
+        "visual hull: %d object(s) carved away by one camera's unsettled model brought back "
+        "(cameras %s, %d voxels)",
+        len(rescued),
+        dissenters,
+        len(new_idx),
+    )
+    return (
+        merged,
+        out,
+        Rescue(objects=len(rescued), voxels=len(new_idx), dissenters=tuple(dissenters)),
+    )
