@@ -1319,6 +1319,8 @@ def hull_rescued(
     dissenters: list[int] = []
     for k in range(1, tolerant.num_objects + 1):
         sel = tolerant.labels == k
+        if in_exact[sel].any():
+            continue  # the exact hull has this object (the fill's business)
         pts = tolerant.centers[sel]
         support: list[tuple[int, float, float]] = []  # (camera, share in mask, share unsettled)
         for c, (cam, dist, wall, unset) in enumerate(
@@ -1346,14 +1348,11 @@ def hull_rescued(
             support.append((c, float(inside.mean()), unsure))
         against = [s for s in support if s[1] < min_support]
         logger.debug(
-            "rescue: tolerant object %d (%d voxels, %.2f in exact): %s",
+            "rescue: tolerant object %d (%d voxels), (camera, in mask, unsettled): %s",
             k,
             len(pts),
-            float(in_exact[sel].mean()),
             [(c, round(a, 2), round(b, 2)) for c, a, b in support],
         )
-        if in_exact[sel].any():
-            continue  # the exact hull has this object (the fill's business)
         if len(against) != 1 or len(support) - 1 < 3:
             continue
         c, _, unsure = against[0]
@@ -1377,8 +1376,9 @@ def hull_rescued(
         else np.ones(len(first), bool)
     )
     new_idx, new_lab = new_idx[first[keep]], new_lab[first[keep]]
-    lut = {k: hull.num_objects + 1 + i for i, k in enumerate(rescued)}
-    new_lab = np.array([lut[int(x)] for x in new_lab], np.int32)
+    lut = np.zeros(tolerant.num_objects + 1, np.int32)
+    lut[rescued] = hull.num_objects + 1 + np.arange(len(rescued))
+    new_lab = lut[new_lab]
     idx = np.concatenate([hull.indices, new_idx])
     labels = np.concatenate([hull.labels, new_lab])
     order = np.argsort(_pack(idx), kind="stable")
@@ -1400,7 +1400,7 @@ def hull_rescued(
         mask, model = out[c], model_masks[c]
         if mask is not None and model is not None:
             out[c] = mask | (np.asarray(model, bool) & _coarse_silhouette(added, cam))
-    logger.info(
+    logger.debug(
         "visual hull: %d object(s) carved away by one camera's unsettled model brought back "
         "(cameras %s, %d voxels)",
         len(rescued),
