@@ -33,7 +33,14 @@ from edgerecon.scene.stream import bootstrap_indices
 from edgerecon.synth import Renderer, build_scene, preset_config
 from edgerecon.types import FrameSet
 
-STAGES = ("background_subtraction", "visual_hull", "hull_consistency", "hull_fill", "objects")
+STAGES = (
+    "background_subtraction",
+    "visual_hull",
+    "hull_consistency",
+    "hull_rescue",
+    "hull_fill",
+    "objects",
+)
 
 
 def measure(

@@ -173,3 +173,22 @@ def test_hull_fill_adds_only_unsettled_pixels_inside_the_masks_outline(scene) ->
             >= score_mask_set(list(b.masks), gts).foreground_iou - 0.01
         )
     assert added > 0
+
+
+def test_hull_rescue_only_gives_back_the_models_own_pixels(scene) -> None:  # type: ignore[no-untyped-def]
+    """With the rescue (default) the masks hold everything they hold without it, and what
+    they gain is foreground of the camera's own model."""
+    sc, _, frames = scene
+    sets = [FrameSet(time_index=f.time_index, images=f.images) for f in frames]
+    on = RigForeground.learn_from_framesets(sc.rig, sets, ForegroundConfig(hull_fill=False))
+    off = RigForeground.learn_from_framesets(
+        sc.rig, sets, ForegroundConfig(hull_fill=False, hull_rescue=False)
+    )
+    for fs in sets:
+        a, b = on.segment(fs), off.segment(fs)
+        assert "hull_rescue" in a.timings.seconds and "hull_rescue" not in b.timings.seconds
+        for m_a, m_b, model in zip(a.masks, b.masks, a.model_masks, strict=True):
+            assert not (m_b & ~m_a).any()
+            assert not (m_a & ~m_b & ~model).any()
+        assert a.hull is not None and b.hull is not None
+        assert a.hull.contains(b.hull.centers).all()
