@@ -316,3 +316,32 @@ def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, mon
     monkeypatch.setattr(session_module, "write_ply", real)
     _, metrics = run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None), resume=True)
     assert [m.time_index for m in metrics] == [0, 1, 2]
+
+
+def test_a_pushed_background_becomes_the_scene_stages_static_scene():
+    """The scene stage checks its ghosts against the newest background only."""
+    from edgerecon.scene.foreground import ForegroundConfig, RigForeground
+    from edgerecon.scene.stream import SceneTracker
+
+    rig = _rig()
+    blank = [[np.full((c.height, c.width, 3), 90, np.uint8)] for c in rig]
+    on = ForegroundConfig(static_check=True)
+    scene = SceneTracker(foreground=RigForeground.learn(rig, blank, on), step=1)
+    fe = FrontEnd(rig, runtime_config(), FixedController(1.0, (0, 1, 2, 3)), scene)
+    assert scene.foreground.static_depth is None
+    # A wall of points in front of the cameras' common target (ring_rig looks at the origin).
+    g = np.linspace(-0.5, 0.5, 60)
+    wall = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    cloud = PointCloud(points3D=wall, colors=np.zeros((len(wall), 3), np.uint8))
+    fe.push_background(BackgroundUpdate(version=BgVersion(1, 1), cloud=cloud, seconds=0))
+    depth = scene.foreground.static_depth
+    assert depth is not None and len(depth) == len(rig)
+    assert all(d is not None and np.isfinite(d).any() for d in depth)
+    # An older version is ignored, and so is its cloud.
+    fe.push_background(BackgroundUpdate(version=BgVersion(1, 0), cloud=_cloud(5), seconds=0))
+    assert scene.foreground.static_depth is depth
+    # With the check off (the default) the front-end does not render it.
+    off = SceneTracker(foreground=RigForeground.learn(rig, blank), step=1)
+    fe = FrontEnd(rig, runtime_config(), FixedController(1.0, (0, 1, 2, 3)), off)
+    fe.push_background(BackgroundUpdate(version=BgVersion(1, 1), cloud=cloud, seconds=0))
+    assert off.foreground.static_depth is None

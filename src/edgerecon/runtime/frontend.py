@@ -205,6 +205,8 @@ class FrontEnd:
             self.backgrounds_received = restored.backgrounds_received
             if background is not None:
                 self._bg_version = self._bg_published = restored.bg_version
+        if background is not None:
+            self._set_static_scene(background)
         self.eval_threshold = config.eval_threshold_for(rig)
 
     # ------------------------------------------------------------------ run state
@@ -230,7 +232,8 @@ class FrontEnd:
         """Take a newer background (older or duplicate versions are ignored). Returns the
         version now held."""
         with self._lock:
-            if update.version > self._bg_version:
+            newer = update.version > self._bg_version
+            if newer:
                 self._background = update.cloud
                 self._bg_version = update.version
                 self.backgrounds_received += 1
@@ -240,7 +243,16 @@ class FrontEnd:
                     update.version,
                     self._bg_version,
                 )
-            return self._bg_version
+            held = self._bg_version
+        if newer:
+            self._set_static_scene(update.cloud)
+        return held
+
+    def _set_static_scene(self, cloud: PointCloud) -> None:
+        """The scene stage checks its ghosts against the newest background (rendered into its
+        working cameras here, off the critical path: the back-end's push)."""
+        if self.scene is not None and self.scene.foreground.config.static_check:
+            self.scene.foreground.set_static_cloud(cloud.points3D)
 
     @property
     def bg_version(self) -> BgVersion:

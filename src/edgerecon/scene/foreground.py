@@ -35,9 +35,11 @@ from edgerecon.scene.background import (
     UpdateStats,
     downscale,
 )
+from edgerecon.scene.ghosts import StaticCheckConfig, static_consistent_masks
 from edgerecon.scene.hull import (
     HullConfig,
     VisualHull,
+    depth_map,
     hull_consistent_masks,
     hull_filled_masks,
     hull_rescued,
@@ -45,7 +47,15 @@ from edgerecon.scene.hull import (
     visual_hull,
 )
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
-from edgerecon.types import DataError, DepthMap, FrameSet, Image, Mask, StageTimings
+from edgerecon.types import (
+    DataError,
+    DepthMap,
+    FrameSet,
+    Image,
+    Mask,
+    Points3D,
+    StageTimings,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -74,6 +84,16 @@ class ForegroundConfig:
     """With 4 or more cameras, bring back an object that all cameras but one see and that the
     one carves away where its model is unsettled (``hull.hull_rescued``): an actor whom one
     camera's model learned while it stood there during the bootstrap."""
+    static_check: bool = False
+    """Given the static scene's depth (``RigForeground.set_static_scene``; ``run`` gives the
+    back-end's newest background), drop the mask pixels that show the static scene as other
+    cameras see it uncovered (``ghosts.static_consistent_masks``): ghosts where an actor
+    stood while a model learned (hd4: moving-actor IoU 0.73 -> 0.78, docs/BENCHMARKS.md).
+    Off by default: a task's masks then also depend on which background the back-end had
+    pushed by then (timing), so a resumed run no longer repeats an uninterrupted one, and
+    ``masks`` / ``reconstruct --split``, without a background, give other masks."""
+    static: StaticCheckConfig = field(default_factory=StaticCheckConfig)
+    """Parameters of that check."""
     hull_fill_close_px: int = 15
     """The outline a filled pixel must lie in: the mask closed by a disc of this diameter
     (working pixels), holes filled."""
@@ -105,6 +125,7 @@ class ForegroundConfig:
             ("background", BackgroundConfig),
             ("objects", ObjectConfig),
             ("hull", HullConfig),
+            ("static", StaticCheckConfig),
         ):
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"ForegroundConfig.{name} must be a {cls.__name__}")
@@ -166,6 +187,7 @@ class RigForeground:
         self.config = config or ForegroundConfig()
         self.models = list(models)
         self.occluders: list[DepthMap | None] | None = None
+        self.static_depth: list[DepthMap | None] | None = None
 
     @classmethod
     def learn(
@@ -246,12 +268,33 @@ class RigForeground:
         """Per camera, the depth map of the static scene at any resolution (e.g.
         ``hull.depth_map`` of the background cloud): the visual hull then knows what each
         camera cannot see. None forgets them."""
-        if depth_maps is not None and len(depth_maps) != len(self.rig):
-            raise DataError(f"{len(depth_maps)} occluder depth maps for {len(self.rig)} cameras")
-        if depth_maps is None:
-            self.occluders = None
+        self.occluders = self._working_depths(depth_maps, "occluder depth maps")
+
+    def set_static_scene(self, depth_maps: Sequence[DepthMap | None] | None) -> None:
+        """Per camera, the depth map of the static scene at any resolution (e.g.
+        ``hull.depth_map`` of the background cloud, NaN where unknown), for the ghost check
+        (``ForegroundConfig.static_check``). None forgets them: the masks are then the
+        models' and the hull's alone."""
+        self.static_depth = self._working_depths(depth_maps, "static depth maps")
+
+    def set_static_cloud(self, points3D: Points3D | None) -> None:
+        """``set_static_scene`` from a point cloud of the static scene (e.g. the back-end's
+        background), rendered into each working camera (``hull.depth_map``); None or no
+        points forgets it."""
+        if points3D is None or len(points3D) == 0:
+            self.static_depth = None
             return
-        self.occluders = [
+        pts = np.asarray(points3D, np.float64)
+        self.static_depth = [depth_map(pts, c) for c in self.working_cameras]
+
+    def _working_depths(
+        self, depth_maps: Sequence[DepthMap | None] | None, what: str
+    ) -> list[DepthMap | None] | None:
+        if depth_maps is None:
+            return None
+        if len(depth_maps) != len(self.rig):
+            raise DataError(f"{len(depth_maps)} {what} for {len(self.rig)} cameras")
+        return [
             None
             if d is None
             else np.asarray(
@@ -325,6 +368,16 @@ class RigForeground:
                         distances=dists,
                         allowed=[m.unsettled for m in self.models],
                     )
+        static = self.static_depth
+        if cfg.static_check and static is not None and any(m is not None for m in masks):
+            with timings.stage("static_check"):
+                masks, _ = static_consistent_masks(
+                    masks,
+                    [None if sg is None else sg.image for sg in segs],
+                    list(cams),
+                    static,
+                    cfg.static,
+                )
         with timings.stage("objects"):
             objects = tuple(None if m is None else find_objects(m, cfg.objects) for m in masks)
         return ForegroundResult(

@@ -1,0 +1,142 @@
+"""Ghosts told from the static scene that other cameras see uncovered.
+
+Without an empty-scene clip a background model learns an actor who stood in its view while it
+learned. Once the actor has moved on, the camera shows the floor or wall that the model never
+saw, and calls it foreground: a *ghost*. Two opposite cameras see such a ghost where the two
+others see the actor along the same lines, so the visual hull cannot carve it (hd4 preset:
+the false foreground left after the hull, moving-actor precision 0.77).
+
+A ghost pixel shows the static scene; a pixel of an actor does not. With a depth map of the
+static scene per camera (the back-end's background cloud rendered into each working camera,
+``RigForeground.set_static_scene``), each foreground pixel's static point is projected into
+the other cameras. Where another camera sees that point itself (its own static depth agrees)
+and has no foreground there now, its colour there is what the point looks like; the pixel is
+called background when more such cameras agree with its colour than disagree. An actor's
+pixel is only called background where the actor has the colour of what stands behind it in
+several views.
+
+hd4 (t = 60 and 120, the back-end's background of that time): 37-41 % of the ghost pixels of
+the two opposite cameras are found, 1-2 % of the actors' pixels (docs/BENCHMARKS.md).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.geometry.camera import Camera
+from edgerecon.types import DataError, DepthMap, Mask
+
+
+@dataclass(frozen=True, kw_only=True)
+class StaticCheckConfig:
+    """Parameters of ``static_consistent_masks``."""
+
+    depth_tol_rel: float = 0.02
+    """Another camera sees the static point itself when its own static depth there is within
+    this share of the point's depth."""
+    max_diff: float = 15.0
+    """Two colours agree when their channels differ by less than this (grey levels) ..."""
+    max_chroma: float = 0.08
+    """... or their chromaticities (B, G, R over their sum) differ by less than this (L1) ..."""
+    max_ratio: float = 1.6
+    """... with brightnesses within this ratio (the cameras' exposures differ)."""
+    blur_px: int = 3
+    """Colours are compared as box means of this size (pixels of the working images)."""
+    min_agree: int = 1
+    """Cameras that must agree (and outnumber those that disagree) to call a pixel background."""
+
+    def __post_init__(self) -> None:
+        if not self.depth_tol_rel > 0:
+            raise ValueError(
+                f"StaticCheckConfig.depth_tol_rel must be > 0, got {self.depth_tol_rel}"
+            )
+        if self.blur_px < 1:
+            raise ValueError(f"StaticCheckConfig.blur_px must be >= 1, got {self.blur_px}")
+        if self.min_agree < 1:
+            raise ValueError(f"StaticCheckConfig.min_agree must be >= 1, got {self.min_agree}")
+
+
+def static_consistent_masks(
+    masks: Sequence[Mask | None],
+    images: Sequence[NDArray[np.floating] | NDArray[np.uint8] | None],
+    cameras: Sequence[Camera],
+    static_depth: Sequence[DepthMap | None],
+    config: StaticCheckConfig | None = None,
+) -> tuple[list[Mask | None], list[int]]:
+    """The masks without the pixels that show the static scene, and per camera how many
+    pixels were removed.
+
+    All inputs are per camera at one resolution (``cameras``): ``images`` BGR (any dtype),
+    ``static_depth`` the static scene's depth along the optical axis (NaN or <= 0 where it
+    is unknown: such pixels are never removed). A camera without an image, a mask or a
+    static depth neither loses pixels nor vouches for others.
+    """
+    config = config or StaticCheckConfig()
+    n = len(cameras)
+    for name, seq in (("masks", masks), ("images", images), ("static depths", static_depth)):
+        if len(seq) != n:
+            raise DataError(f"static check: {len(seq)} {name} for {n} cameras")
+    out = [None if m is None else np.asarray(m, bool) for m in masks]
+    removed = [0] * n
+    k = config.blur_px
+    means: list[NDArray[np.float32] | None] = [
+        None if im is None else np.asarray(cv2.blur(np.asarray(im, np.float32), (k, k)), np.float32)
+        for im in images
+    ]
+    depths = [
+        None
+        if d is None
+        else np.where(np.isfinite(d) & (np.asarray(d) > 0), d, np.nan).astype(np.float32)
+        for d in static_depth
+    ]
+    for c, cam in enumerate(cameras):
+        mask, colour, depth = out[c], means[c], depths[c]
+        if mask is None or colour is None or depth is None:
+            continue
+        ys, xs = np.nonzero(mask & np.isfinite(depth))
+        if len(ys) == 0:
+            continue
+        points = cam.backproject(
+            np.stack([xs, ys], axis=1).astype(np.float64), depth[ys, xs].astype(np.float64)
+        )
+        here = colour[ys, xs]
+        agree = np.zeros(len(ys), np.int32)
+        disagree = np.zeros(len(ys), np.int32)
+        for o, other in enumerate(cameras):
+            o_mask, o_colour, o_depth = masks[o], means[o], depths[o]
+            if o == c or o_mask is None or o_colour is None or o_depth is None:
+                continue
+            uv, d = other.project(points)
+            seen = (d > 0) & other.in_image(uv)
+            safe = np.where(seen[:, None], uv, 0.0)
+            u = np.clip(np.rint(safe[:, 0]), 0, other.width - 1).astype(np.intp)
+            v = np.clip(np.rint(safe[:, 1]), 0, other.height - 1).astype(np.intp)
+            with np.errstate(invalid="ignore"):
+                seen &= np.abs(o_depth[v, u] - d) < config.depth_tol_rel * d
+            seen &= ~np.asarray(o_mask, bool)[v, u]
+            same = _same_colour(here, o_colour[v, u], config)
+            agree += seen & same
+            disagree += seen & ~same
+        static = (agree >= config.min_agree) & (agree > disagree)
+        if static.any():
+            mask = mask.copy()
+            mask[ys[static], xs[static]] = False
+            out[c] = mask
+            removed[c] = int(static.sum())
+    return out, removed
+
+
+def _same_colour(
+    a: NDArray[np.float32], b: NDArray[np.float32], config: StaticCheckConfig
+) -> NDArray[np.bool_]:
+    sa = a.sum(axis=1) + 1.0
+    sb = b.sum(axis=1) + 1.0
+    chroma = np.abs(a / sa[:, None] - b / sb[:, None]).sum(axis=1)
+    ratio = np.maximum(sa / sb, sb / sa)
+    close = np.abs(a - b).max(axis=1) < config.max_diff
+    return np.asarray(close | ((chroma < config.max_chroma) & (ratio < config.max_ratio)))

@@ -1,0 +1,92 @@
+"""Ghosts told from the static scene that other cameras see uncovered."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.geometry import Camera, Rig
+from edgerecon.scene.ghosts import StaticCheckConfig, static_consistent_masks
+from edgerecon.types import DataError
+from tests.scene._scenes import box_silhouette, ring_with_top
+
+LO = np.array([-0.3, -0.2, 0.5])
+HI = np.array([0.3, 0.2, 1.4])
+BOX_BGR = np.array([230.0, 25.0, 235.0])  # unlike any floor colour
+
+
+def _floor_bgr(points: np.ndarray) -> np.ndarray:
+    """A smooth colour field on the floor (z = 0), the same from every camera."""
+    x, y = points[:, 0], points[:, 1]
+    return np.stack(
+        [120 + 70 * np.sin(2.0 * x), 120 + 70 * np.cos(1.5 * y), 90 + 40 * np.sin(x + y)], axis=1
+    )
+
+
+def _view(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image, static depth, box silhouette) of a floor and a floating box."""
+    ys, xs = np.mgrid[0 : cam.height, 0 : cam.width]
+    px = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
+    dirs = cam.pixel_rays(px) @ cam.R  # world directions, parametrised by depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = -cam.center[2] / dirs[:, 2]
+    hit = np.isfinite(depth) & (depth > 0)
+    image = np.full((len(px), 3), 50.0)
+    image[hit] = _floor_bgr(cam.center + dirs[hit] * depth[hit, None])
+    static = np.where(hit, depth, np.nan).reshape(cam.height, cam.width).astype(np.float32)
+    box = box_silhouette(cam, LO, HI)
+    image = image.reshape(cam.height, cam.width, 3)
+    image[box] = BOX_BGR
+    return image.astype(np.float32), static, box
+
+
+@pytest.fixture(scope="module")
+def rig() -> Rig:
+    return ring_with_top(6)
+
+
+def test_a_ghost_on_the_floor_goes_and_the_actor_stays(rig: Rig) -> None:
+    views = [_view(c) for c in rig]
+    images = [v[0] for v in views]
+    static = [v[1] for v in views]
+    masks = [v[2].copy() for v in views]
+    # Camera 0's model learned an actor where it stood: a patch of floor is foreground there.
+    free = np.isfinite(static[0]) & ~masks[0]
+    inner = cv2.erode(free.view(np.uint8), np.ones((17, 17), np.uint8)) > 0
+    ys, xs = np.nonzero(inner)
+    by, bx = np.argwhere(masks[0]).mean(axis=0)
+    k = int(np.argmin((ys - by) ** 2 + (xs - bx) ** 2))  # floor beside the actor
+    ghost = np.zeros_like(masks[0])
+    ghost[ys[k] - 8 : ys[k] + 8, xs[k] - 8 : xs[k] + 8] = True
+    assert ghost.sum() == 256 and not (ghost & ~free).any()
+    masks[0] |= ghost
+
+    out, removed = static_consistent_masks(masks, images, rig.cameras, static)
+    assert out[0][ghost].mean() < 0.1  # the ghost is gone
+    assert removed[0] >= 0.9 * ghost.sum()
+    for c, (m, v) in enumerate(zip(out, views, strict=True)):
+        assert m is not None
+        assert m[v[2]].mean() > 0.97, f"camera {c} lost the actor"
+
+    # Unknown static depth: nothing is removed (and nothing vouches).
+    unknown = [np.full_like(s, np.nan) for s in static]
+    kept, none = static_consistent_masks(masks, images, rig.cameras, unknown)
+    assert none == [0] * len(rig)
+    assert all(np.array_equal(k, m) for k, m in zip(kept, masks, strict=True))
+    # Where the other cameras see something else at the ghost's floor point, it stays.
+    recoloured = [im.copy() for im in images]
+    for c in range(1, len(rig)):
+        recoloured[c][~views[c][2]] = 255.0 - recoloured[c][~views[c][2]]
+    stays, _ = static_consistent_masks(masks, recoloured, rig.cameras, static)
+    assert stays[0][ghost].mean() > 0.9
+
+
+def test_bad_input(rig: Rig) -> None:
+    n = len(rig)
+    with pytest.raises(DataError):
+        static_consistent_masks([None] * n, [None] * (n - 1), rig.cameras, [None] * n)
+    with pytest.raises(ValueError):
+        StaticCheckConfig(blur_px=0)
+    out, removed = static_consistent_masks([None] * n, [None] * n, rig.cameras, [None] * n)
+    assert out == [None] * n and removed == [0] * n
