@@ -86,7 +86,9 @@ def test_bad_input(rig: Rig) -> None:
     n = len(rig)
     with pytest.raises(DataError):
         static_consistent_masks([None] * n, [None] * (n - 1), rig.cameras, [None] * n)
-    with pytest.raises(ValueError):
-        StaticCheckConfig(blur_px=0)
+    for bad in ({"blur_px": 0}, {"max_ratio": 1.0}, {"depth_tol_rel": 0.0}, {"min_agree": 0}):
+        with pytest.raises(ValueError):
+            StaticCheckConfig(**bad)  # type: ignore[arg-type]
+    StaticCheckConfig(max_chroma=0.0)  # bounds that are allowed
     out, removed = static_consistent_masks([None] * n, [None] * n, rig.cameras, [None] * n)
     assert out == [None] * n and removed == [0] * n

@@ -85,7 +85,7 @@ class ForegroundConfig:
     one carves away where its model is unsettled (``hull.hull_rescued``): an actor whom one
     camera's model learned while it stood there during the bootstrap."""
     static_check: bool = False
-    """Given the static scene's depth (``RigForeground.set_static_scene``; ``run`` gives the
+    """Given the static scene (``RigForeground.set_static_cloud``; ``run`` gives the
     back-end's newest background), drop the mask pixels that show the static scene as other
     cameras see it uncovered (``ghosts.static_consistent_masks``): ghosts where an actor
     stood while a model learned (hd4: moving-actor IoU 0.73 -> 0.78, docs/BENCHMARKS.md).
@@ -268,33 +268,12 @@ class RigForeground:
         """Per camera, the depth map of the static scene at any resolution (e.g.
         ``hull.depth_map`` of the background cloud): the visual hull then knows what each
         camera cannot see. None forgets them."""
-        self.occluders = self._working_depths(depth_maps, "occluder depth maps")
-
-    def set_static_scene(self, depth_maps: Sequence[DepthMap | None] | None) -> None:
-        """Per camera, the depth map of the static scene at any resolution (e.g.
-        ``hull.depth_map`` of the background cloud, NaN where unknown), for the ghost check
-        (``ForegroundConfig.static_check``). None forgets them: the masks are then the
-        models' and the hull's alone."""
-        self.static_depth = self._working_depths(depth_maps, "static depth maps")
-
-    def set_static_cloud(self, points3D: Points3D | None) -> None:
-        """``set_static_scene`` from a point cloud of the static scene (e.g. the back-end's
-        background), rendered into each working camera (``hull.depth_map``); None or no
-        points forgets it."""
-        if points3D is None or len(points3D) == 0:
-            self.static_depth = None
-            return
-        pts = np.asarray(points3D, np.float64)
-        self.static_depth = [depth_map(pts, c) for c in self.working_cameras]
-
-    def _working_depths(
-        self, depth_maps: Sequence[DepthMap | None] | None, what: str
-    ) -> list[DepthMap | None] | None:
+        if depth_maps is not None and len(depth_maps) != len(self.rig):
+            raise DataError(f"{len(depth_maps)} occluder depth maps for {len(self.rig)} cameras")
         if depth_maps is None:
-            return None
-        if len(depth_maps) != len(self.rig):
-            raise DataError(f"{len(depth_maps)} {what} for {len(self.rig)} cameras")
-        return [
+            self.occluders = None
+            return
+        self.occluders = [
             None
             if d is None
             else np.asarray(
@@ -305,6 +284,17 @@ class RigForeground:
             else np.asarray(d, np.float32)
             for c, d in zip(self.working_cameras, depth_maps, strict=True)
         ]
+
+    def set_static_cloud(self, points3D: Points3D | None) -> None:
+        """The static scene for the ghost check (``ForegroundConfig.static_check``): a point
+        cloud of it (e.g. the back-end's background) rendered into each working camera
+        (``hull.depth_map``, NaN where no point lands). None or no points forgets it: the
+        masks are then the models' and the hull's alone."""
+        if points3D is None or len(points3D) == 0:
+            self.static_depth = None
+            return
+        pts = np.asarray(points3D, np.float64)
+        self.static_depth = [depth_map(pts, c) for c in self.working_cameras]
 
     def segment(self, frames: FrameSet) -> ForegroundResult:
         """The foreground of one timestamp at the working resolution. The models do not
@@ -321,6 +311,7 @@ class RigForeground:
         model_masks = tuple(None if sg is None else sg.foreground for sg in segs)
         hull = None
         masks: list[Mask | None] = list(model_masks)
+        unsettled = [m.unsettled for m in self.models]
         with_fg = sum(m is not None and bool(m.any()) for m in model_masks)
         if cfg.hull_consistency and with_fg >= 1:
             occ = self.occluders
@@ -350,7 +341,7 @@ class RigForeground:
                         list(cams),
                         masks,
                         list(model_masks),
-                        [m.unsettled for m in self.models],
+                        unsettled,
                         cfg.hull,
                         occluders=occ,
                         distances=dists,
@@ -366,7 +357,7 @@ class RigForeground:
                         close_px=cfg.hull_fill_close_px,
                         occluders=occ,
                         distances=dists,
-                        allowed=[m.unsettled for m in self.models],
+                        allowed=unsettled,
                     )
         static = self.static_depth
         if cfg.static_check and static is not None and any(m is not None for m in masks):

@@ -8,7 +8,7 @@ the false foreground left after the hull, moving-actor precision 0.77).
 
 A ghost pixel shows the static scene; a pixel of an actor does not. With a depth map of the
 static scene per camera (the back-end's background cloud rendered into each working camera,
-``RigForeground.set_static_scene``), each foreground pixel's static point is projected into
+``RigForeground.set_static_cloud``), each foreground pixel's static point is projected into
 the other cameras. Where another camera sees that point itself (its own static depth agrees)
 and has no foreground there now, its colour there is what the point looks like; the pixel is
 called background when more such cameras agree with its colour than disagree. An actor's
@@ -51,14 +51,19 @@ class StaticCheckConfig:
     """Cameras that must agree (and outnumber those that disagree) to call a pixel background."""
 
     def __post_init__(self) -> None:
-        if not self.depth_tol_rel > 0:
-            raise ValueError(
-                f"StaticCheckConfig.depth_tol_rel must be > 0, got {self.depth_tol_rel}"
-            )
-        if self.blur_px < 1:
-            raise ValueError(f"StaticCheckConfig.blur_px must be >= 1, got {self.blur_px}")
-        if self.min_agree < 1:
-            raise ValueError(f"StaticCheckConfig.min_agree must be >= 1, got {self.min_agree}")
+        # (name, smallest allowed value, whether the bound itself is allowed)
+        for name, low, inclusive in (
+            ("depth_tol_rel", 0.0, False),
+            ("max_diff", 0.0, False),
+            ("max_chroma", 0.0, True),
+            ("max_ratio", 1.0, False),
+            ("blur_px", 1, True),
+            ("min_agree", 1, True),
+        ):
+            value = getattr(self, name)
+            if not (value >= low if inclusive else value > low):
+                sign = ">=" if inclusive else ">"
+                raise ValueError(f"StaticCheckConfig.{name} must be {sign} {low}, got {value}")
 
 
 def static_consistent_masks(
