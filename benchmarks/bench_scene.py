@@ -66,6 +66,7 @@ from edgerecon.scene import (
     hull_cloud,
     hull_depth_range,
 )
+from edgerecon.scene.ghosts import StaticCheckConfig
 from edgerecon.types import FrameSet
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -303,8 +304,6 @@ def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
 def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
     from edgerecon.io.dataset import open_dataset
     from edgerecon.quality.masks import score_mask_set
-    from edgerecon.runtime.backend import rebuild_background
-    from edgerecon.runtime.config import RuntimeConfig
     from edgerecon.runtime.session import FrameRange
     from edgerecon.scene.stream import bootstrap_scene
     from edgerecon.synth import GroundTruth
@@ -335,25 +334,6 @@ def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) ->
             t0, c0 = time.perf_counter(), time.process_time()
             res = tracker.segment(frames)
             seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-            if args.static_every and len(rows) % args.static_every == 0:
-                # As the back-end does: a background from this frame set outside its masks;
-                # the tasks from the next one on check their ghosts against it.
-                static_s = time.perf_counter()
-                full = tuple(
-                    None
-                    if m is None
-                    else cv2.resize(
-                        m.view(np.uint8), cam.size, interpolation=cv2.INTER_NEAREST
-                    ).astype(bool)
-                    for m, cam in zip(res.masks, rig, strict=True)
-                )
-                cloud = rebuild_background(rig, RuntimeConfig(deadline_s=1.0), frames, full)
-                tracker.foreground.set_static_cloud(cloud.points3D)
-                print(
-                    f"  static scene from t={t}: {len(cloud)} points in "
-                    f"{time.perf_counter() - static_s:.1f} s",
-                    flush=True,
-                )
             truth = [gt.object_mask(c, t) for c in range(len(rig))]
             preds = [_like(lab, m) for lab, m in zip(res.label_images(), truth, strict=True)]
             score = score_mask_set(preds, truth)
@@ -499,11 +479,15 @@ def main() -> None:
     ap.add_argument("--no-hull", action="store_true", help="no hull consistency")
     ap.add_argument("--no-hull-fill", action="store_true", help="no hole filling from the hull")
     ap.add_argument(
-        "--static-every",
-        type=int,
-        default=0,
-        help="--online: rebuild a background (as the back-end) every N tasks and check the "
-        "masks' ghosts against it (0 = never, as without a back-end)",
+        "--static-every-s",
+        type=float,
+        default=StaticCheckConfig().every_s,
+        help="stream seconds between two static scenes",
+    )
+    ap.add_argument(
+        "--no-static-check",
+        action="store_true",
+        help="no ghost check against the stream's static scene",
     )
     ap.add_argument(
         "--no-hull-rescue",
@@ -542,7 +526,8 @@ def main() -> None:
         hull_consistency=not args.no_hull,
         hull_fill=not args.no_hull_fill,
         hull_rescue=not args.no_hull_rescue,
-        static_check=args.static_every > 0,
+        static_check=not args.no_static_check,
+        static=StaticCheckConfig(every_s=args.static_every_s),
     )
     results: list[dict[str, Any]] = []
     if args.utrecht:

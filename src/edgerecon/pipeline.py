@@ -29,7 +29,7 @@ from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.hull import VisualHull, hull_depth_range
 from edgerecon.scene.merge import merge_clouds
 from edgerecon.scene.split import SplitConfig, split_sparse
-from edgerecon.sparse import SparseReconstruction, reconstruct_sparse
+from edgerecon.sparse import SparseConfig, SparseReconstruction, reconstruct_sparse
 from edgerecon.types import (
     BACKGROUND_LABEL,
     DataError,
@@ -373,6 +373,29 @@ def reconstruct_background(
     dense = reconstruct_dense(views, dense_config, sparse, up=rig.up)
     cloud = dense.cloud.with_labels(BACKGROUND_LABEL)
     return dataclasses.replace(dense, cloud=cloud)
+
+
+def reconstruct_static(
+    frames: FrameSet,
+    rig: Rig,
+    foreground_masks: Sequence[Mask | None] | None = None,
+    *,
+    scale: float = 1.0,
+    sparse_config: SparseConfig | None = None,
+    dense_config: DenseConfig | None = None,
+    split_config: SplitPipelineConfig | None = None,
+) -> PointCloud:
+    """The static scene of one frame set: SfM of the whole frames at ``scale``, then the dense
+    background outside the (dilated) ``foreground_masks`` (None: the whole images, e.g. an
+    empty-scene clip). The back-end's background rebuilds and the scene stage's static scene
+    (``scene.stream``, on the working-resolution frames) are this function."""
+    cfg = ReconstructionConfig(scale=scale, sparse_config=sparse_config or SparseConfig())
+    views = prepare_task_views(frames, rig, cfg)
+    sparse = reconstruct_sparse(views, cfg.sparse_config)
+    dense = reconstruct_background(
+        views, rig, dense_config or DenseConfig(), foreground_masks, sparse, split_config
+    )
+    return dense.cloud
 
 
 def _empty_labelled_cloud() -> PointCloud:

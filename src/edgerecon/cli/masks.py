@@ -164,6 +164,7 @@ def run(args: argparse.Namespace) -> int:
         "background_model": learned_from,
         "learn_seconds": round(learn_s, 3),
         "background_updates": tracker.updates,
+        "static_scene_from": tracker.static_from,
         "ghosts_repaired": tracker.ghosts,
         "working_size": list(result.cameras[0].size) if result.cameras else None,
         "timings": result.timings.to_dict(),

@@ -246,6 +246,7 @@ def _run_split(
         "cameras": [rig[i].name for i in result.camera_ids],
         "background_model": tracker.learned_from,
         "background_updates": tracker.updates,
+        "static_scene_from": tracker.static_from,
         "foreground_area": foreground.areas(),
         **result.summary(),
     }

@@ -35,7 +35,7 @@ import numpy as np
 
 from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
-from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_background
+from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_static
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
@@ -330,11 +330,15 @@ def rebuild_background(
 ) -> PointCloud:
     """One background rebuild: the golden-scale reconstruction of ``frames`` outside their
     (dilated) foreground ``masks`` (None: the whole images, e.g. the empty-scene clip)."""
-    cfg = ReconstructionConfig(scale=config.background_scale, sparse_config=config.sparse)
-    views = prepare_task_views(frames, rig, cfg)
-    sparse = reconstruct_sparse(views, config.sparse)
-    dense = reconstruct_background(views, rig, config.background_dense, masks, sparse, config.split)
-    return dense.cloud
+    return reconstruct_static(
+        frames,
+        rig,
+        masks,
+        scale=config.background_scale,
+        sparse_config=config.sparse,
+        dense_config=config.background_dense,
+        split_config=config.split,
+    )
 
 
 def _lower_priority(nice: int) -> None:

@@ -39,7 +39,7 @@ from edgerecon.runtime.messages import GoldenReply, TaskPlan, TaskWork
 from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
 from edgerecon.scene.stream import SceneTracker, bootstrap_scene, dataset_scene_at
-from edgerecon.types import FrameSet, PointCloud
+from edgerecon.types import FrameSet, PointCloud, Points3D
 
 logger = logging.getLogger(__name__)
 
@@ -59,14 +59,24 @@ class SceneModel:
     learned_from: str
     """What the models were bootstrapped from (the clip, or frames of the stream)."""
     seconds: float
+    static_step: int = 0
+    """Step of the static scenes (time indices; 0: none)."""
+    static_from: int | None = None
+    """Time index the static scene was built from (None: none yet)."""
+    static_points: Points3D | None = None
+    """The static scene's cloud (the ghost check's; ``scene.stream``)."""
 
     def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
         """Live background models (a copy: the snapshot stays as it is)."""
+        fg = RigForeground.from_states(rig, self.states, config)
+        fg.set_static_cloud(self.static_points)
         return SceneTracker(
-            foreground=RigForeground.from_states(rig, self.states, config),
+            foreground=fg,
             step=self.step,
             next_update=self.next_update,
             learned_from=self.learned_from,
+            static_step=self.static_step if fg.config.static_check else 0,
+            static_from=self.static_from,
         )
 
 
@@ -98,6 +108,9 @@ def learn_scene_model(
         initial_background=initial,
         learned_from=tracker.learned_from,
         seconds=time.perf_counter() - t0,
+        static_step=tracker.static_step,
+        static_from=tracker.static_from,
+        static_points=tracker.foreground.static_points,
     )
 
 

@@ -205,8 +205,6 @@ class FrontEnd:
             self.backgrounds_received = restored.backgrounds_received
             if background is not None:
                 self._bg_version = self._bg_published = restored.bg_version
-        if background is not None:
-            self._set_static_scene(background)
         self.eval_threshold = config.eval_threshold_for(rig)
 
     # ------------------------------------------------------------------ run state
@@ -244,15 +242,7 @@ class FrontEnd:
                     self._bg_version,
                 )
             held = self._bg_version
-        if newer:
-            self._set_static_scene(update.cloud)
         return held
-
-    def _set_static_scene(self, cloud: PointCloud) -> None:
-        """The scene stage checks its ghosts against the newest background (rendered into its
-        working cameras here, off the critical path: the back-end's push)."""
-        if self.scene is not None and self.scene.foreground.config.static_check:
-            self.scene.foreground.set_static_cloud(cloud.points3D)
 
     @property
     def bg_version(self) -> BgVersion:
@@ -299,7 +289,8 @@ class FrontEnd:
         if updates:
             with timings.stage("scene_update"):
                 for u in updates:
-                    scene.learn(u)
+                    # A static scene due here is built after the critical path (settle).
+                    scene.learn(u, defer_static=True)
         with timings.stage("scene"):
             return scene.segment(frames)
 
@@ -427,6 +418,7 @@ class FrontEnd:
                 quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
         with timings.stage("scene_update_after"), self._scene_lock:
             self._tracker().learn(frames, fg)
+            self._tracker().settle()
         with self._commit:
             if guard.cancel.is_set():
                 raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")

@@ -84,14 +84,13 @@ class ForegroundConfig:
     """With 4 or more cameras, bring back an object that all cameras but one see and that the
     one carves away where its model is unsettled (``hull.hull_rescued``): an actor whom one
     camera's model learned while it stood there during the bootstrap."""
-    static_check: bool = False
-    """Given the static scene (``RigForeground.set_static_cloud``; ``run`` gives the
-    back-end's newest background), drop the mask pixels that show the static scene as other
-    cameras see it uncovered (``ghosts.static_consistent_masks``): ghosts where an actor
-    stood while a model learned (hd4: moving-actor IoU 0.73 -> 0.78, docs/BENCHMARKS.md).
-    Off by default: a task's masks then also depend on which background the back-end had
-    pushed by then (timing), so a resumed run no longer repeats an uninterrupted one, and
-    ``masks`` / ``reconstruct --split``, without a background, give other masks."""
+    static_check: bool = True
+    """Drop the mask pixels that show the static scene as other cameras see it uncovered
+    (``ghosts.static_consistent_masks``): ghosts where an actor stood while a model learned
+    (hd4: moving-actor IoU 0.73 -> 0.77, docs/BENCHMARKS.md). The static scene is the
+    stream's own (``scene.stream``: a frame set on the update schedule every
+    ``static.every_s``, reconstructed outside its model masks at the working resolution), so
+    every command gets the same masks for a time index; ``set_static_cloud`` sets another."""
     static: StaticCheckConfig = field(default_factory=StaticCheckConfig)
     """Parameters of that check."""
     hull_fill_close_px: int = 15
@@ -187,6 +186,8 @@ class RigForeground:
         self.config = config or ForegroundConfig()
         self.models = list(models)
         self.occluders: list[DepthMap | None] | None = None
+        self.static_points: Points3D | None = None
+        """The static scene's cloud (``set_static_cloud``), None when there is none."""
         self.static_depth: list[DepthMap | None] | None = None
 
     @classmethod
@@ -287,14 +288,24 @@ class RigForeground:
 
     def set_static_cloud(self, points3D: Points3D | None) -> None:
         """The static scene for the ghost check (``ForegroundConfig.static_check``): a point
-        cloud of it (e.g. the back-end's background) rendered into each working camera
-        (``hull.depth_map``, NaN where no point lands). None or no points forgets it: the
-        masks are then the models' and the hull's alone."""
+        cloud of it (``scene.stream`` builds one from the stream) rendered into each working
+        camera (``hull.depth_map``, NaN where no point lands). None or no points forgets it:
+        the masks are then the models' and the hull's alone."""
         if points3D is None or len(points3D) == 0:
-            self.static_depth = None
+            self.static_points = self.static_depth = None
             return
         pts = np.asarray(points3D, np.float64)
+        self.static_points = pts
         self.static_depth = [depth_map(pts, c) for c in self.working_cameras]
+
+    def model_segmentations(self, frames: FrameSet) -> tuple[Segmentation | None, ...]:
+        """The background models' per-camera classifications of ``frames`` (what ``segment``
+        starts from, and what ``update`` reuses)."""
+        self._check(frames)
+        return tuple(
+            None if im is None else model.segment(im)
+            for model, im in zip(self.models, frames.images, strict=True)
+        )
 
     def segment(self, frames: FrameSet) -> ForegroundResult:
         """The foreground of one timestamp at the working resolution. The models do not
@@ -304,10 +315,7 @@ class RigForeground:
         cfg = self.config
         cams = self.working_cameras
         with timings.stage("background_subtraction"):
-            segs = tuple(
-                None if im is None else model.segment(im)
-                for model, im in zip(self.models, frames.images, strict=True)
-            )
+            segs = self.model_segmentations(frames)
         model_masks = tuple(None if sg is None else sg.foreground for sg in segs)
         hull = None
         masks: list[Mask | None] = list(model_masks)
@@ -383,13 +391,20 @@ class RigForeground:
         )
 
     def update(
-        self, frames: FrameSet, result: ForegroundResult | None = None
+        self,
+        frames: FrameSet,
+        result: ForegroundResult | None = None,
+        *,
+        segmentations: Sequence[Segmentation | None] | None = None,
     ) -> list[UpdateStats | None]:
         """Teach every camera's model one frame set (ghost repair + selective update).
-        ``result``: this frame set's ``segment`` result, whose classifications are reused."""
+        ``result``: this frame set's ``segment`` result, whose classifications are reused (or
+        ``segmentations``, those of ``model_segmentations``)."""
         self._check(frames)
         segs: Sequence[Segmentation | None] = (
-            result.segmentations
+            segmentations
+            if segmentations is not None
+            else result.segmentations
             if result is not None
             and result.time_index == frames.time_index
             and result.segmentations

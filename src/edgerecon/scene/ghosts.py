@@ -7,8 +7,9 @@ others see the actor along the same lines, so the visual hull cannot carve it (h
 the false foreground left after the hull, moving-actor precision 0.77).
 
 A ghost pixel shows the static scene; a pixel of an actor does not. With a depth map of the
-static scene per camera (the back-end's background cloud rendered into each working camera,
-``RigForeground.set_static_cloud``), each foreground pixel's static point is projected into
+static scene per camera (a background cloud rendered into each working camera,
+``RigForeground.set_static_cloud``; :mod:`edgerecon.scene.stream` builds one from the stream
+every ``StaticCheckConfig.every_s``), each foreground pixel's static point is projected into
 the other cameras. Where another camera sees that point itself (its own static depth agrees)
 and has no foreground there now, its colour there is what the point looks like; the pixel is
 called background when more such cameras agree with its colour than disagree. An actor's
@@ -49,6 +50,10 @@ class StaticCheckConfig:
     """Colours are compared as box means of this size (pixels of the working images)."""
     min_agree: int = 1
     """Cameras that must agree (and outnumber those that disagree) to call a pixel background."""
+    every_s: float = 2.0
+    """Stream time between two static scenes (``scene.stream``): the frame set on the models'
+    update schedule every this many seconds, outside its model masks, reconstructed at the
+    working resolution (0.5-0.8 s on hd4's 4 x 480x270)."""
 
     def __post_init__(self) -> None:
         # (name, smallest allowed value, whether the bound itself is allowed)
@@ -59,6 +64,7 @@ class StaticCheckConfig:
             ("max_ratio", 1.0, False),
             ("blur_px", 1, True),
             ("min_agree", 1, True),
+            ("every_s", 0.0, False),
         ):
             value = getattr(self, name)
             if not (value >= low if inclusive else value > low):

@@ -13,10 +13,19 @@ they are at t*, and the models at ``t`` are defined by the stream alone:
    order (ghost repair + selective update: a stopped actor is held, uncovered background is
    learned at once, the rest learns slowly).
 
+3. **static scene** — with ``ForegroundConfig.static_check``, the update frame set whose time
+   index is a multiple of the static step (``static.every_s`` of stream, a multiple of the
+   update step) is also reconstructed outside its model masks at the working resolution
+   (``pipeline.reconstruct_static``); the masks of every later time index are checked
+   against that cloud for ghosts (``ghosts.static_consistent_masks``). Only the latest one
+   before ``t`` matters, so catching up builds that one alone.
+
 ``edgerecon masks``, ``reconstruct --split`` and ``run`` all follow it, so one time index gets
 the same masks from each (with the same settings), whatever the task schedule. The updates
 cost one background-model update per camera per step, a few milliseconds at the working
-resolution: on a 25 fps stream with the default 0.5 s interval, one update every 12 frames.
+resolution: on a 25 fps stream with the default 0.5 s interval, one update every 12 frames;
+a static scene costs 0.5-0.8 s (hd4, 4 x 480x270) once every 5 s of stream, after the task
+whose frames it uses (or, when that frame was not a task, before the next task).
 
 What it cannot do: an actor who never moves during the bootstrap span and never moves away
 stays background (no learned person detector is available here); a slowly moving actor whose
@@ -25,6 +34,7 @@ old and new silhouettes overlap leaves a ghost fused to the actor until they sep
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -33,9 +43,10 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from edgerecon.geometry.camera import Rig
+from edgerecon.pipeline import reconstruct_static
 from edgerecon.progress import track
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
-from edgerecon.types import DataError, FrameSet
+from edgerecon.types import DataError, FrameSet, Mask
 
 if TYPE_CHECKING:
     from edgerecon.io.dataset import Dataset
@@ -59,6 +70,16 @@ def update_step(fps: float | None, config: ForegroundConfig) -> int:
     """Time-index step between two updates of the models."""
     rate = fps if fps is not None and fps > 0 else DEFAULT_FPS
     return max(1, round(rate * config.update_interval_s))
+
+
+def static_step(fps: float | None, config: ForegroundConfig) -> int:
+    """Time-index step between two static scenes (a multiple of the update step); 0 when
+    the static check is off."""
+    if not config.static_check:
+        return 0
+    step = update_step(fps, config)
+    rate = fps if fps is not None and fps > 0 else DEFAULT_FPS
+    return step * max(1, round(rate * config.static.every_s / step))
 
 
 def bootstrap_indices(num_frames: int, fps: float | None, config: ForegroundConfig) -> list[int]:
@@ -92,6 +113,11 @@ class SceneTracker:
     """Scheduled updates applied."""
     ghosts: int = 0
     """Ghost blobs repaired by those updates."""
+    static_step: int = 0
+    """Time-index step between two static scenes (0: none; ``static_step``)."""
+    static_from: int | None = None
+    """Time index of the frame set the current static scene was built from."""
+    _deferred: tuple[FrameSet, list[Mask | None]] | None = field(default=None, repr=False)
 
     @property
     def rig(self) -> Rig:
@@ -105,10 +131,20 @@ class SceneTracker:
         """The foreground of ``frames`` (the models are not changed)."""
         return self.foreground.segment(frames)
 
-    def learn(self, frames: FrameSet, result: ForegroundResult | None = None) -> float:
+    def learn(
+        self,
+        frames: FrameSet,
+        result: ForegroundResult | None = None,
+        *,
+        static: bool = True,
+        defer_static: bool = False,
+    ) -> float:
         """Apply the scheduled update of ``frames`` (its time index must be the next one on
-        the schedule; a frame set before it is ignored). ``result``: this frame set's
-        segmentation, reused. Returns the seconds it took."""
+        the schedule; a frame set before it is ignored), and build the static scene from it
+        when it is on that schedule too (``static=False`` skips that: a later one replaces
+        it; ``defer_static`` keeps it for :meth:`settle`, e.g. after a task's critical
+        path). ``result``: this frame set's segmentation, reused. Returns the seconds it
+        took."""
         t = frames.time_index
         if t < self.next_update or t % self.step:
             return 0.0
@@ -116,21 +152,79 @@ class SceneTracker:
             # Frames were skipped (a live stream dropped them): the schedule moves on.
             logger.debug("scene: schedule jumps from %d to %d", self.next_update, t)
         t0 = time.perf_counter()
-        stats = self.foreground.update(frames, result)
+        fg = self.foreground
+        segs = (
+            result.segmentations
+            if result is not None and result.time_index == t and result.segmentations
+            else fg.model_segmentations(frames)
+        )
+        stats = fg.update(frames, segmentations=segs)
         seconds = time.perf_counter() - t0
         self.next_update = t + self.step
         self.updates += 1
         self.ghosts += sum(s.ghosts for s in stats if s is not None)
         self.seconds["updates"] = self.seconds.get("updates", 0.0) + seconds
+        if static and self.static_due(t):
+            masks = [None if s is None else s.foreground for s in segs]
+            if defer_static:
+                self._deferred = (frames, masks)
+            else:
+                seconds += self._build_static(frames, masks)
+        return seconds
+
+    def settle(self) -> float:
+        """Build the static scene that ``learn(..., defer_static=True)`` kept, if no newer
+        one was built since; returns seconds."""
+        deferred, self._deferred = self._deferred, None
+        if deferred is None:
+            return 0.0
+        return self._build_static(*deferred)
+
+    def static_due(self, t: int) -> bool:
+        """Whether the frame set of time ``t`` gives the next static scene."""
+        return self.static_step > 0 and t % self.static_step == 0
+
+    def _build_static(self, frames: FrameSet, model_masks: list[Mask | None]) -> float:
+        """The static scene from ``frames`` outside ``model_masks`` (the models' masks before
+        the hull steps: whatever might move stays out), at the working resolution. A failure
+        keeps the previous scene (a warning)."""
+        if self._deferred is not None and self._deferred[0].time_index <= frames.time_index:
+            self._deferred = None  # this one is newer
+        t0 = time.perf_counter()
+        fg = self.foreground
+        rig = dataclasses.replace(self.rig, cameras=fg.working_cameras)
+        try:
+            cloud = reconstruct_static(fg.reduce(frames), rig, model_masks)
+        except Exception as exc:  # a bad frame set must not stop the stream
+            logger.warning(
+                "scene: no static scene from time %d (%s); keeping the one from %s",
+                frames.time_index,
+                exc,
+                self.static_from,
+            )
+            return time.perf_counter() - t0
+        fg.set_static_cloud(cloud.points3D)
+        self.static_from = frames.time_index
+        seconds = time.perf_counter() - t0
+        self.seconds["static"] = self.seconds.get("static", 0.0) + seconds
+        logger.info(
+            "scene: static scene from time %d: %d points in %.2f s",
+            frames.time_index,
+            len(cloud),
+            seconds,
+        )
         return seconds
 
     def catch_up(self, reader: FrameReader, t: int, *, progress: bool = False) -> float:
-        """Apply the scheduled updates before ``t`` that are missing; returns seconds."""
+        """Apply the scheduled updates before ``t`` that are missing, and build the latest
+        static scene among them (the earlier ones would be replaced); returns seconds."""
         todo = self.pending(t)
+        due = [s for s in todo if self.static_due(s)]
+        last = due[-1] if due else None
         seconds = 0.0
         it = track(todo, "background updates") if progress and len(todo) > 4 else todo
         for s in it:
-            seconds += self.learn(reader.read(s))
+            seconds += self.learn(reader.read(s), static=s == last)
         return seconds
 
 
@@ -167,6 +261,7 @@ def bootstrap_scene(
     return SceneTracker(
         foreground=fg,
         step=update_step(fps, config),
+        static_step=static_step(fps, config),
         learned_from=what,
         seconds={"bootstrap": seconds},
     )
