@@ -485,9 +485,15 @@ def main() -> None:
         help="stream seconds between two static scenes",
     )
     ap.add_argument(
-        "--no-static-check",
+        "--static-keep",
+        type=int,
+        default=StaticCheckConfig().keep,
+        help="how many of the latest static scenes make the static depth",
+    )
+    ap.add_argument(
+        "--static-check",
         action="store_true",
-        help="no ghost check against the stream's static scene",
+        help="check the ghosts against the stream's static scene (off by default)",
     )
     ap.add_argument(
         "--no-hull-rescue",
@@ -526,8 +532,8 @@ def main() -> None:
         hull_consistency=not args.no_hull,
         hull_fill=not args.no_hull_fill,
         hull_rescue=not args.no_hull_rescue,
-        static_check=not args.no_static_check,
-        static=StaticCheckConfig(every_s=args.static_every_s),
+        static_check=args.static_check,
+        static=StaticCheckConfig(every_s=args.static_every_s, keep=args.static_keep),
     )
     results: list[dict[str, Any]] = []
     if args.utrecht:

@@ -384,18 +384,18 @@ def reconstruct_static(
     sparse_config: SparseConfig | None = None,
     dense_config: DenseConfig | None = None,
     split_config: SplitPipelineConfig | None = None,
-) -> PointCloud:
+) -> DenseReconstruction:
     """The static scene of one frame set: SfM of the whole frames at ``scale``, then the dense
     background outside the (dilated) ``foreground_masks`` (None: the whole images, e.g. an
-    empty-scene clip). The back-end's background rebuilds and the scene stage's static scene
-    (``scene.stream``, on the working-resolution frames) are this function."""
+    empty-scene clip), with its stats (``ground_plane``). The back-end's background rebuilds
+    and the scene stage's static scene (``scene.stream``, on the working-resolution frames)
+    are this function."""
     cfg = ReconstructionConfig(scale=scale, sparse_config=sparse_config or SparseConfig())
     views = prepare_task_views(frames, rig, cfg)
     sparse = reconstruct_sparse(views, cfg.sparse_config)
-    dense = reconstruct_background(
+    return reconstruct_background(
         views, rig, dense_config or DenseConfig(), foreground_masks, sparse, split_config
     )
-    return dense.cloud
 
 
 def _empty_labelled_cloud() -> PointCloud:

@@ -92,3 +92,61 @@ def test_bad_input(rig: Rig) -> None:
     StaticCheckConfig(max_chroma=0.0)  # bounds that are allowed
     out, removed = static_consistent_masks([None] * n, [None] * n, rig.cameras, [None] * n)
     assert out == [None] * n and removed == [0] * n
+
+
+def test_the_static_depth_of_several_clouds_fills_each_ones_gaps(rig: Rig) -> None:
+    """``set_static_clouds``: the newest cloud where it has a point, an older one where the
+    newest has none (where an actor stood then)."""
+    from edgerecon.scene.foreground import RigForeground
+
+    blank = [[np.full((c.height, c.width, 3), 90, np.uint8)] for c in rig]
+    fg = RigForeground.learn(rig, blank)
+    g = np.linspace(-0.6, 0.6, 121)
+    floor = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    left, right = floor[floor[:, 0] < 0], floor[floor[:, 0] >= 0]
+    raised = right + [0.0, 0.0, 0.05]  # the older cloud has the right half higher
+    fg.set_static_clouds([np.concatenate([left, raised]), right])
+    assert len(fg.static_clouds) == 2
+    newest = RigForeground.learn(rig, blank)
+    newest.set_static_cloud(right)
+    oldest = RigForeground.learn(rig, blank)
+    oldest.set_static_cloud(np.concatenate([left, raised]))
+    assert fg.static_depth is not None
+    assert newest.static_depth is not None and oldest.static_depth is not None
+    for both, new, old in zip(
+        fg.static_depth, newest.static_depth, oldest.static_depth, strict=True
+    ):
+        assert both is not None and new is not None and old is not None
+        has_new = np.isfinite(new)
+        np.testing.assert_array_equal(both[has_new], new[has_new])  # the newest wins
+        only_old = ~has_new & np.isfinite(old)
+        np.testing.assert_array_equal(both[only_old], old[only_old])
+        assert np.isfinite(both).sum() > has_new.sum()  # the older one filled its gaps
+    fg.set_static_clouds([])
+    assert fg.static_depth is None and fg.static_clouds == ()
+
+
+def test_the_floor_plane_fills_what_no_static_cloud_covers(rig: Rig) -> None:
+    from edgerecon.dense.planes import Plane, plane_depth
+    from edgerecon.scene.foreground import ForegroundConfig, RigForeground
+
+    blank = [[np.full((c.height, c.width, 3), 90, np.uint8)] for c in rig]
+    g = np.linspace(0.0, 0.6, 61)
+    patch = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    floor = Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=100, rms=0.0)
+    on = RigForeground.learn(rig, blank)
+    on.set_static_clouds([patch], [floor])
+    off = RigForeground.learn(rig, blank, ForegroundConfig(static=StaticCheckConfig(floor=False)))
+    off.set_static_clouds([patch], [floor])
+    assert on.static_depth is not None and off.static_depth is not None
+    for cam, d_on, d_off in zip(on.working_cameras, on.static_depth, off.static_depth, strict=True):
+        assert d_on is not None and d_off is not None
+        plane = plane_depth(cam, floor)
+        gap = ~np.isfinite(d_off) & (plane > 0)
+        assert gap.any()
+        np.testing.assert_allclose(d_on[gap], plane[gap], rtol=1e-6)  # the plane filled it
+        has = np.isfinite(d_off)
+        np.testing.assert_array_equal(d_on[has], d_off[has])  # the cloud's own depth stays
+        assert not np.isfinite(d_on[(plane <= 0) & ~has]).any()  # above the horizon: none
+    with pytest.raises(DataError, match="floor planes"):
+        on.set_static_clouds([patch], [floor, floor])

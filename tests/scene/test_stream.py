@@ -77,7 +77,7 @@ def test_masks_and_reconstruct_split_see_the_same_foreground(
     from_masks = [c["area_fraction"] for c in masks["cameras"]]
     assert split["foreground_area"] == pytest.approx(from_masks, abs=1e-9)
     assert masks["background_updates"] == split["background_updates"] == 3  # 0, 12, 24
-    assert masks["static_scene_from"] == split["static_scene_from"] == 0  # every 48 frames
+    assert masks["static_scene_from"] is split["static_scene_from"] is None  # check off
 
 
 def test_the_static_scene_is_the_streams_own(room: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -87,10 +87,11 @@ def test_the_static_scene_is_the_streams_own(room: Path, monkeypatch: pytest.Mon
     from edgerecon.scene import stream
     from edgerecon.scene.ghosts import StaticCheckConfig
 
-    cfg = ForegroundConfig(static=StaticCheckConfig(every_s=0.5))
+    cfg = ForegroundConfig(static_check=True, static=StaticCheckConfig(every_s=0.5, keep=2))
     assert stream.static_step(25.0, cfg) == 12
-    assert stream.static_step(25.0, ForegroundConfig()) == 48  # 2 s, on the update schedule
-    assert stream.static_step(25.0, ForegroundConfig(static_check=False)) == 0
+    on = ForegroundConfig(static_check=True)
+    assert stream.static_step(25.0, on) == 48  # 2 s, on the update schedule
+    assert stream.static_step(25.0, ForegroundConfig()) == 0  # off by default
     ds = open_dataset(room)
     built: list[int] = []
     real = stream.reconstruct_static
@@ -112,8 +113,10 @@ def test_the_static_scene_is_the_streams_own(room: Path, monkeypatch: pytest.Mon
         assert live.foreground.static_depth is not None
         built.clear()
         fresh = stream.scene_at(ds.rig, source, ds.fps, 31, cfg)
-        assert built == [24] and fresh.static_from == 24
-        np.testing.assert_array_equal(live.foreground.static_points, fresh.foreground.static_points)
+        assert built == [12, 24] and fresh.static_from == 24  # the latest `keep`
+        assert len(live.foreground.static_clouds) == len(fresh.foreground.static_clouds) == 2
+        for a, b in zip(live.foreground.static_clouds, fresh.foreground.static_clouds, strict=True):
+            np.testing.assert_array_equal(a, b)
         frames = source.read(31)
         for a, b in zip(live.segment(frames).masks, fresh.segment(frames).masks, strict=True):
             assert a is not None and b is not None
@@ -123,15 +126,15 @@ def test_the_static_scene_is_the_streams_own(room: Path, monkeypatch: pytest.Mon
         # the task's critical path: the task still sees the previous one.
         for s in live.pending(40):
             live.learn(source.read(s), defer_static=True)
-        assert live.static_from == 24 and built == [24]
-        assert live.settle() > 0 and live.static_from == 36 and built == [24, 36]
+        assert live.static_from == 24 and built == [12, 24]
+        assert live.settle() > 0 and live.static_from == 36 and built == [12, 24, 36]
         assert live.settle() == 0.0
 
         def broken(frames, rig, masks):  # type: ignore[no-untyped-def]
             raise RuntimeError("no texture")
 
         monkeypatch.setattr(stream, "reconstruct_static", broken)
-        points = fresh.foreground.static_points
+        points = fresh.foreground.static_clouds
         fresh.learn(source.read(36))
         assert fresh.next_update == 48  # the update itself went through
-        assert fresh.static_from == 24 and fresh.foreground.static_points is points
+        assert fresh.static_from == 24 and fresh.foreground.static_clouds is points

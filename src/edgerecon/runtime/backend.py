@@ -338,7 +338,7 @@ def rebuild_background(
         sparse_config=config.sparse,
         dense_config=config.background_dense,
         split_config=config.split,
-    )
+    ).cloud
 
 
 def _lower_priority(nice: int) -> None:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from edgerecon import progress
+from edgerecon.dense.planes import Plane
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController
@@ -63,13 +64,15 @@ class SceneModel:
     """Step of the static scenes (time indices; 0: none)."""
     static_from: int | None = None
     """Time index the static scene was built from (None: none yet)."""
-    static_points: Points3D | None = None
-    """The static scene's cloud (the ghost check's; ``scene.stream``)."""
+    static_clouds: tuple[Points3D, ...] = ()
+    """The static scene's clouds, oldest first (the ghost check's; ``scene.stream``)."""
+    static_floors: tuple[Plane | None, ...] = ()
+    """Per static cloud, its ground plane (or None)."""
 
     def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
         """Live background models (a copy: the snapshot stays as it is)."""
         fg = RigForeground.from_states(rig, self.states, config)
-        fg.set_static_cloud(self.static_points)
+        fg.set_static_clouds(self.static_clouds, self.static_floors)
         return SceneTracker(
             foreground=fg,
             step=self.step,
@@ -110,7 +113,8 @@ def learn_scene_model(
         seconds=time.perf_counter() - t0,
         static_step=tracker.static_step,
         static_from=tracker.static_from,
-        static_points=tracker.foreground.static_points,
+        static_clouds=tracker.foreground.static_clouds,
+        static_floors=tracker.foreground.static_floors,
     )
 
 

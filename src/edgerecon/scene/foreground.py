@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.dense.planes import Plane, plane_depth
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.background import (
     BackgroundConfig,
@@ -84,13 +85,15 @@ class ForegroundConfig:
     """With 4 or more cameras, bring back an object that all cameras but one see and that the
     one carves away where its model is unsettled (``hull.hull_rescued``): an actor whom one
     camera's model learned while it stood there during the bootstrap."""
-    static_check: bool = True
+    static_check: bool = False
     """Drop the mask pixels that show the static scene as other cameras see it uncovered
     (``ghosts.static_consistent_masks``): ghosts where an actor stood while a model learned
-    (hd4: moving-actor IoU 0.73 -> 0.77, docs/BENCHMARKS.md). The static scene is the
+    (hd4: moving-actor IoU 0.73 -> 0.79, docs/BENCHMARKS.md). The static scene is the
     stream's own (``scene.stream``: a frame set on the update schedule every
     ``static.every_s``, reconstructed outside its model masks at the working resolution), so
-    every command gets the same masks for a time index; ``set_static_cloud`` sets another."""
+    every command gets the same masks for a time index. Off by default: on caliscope_charuco
+    it also removes true foreground (6 % of one camera's mask at t = 100, a strip through the
+    person and the board before a white wall); for rigs with textured surroundings."""
     static: StaticCheckConfig = field(default_factory=StaticCheckConfig)
     """Parameters of that check."""
     hull_fill_close_px: int = 15
@@ -186,8 +189,10 @@ class RigForeground:
         self.config = config or ForegroundConfig()
         self.models = list(models)
         self.occluders: list[DepthMap | None] | None = None
-        self.static_points: Points3D | None = None
-        """The static scene's cloud (``set_static_cloud``), None when there is none."""
+        self.static_clouds: tuple[Points3D, ...] = ()
+        """The static scene's clouds, oldest first (``set_static_clouds``)."""
+        self.static_floors: tuple[Plane | None, ...] = ()
+        """Per static cloud, the ground plane its reconstruction found (or None)."""
         self.static_depth: list[DepthMap | None] | None = None
 
     @classmethod
@@ -288,15 +293,50 @@ class RigForeground:
 
     def set_static_cloud(self, points3D: Points3D | None) -> None:
         """The static scene for the ghost check (``ForegroundConfig.static_check``): a point
-        cloud of it (``scene.stream`` builds one from the stream) rendered into each working
-        camera (``hull.depth_map``, NaN where no point lands). None or no points forgets it:
-        the masks are then the models' and the hull's alone."""
-        if points3D is None or len(points3D) == 0:
-            self.static_points = self.static_depth = None
+        cloud of it rendered into each working camera (``hull.depth_map``, NaN where no point
+        lands). None or no points forgets it: the masks are then the models' and the hull's
+        alone."""
+        self.set_static_clouds([] if points3D is None else [points3D])
+
+    def set_static_clouds(
+        self, clouds: Sequence[Points3D], floors: Sequence[Plane | None] = ()
+    ) -> None:
+        """The static scene from several clouds of it, oldest first (``scene.stream`` keeps
+        the last ``static.keep`` it built): each camera's depth is the newest cloud's where a
+        point of it lands, else the next newer one's (where an actor stood in one, another
+        saw the floor); with ``floors`` (per cloud, the ground plane its reconstruction found,
+        or None) and ``static.floor``, the newest plane's where no cloud has a point and the
+        pixel's ray meets it (a ghost's floor that no camera saw uncovered when a cloud was
+        built)."""
+        if floors and len(floors) != len(clouds):
+            raise DataError(f"{len(floors)} floor planes for {len(clouds)} static clouds")
+        pairs = [
+            (np.asarray(c, np.float64), floors[i] if floors else None)
+            for i, c in enumerate(clouds)
+            if c is not None and len(c)
+        ]
+        kept = tuple(c for c, _ in pairs)
+        self.static_clouds = kept
+        self.static_floors = tuple(f for _, f in pairs)
+        floor = next((f for f in reversed(self.static_floors) if f is not None), None)
+        use_floor = floor is not None and self.config.static.floor
+        if not kept and not use_floor:
+            self.static_depth = None
             return
-        pts = np.asarray(points3D, np.float64)
-        self.static_points = pts
-        self.static_depth = [depth_map(pts, c) for c in self.working_cameras]
+        depth: list[DepthMap | None] = []
+        for cam in self.working_cameras:
+            d = depth_map(kept[-1], cam) if kept else np.full(cam.size[::-1], np.nan, np.float32)
+            for older in kept[-2::-1]:
+                hole = ~np.isfinite(d)
+                if not hole.any():
+                    break
+                d = np.where(hole, depth_map(older, cam), d).astype(np.float32)
+            if use_floor:
+                assert floor is not None
+                on_floor = plane_depth(cam, floor)
+                d = np.where(~np.isfinite(d) & (on_floor > 0), on_floor, d).astype(np.float32)
+            depth.append(d)
+        self.static_depth = depth
 
     def model_segmentations(self, frames: FrameSet) -> tuple[Segmentation | None, ...]:
         """The background models' per-camera classifications of ``frames`` (what ``segment``
@@ -376,6 +416,7 @@ class RigForeground:
                     list(cams),
                     static,
                     cfg.static,
+                    backgrounds=[m.background_image(working=True) for m in self.models],
                 )
         with timings.stage("objects"):
             objects = tuple(None if m is None else find_objects(m, cfg.objects) for m in masks)

@@ -42,6 +42,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from edgerecon.dense.planes import Plane
 from edgerecon.geometry.camera import Rig
 from edgerecon.pipeline import reconstruct_static
 from edgerecon.progress import track
@@ -186,7 +187,8 @@ class SceneTracker:
 
     def _build_static(self, frames: FrameSet, model_masks: list[Mask | None]) -> float:
         """The static scene from ``frames`` outside ``model_masks`` (the models' masks before
-        the hull steps: whatever might move stays out), at the working resolution. A failure
+        the hull steps: whatever might move stays out) and the models' unsettled pixels, at
+        the working resolution. A failure
         keeps the previous scene (a warning)."""
         if self._deferred is not None and self._deferred[0].time_index <= frames.time_index:
             self._deferred = None  # this one is newer
@@ -194,7 +196,13 @@ class SceneTracker:
         fg = self.foreground
         rig = dataclasses.replace(self.rig, cameras=fg.working_cameras)
         try:
-            cloud = reconstruct_static(fg.reduce(frames), rig, model_masks)
+            # Nor the pixels that moved while a model learned: a still person whom the
+            # models learned (a seated one) must not become the static scene.
+            keep_out = [
+                None if m is None else m | model.unsettled
+                for m, model in zip(model_masks, fg.models, strict=True)
+            ]
+            dense = reconstruct_static(fg.reduce(frames), rig, keep_out)
         except Exception as exc:  # a bad frame set must not stop the stream
             logger.warning(
                 "scene: no static scene from time %d (%s); keeping the one from %s",
@@ -203,28 +211,35 @@ class SceneTracker:
                 self.static_from,
             )
             return time.perf_counter() - t0
-        fg.set_static_cloud(cloud.points3D)
+        keep = fg.config.static.keep
+        found = dense.stats.get("ground_plane")
+        older = slice(max(0, len(fg.static_clouds) - keep + 1), None)
+        fg.set_static_clouds(
+            [*fg.static_clouds[older], dense.cloud.points3D],
+            [*fg.static_floors[older], None if found is None else Plane(**found)],
+        )
         self.static_from = frames.time_index
         seconds = time.perf_counter() - t0
         self.seconds["static"] = self.seconds.get("static", 0.0) + seconds
         logger.info(
             "scene: static scene from time %d: %d points in %.2f s",
             frames.time_index,
-            len(cloud),
+            len(dense.cloud),
             seconds,
         )
         return seconds
 
     def catch_up(self, reader: FrameReader, t: int, *, progress: bool = False) -> float:
         """Apply the scheduled updates before ``t`` that are missing, and build the latest
-        static scene among them (the earlier ones would be replaced); returns seconds."""
+        ``static.keep`` static scenes among them (the earlier ones would be dropped); returns
+        seconds."""
         todo = self.pending(t)
         due = [s for s in todo if self.static_due(s)]
-        last = due[-1] if due else None
+        build = set(due[-self.foreground.config.static.keep :])
         seconds = 0.0
         it = track(todo, "background updates") if progress and len(todo) > 4 else todo
         for s in it:
-            seconds += self.learn(reader.read(s), static=s == last)
+            seconds += self.learn(reader.read(s), static=s in build)
         return seconds
 
 
