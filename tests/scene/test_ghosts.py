@@ -80,6 +80,16 @@ def test_a_ghost_on_the_floor_goes_and_the_actor_stays(rig: Rig) -> None:
         recoloured[c][~views[c][2]] = 255.0 - recoloured[c][~views[c][2]]
     stays, _ = static_consistent_masks(masks, recoloured, rig.cameras, static)
     assert stays[0][ghost].mean() > 0.9
+    # A camera whose own model explains the pixel as well (a white board before a white
+    # wall) keeps it: the model learned the actor there, not the floor, for the ghost only.
+    learned = [im.copy() for im in images]
+    learned[0][ghost] = BOX_BGR  # the model holds the actor at the ghost
+    gone, _ = static_consistent_masks(masks, images, rig.cameras, static, backgrounds=learned)
+    assert gone[0][ghost].mean() < 0.1
+    explained, n = static_consistent_masks(masks, images, rig.cameras, static, backgrounds=images)
+    assert n == [0] * len(rig) and explained[0][ghost].all()
+    with pytest.raises(DataError, match="backgrounds"):
+        static_consistent_masks(masks, images, rig.cameras, static, backgrounds=images[:2])
 
 
 def test_bad_input(rig: Rig) -> None:
