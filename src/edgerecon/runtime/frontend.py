@@ -417,8 +417,8 @@ class FrontEnd:
             with timings.stage("online_quality"):
                 quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
         with timings.stage("scene_update_after"), self._scene_lock:
+            self._tracker().settle()  # static scenes due before this task's frame first
             self._tracker().learn(frames, fg)
-            self._tracker().settle()
         with self._commit:
             if guard.cancel.is_set():
                 raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")

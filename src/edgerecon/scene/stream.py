@@ -17,15 +17,17 @@ they are at t*, and the models at ``t`` are defined by the stream alone:
    index is a multiple of the static step (``static.every_s`` of stream, a multiple of the
    update step) is also reconstructed outside its model masks at the working resolution
    (``pipeline.reconstruct_static``); the masks of every later time index are checked
-   against that cloud for ghosts (``ghosts.static_consistent_masks``). Only the latest one
-   before ``t`` matters, so catching up builds that one alone.
+   against the last ``static.keep`` such clouds for ghosts
+   (``ghosts.static_consistent_masks``), so catching up builds those alone. Off by default
+   (``ForegroundConfig.static_check``).
 
 ``edgerecon masks``, ``reconstruct --split`` and ``run`` all follow it, so one time index gets
 the same masks from each (with the same settings), whatever the task schedule. The updates
 cost one background-model update per camera per step, a few milliseconds at the working
 resolution: on a 25 fps stream with the default 0.5 s interval, one update every 12 frames;
-a static scene costs 0.5-0.8 s (hd4, 4 x 480x270) once every 5 s of stream, after the task
-whose frames it uses (or, when that frame was not a task, before the next task).
+with the static check, a static scene costs 0.5-0.8 s (hd4, 4 x 480x270) once every 2 s of
+stream, after the critical path of the task whose frames it uses (or, when that frame was not
+a task, of the next task).
 
 What it cannot do: an actor who never moves during the bootstrap span and never moves away
 stays background (no learned person detector is available here); a slowly moving actor whose
@@ -118,7 +120,7 @@ class SceneTracker:
     """Time-index step between two static scenes (0: none; ``static_step``)."""
     static_from: int | None = None
     """Time index of the frame set the current static scene was built from."""
-    _deferred: tuple[FrameSet, list[Mask | None]] | None = field(default=None, repr=False)
+    _deferred: list[tuple[FrameSet, list[Mask | None]]] = field(default_factory=list, repr=False)
 
     @property
     def rig(self) -> Rig:
@@ -166,42 +168,39 @@ class SceneTracker:
         self.ghosts += sum(s.ghosts for s in stats if s is not None)
         self.seconds["updates"] = self.seconds.get("updates", 0.0) + seconds
         if static and self.static_due(t):
-            masks = [None if s is None else s.foreground for s in segs]
+            # Out of the static scene: the models' masks before the hull steps (whatever might
+            # move) and the pixels that moved while a model learned (a still person whom the
+            # models learned, a seated one, must not become the static scene).
+            masks = [
+                None if s is None else s.foreground | model.unsettled
+                for s, model in zip(segs, fg.models, strict=True)
+            ]
             if defer_static:
-                self._deferred = (frames, masks)
+                self._deferred.append((frames, masks))
             else:
                 seconds += self._build_static(frames, masks)
         return seconds
 
     def settle(self) -> float:
-        """Build the static scene that ``learn(..., defer_static=True)`` kept, if no newer
-        one was built since; returns seconds."""
-        deferred, self._deferred = self._deferred, None
-        if deferred is None:
-            return 0.0
-        return self._build_static(*deferred)
+        """Build the static scenes that ``learn(..., defer_static=True)`` kept, in order (the
+        last ``static.keep`` of them); returns seconds."""
+        deferred, self._deferred = self._deferred, []
+        keep = self.foreground.config.static.keep
+        return sum((self._build_static(*d) for d in deferred[-keep:]), 0.0)
 
     def static_due(self, t: int) -> bool:
         """Whether the frame set of time ``t`` gives the next static scene."""
         return self.static_step > 0 and t % self.static_step == 0
 
-    def _build_static(self, frames: FrameSet, model_masks: list[Mask | None]) -> float:
-        """The static scene from ``frames`` outside ``model_masks`` (the models' masks before
-        the hull steps: whatever might move stays out) and the models' unsettled pixels, at
-        the working resolution. A failure
-        keeps the previous scene (a warning)."""
-        if self._deferred is not None and self._deferred[0].time_index <= frames.time_index:
-            self._deferred = None  # this one is newer
+    def _build_static(self, frames: FrameSet, keep_out: list[Mask | None]) -> float:
+        """The static scene from ``frames`` outside ``keep_out`` at the working resolution. A
+        failure keeps the previous scene (a warning)."""
+        # Kept ones older than this are superseded (their order would be wrong after it).
+        self._deferred = [d for d in self._deferred if d[0].time_index > frames.time_index]
         t0 = time.perf_counter()
         fg = self.foreground
         rig = dataclasses.replace(self.rig, cameras=fg.working_cameras)
         try:
-            # Nor the pixels that moved while a model learned: a still person whom the
-            # models learned (a seated one) must not become the static scene.
-            keep_out = [
-                None if m is None else m | model.unsettled
-                for m, model in zip(model_masks, fg.models, strict=True)
-            ]
             dense = reconstruct_static(fg.reduce(frames), rig, keep_out)
         except Exception as exc:  # a bad frame set must not stop the stream
             logger.warning(
