@@ -88,12 +88,13 @@ class ForegroundConfig:
     static_check: bool = False
     """Drop the mask pixels that show the static scene as other cameras see it uncovered
     (``ghosts.static_consistent_masks``): ghosts where an actor stood while a model learned
-    (hd4: moving-actor IoU 0.73 -> 0.79, docs/BENCHMARKS.md). The static scene is the
+    (hd4: moving-actor IoU 0.73 -> 0.77, docs/BENCHMARKS.md). The static scene is the
     stream's own (``scene.stream``: a frame set on the update schedule every
     ``static.every_s``, reconstructed outside its model masks at the working resolution), so
     every command gets the same masks for a time index. Off by default: on caliscope_charuco
-    it also removes true foreground (6 % of one camera's mask at t = 100, a strip through the
-    person and the board before a white wall); for rigs with textured surroundings."""
+    it also removes true foreground (2 % of one camera's mask at t = 100, a line through the
+    person and the board before a white wall), and its static scenes cost 0.5-0.8 s of CPU
+    per 2 s of stream."""
     static: StaticCheckConfig = field(default_factory=StaticCheckConfig)
     """Parameters of that check."""
     hull_fill_close_px: int = 15
