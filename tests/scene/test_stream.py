@@ -149,3 +149,24 @@ def test_the_static_scene_is_the_streams_own(room: Path, monkeypatch: pytest.Mon
         fresh.learn(source.read(36))
         assert fresh.next_update == 48  # the update itself went through
         assert fresh.static_from == 24 and fresh.foreground.static_clouds is points
+
+
+def test_a_static_scene_without_one_camera(room: Path) -> None:
+    """A frame set that lacks a camera still gives a static scene (from the others), and the
+    masks are checked against it."""
+    import dataclasses
+
+    from edgerecon.scene import stream
+    from edgerecon.scene.ghosts import StaticCheckConfig
+
+    cfg = ForegroundConfig(static_check=True, static=StaticCheckConfig(every_s=0.5))
+    ds = open_dataset(room)
+    with ds.open_frames() as source:
+        tracker = bootstrap_scene(ds.rig, source, ds.fps, cfg)
+        frames = source.read(0)
+        gap = dataclasses.replace(frames, images=(frames.images[0], None, *frames.images[2:]))
+        tracker.learn(gap)
+        assert tracker.static_from == 0 and len(tracker.foreground.static_clouds) == 1
+        assert stream.static_step(ds.fps, cfg) == tracker.static_step == 12
+        result = tracker.segment(source.read(5))
+        assert "static_check" in result.timings.to_dict()
