@@ -172,3 +172,21 @@ def test_the_floor_plane_fills_what_no_static_cloud_covers(rig: Rig) -> None:
         assert not np.isfinite(d_on[(plane <= 0) & ~has]).any()  # above the horizon: none
     with pytest.raises(DataError, match="floor planes"):
         on.set_static_clouds([patch], [floor, floor])
+
+
+def test_the_floor_depth_follows_a_distorted_cameras_rays(rig: Rig) -> None:
+    import dataclasses
+
+    from edgerecon.dense.planes import Plane
+    from edgerecon.scene.foreground import _plane_depth
+
+    cam = dataclasses.replace(rig[0], dist=np.array([-0.25, 0.08, 0.001, -0.001, 0.0]))
+    assert cam.has_distortion
+    floor = Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=100, rms=0.0)
+    depth = _plane_depth(cam, floor)
+    ys, xs = np.nonzero(depth > 0)
+    assert len(ys) > 100
+    pick = np.linspace(0, len(ys) - 1, 200).astype(int)
+    px = np.stack([xs[pick], ys[pick]], axis=1).astype(np.float64)
+    points = cam.backproject(px, depth[ys[pick], xs[pick]].astype(np.float64))
+    np.testing.assert_allclose(points[:, 2], 0.0, atol=1e-4 * cam.center[2] + 1e-5)
