@@ -130,9 +130,9 @@ def test_the_static_depth_of_several_clouds_fills_each_ones_gaps(rig: Rig) -> No
     fg.set_static_clouds([np.concatenate([left, raised]), right])
     assert len(fg.static_clouds) == 2
     newest = RigForeground.learn(rig, blank)
-    newest.set_static_cloud(right)
+    newest.set_static_clouds([right])
     oldest = RigForeground.learn(rig, blank)
-    oldest.set_static_cloud(np.concatenate([left, raised]))
+    oldest.set_static_clouds([np.concatenate([left, raised])])
     assert fg.static_depth is not None
     assert newest.static_depth is not None and oldest.static_depth is not None
     for both, new, old in zip(
@@ -177,13 +177,12 @@ def test_the_floor_plane_fills_what_no_static_cloud_covers(rig: Rig) -> None:
 def test_the_floor_depth_follows_a_distorted_cameras_rays(rig: Rig) -> None:
     import dataclasses
 
-    from edgerecon.dense.planes import Plane
-    from edgerecon.scene.foreground import _plane_depth
+    from edgerecon.dense.planes import Plane, plane_depth
 
     cam = dataclasses.replace(rig[0], dist=np.array([-0.25, 0.08, 0.001, -0.001, 0.0]))
     assert cam.has_distortion
     floor = Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=100, rms=0.0)
-    depth = _plane_depth(cam, floor)
+    depth = plane_depth(cam, floor)
     ys, xs = np.nonzero(depth > 0)
     assert len(ys) > 100
     pick = np.linspace(0, len(ys) - 1, 200).astype(int)

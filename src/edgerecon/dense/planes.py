@@ -383,16 +383,22 @@ def level_map(
 
 def plane_depth(camera: Camera, plane: Plane) -> DepthMap:
     """(H, W) depth at which each pixel's ray meets the plane (0 where it does not, in front
-    of the camera)."""
+    of the camera). The rays of a camera with distortion (the scene stage's working cameras)
+    are undistorted first."""
     n = np.asarray(plane.normal)
     nc = camera.R @ n  # plane normal in the camera frame
     dist = plane.offset - float(n @ camera.center)  # n . (C + z R^T ray) = offset
-    Kinv = np.linalg.inv(camera.K)
-    u = np.arange(camera.width, dtype=np.float64)[None, :]
-    v = np.arange(camera.height, dtype=np.float64)[:, None]
-    rx = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
-    ry = Kinv[1, 1] * v + Kinv[1, 2]
-    denom = nc[0] * rx + nc[1] * ry + nc[2]
+    if camera.has_distortion:
+        ys, xs = np.mgrid[0 : camera.height, 0 : camera.width]
+        rays = camera.pixel_rays(np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64))
+        denom = (rays @ nc).reshape(camera.height, camera.width)
+    else:
+        Kinv = np.linalg.inv(camera.K)
+        u = np.arange(camera.width, dtype=np.float64)[None, :]
+        v = np.arange(camera.height, dtype=np.float64)[:, None]
+        rx = Kinv[0, 0] * u + Kinv[0, 1] * v + Kinv[0, 2]
+        ry = Kinv[1, 1] * v + Kinv[1, 2]
+        denom = nc[0] * rx + nc[1] * ry + nc[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         z = dist / denom
     return np.where(np.isfinite(z) & (z > 0), z, 0.0).astype(np.float32)

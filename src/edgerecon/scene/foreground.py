@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.dense.planes import Plane
+from edgerecon.dense.planes import Plane, plane_depth
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.background import (
     BackgroundConfig,
@@ -292,13 +292,6 @@ class RigForeground:
             for c, d in zip(self.working_cameras, depth_maps, strict=True)
         ]
 
-    def set_static_cloud(self, points3D: Points3D | None) -> None:
-        """The static scene for the ghost check (``ForegroundConfig.static_check``): a point
-        cloud of it rendered into each working camera (``hull.depth_map``, NaN where no point
-        lands). None or no points forgets it: the masks are then the models' and the hull's
-        alone."""
-        self.set_static_clouds([] if points3D is None else [points3D])
-
     def set_static_clouds(
         self, clouds: Sequence[Points3D], floors: Sequence[Plane | None] = ()
     ) -> None:
@@ -334,7 +327,7 @@ class RigForeground:
                 d = np.where(hole, depth_map(older, cam), d).astype(np.float32)
             if use_floor:
                 assert floor is not None
-                on_floor = _plane_depth(cam, floor)
+                on_floor = plane_depth(cam, floor)
                 d = np.where(~np.isfinite(d) & (on_floor > 0), on_floor, d).astype(np.float32)
             depth.append(d)
         self.static_depth = depth
@@ -456,16 +449,3 @@ class RigForeground:
             None if im is None else model.update(im, sg)
             for model, im, sg in zip(self.models, frames.images, segs, strict=True)
         ]
-
-
-def _plane_depth(camera: Camera, plane: Plane) -> DepthMap:
-    """(H, W) depth along the optical axis at which each pixel's ray of ``camera`` (its
-    distortion included) meets ``plane``; 0 where it does not, in front of the camera."""
-    ys, xs = np.mgrid[0 : camera.height, 0 : camera.width]
-    rays = camera.pixel_rays(np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64))
-    n = np.asarray(plane.normal, np.float64)
-    denom = (rays @ camera.R) @ n  # world ray per unit depth, against the normal
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z = (plane.offset - float(n @ camera.center)) / denom
-    z = np.where(np.isfinite(z) & (z > 0), z, 0.0)
-    return z.reshape(camera.height, camera.width).astype(np.float32)

@@ -8,7 +8,7 @@ the false foreground left after the hull, moving-actor precision 0.77).
 
 A ghost pixel shows the static scene; a pixel of an actor does not. With a depth map of the
 static scene per camera (a background cloud rendered into each working camera,
-``RigForeground.set_static_cloud``; :mod:`edgerecon.scene.stream` builds one from the stream
+``RigForeground.set_static_clouds``; :mod:`edgerecon.scene.stream` builds one from the stream
 every ``StaticCheckConfig.every_s``), each foreground pixel's static point is projected into
 the other cameras. Where another camera sees that point itself (its own static depth agrees)
 and has no foreground there now, its colour there is what the point looks like; the pixel is

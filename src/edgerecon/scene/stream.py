@@ -69,10 +69,14 @@ class FrameReader(Protocol):
     def read(self, t: int) -> FrameSet: ...
 
 
+def _rate(fps: float | None) -> float:
+    """The stream's frame rate (``DEFAULT_FPS`` when unknown)."""
+    return fps if fps is not None and fps > 0 else DEFAULT_FPS
+
+
 def update_step(fps: float | None, config: ForegroundConfig) -> int:
     """Time-index step between two updates of the models."""
-    rate = fps if fps is not None and fps > 0 else DEFAULT_FPS
-    return max(1, round(rate * config.update_interval_s))
+    return max(1, round(_rate(fps) * config.update_interval_s))
 
 
 def static_step(fps: float | None, config: ForegroundConfig) -> int:
@@ -81,16 +85,14 @@ def static_step(fps: float | None, config: ForegroundConfig) -> int:
     if not config.static_check:
         return 0
     step = update_step(fps, config)
-    rate = fps if fps is not None and fps > 0 else DEFAULT_FPS
-    return step * max(1, round(rate * config.static.every_s / step))
+    return step * max(1, round(_rate(fps) * config.static.every_s / step))
 
 
 def bootstrap_indices(num_frames: int, fps: float | None, config: ForegroundConfig) -> list[int]:
     """Time indices whose median bootstraps the models (no background clip)."""
     if num_frames < 1:
         raise DataError("the stream has no frames to learn the background from")
-    rate = fps if fps is not None and fps > 0 else DEFAULT_FPS
-    span = max(1, min(num_frames, round(rate * config.bootstrap_span_s)))
+    span = max(1, min(num_frames, round(_rate(fps) * config.bootstrap_span_s)))
     idx = np.linspace(0, span - 1, min(span, config.bootstrap_frames)).round().astype(int)
     return sorted({int(i) for i in idx})
 
