@@ -163,14 +163,18 @@ def voxel_merge(parts: Sequence[ViewPoints], voxel: float) -> PointCloud:
     S = np.concatenate([p.score for p in parts]).astype(np.float32)
     inferred = np.concatenate([np.full(len(p.points3D), p.inferred, bool) for p in parts])
     flat = kernels.voxel_keys(X, float(voxel))
-    if inferred.any() and not inferred.all():
-        # Inferred points in a voxel that holds a measured point are left out.
-        keep = ~inferred | ~np.isin(flat, flat[~inferred])
-        X, C, N, V, S = X[keep], C[keep], N[keep], V[keep], S[keep]
-        inferred, flat = inferred[keep], flat[keep]
     order = np.argsort(flat)
     fs = flat[order]
     starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1]).astype(np.int64)
+    if inferred.any() and not inferred.all():
+        # Inferred points in a voxel that holds a measured point are left out (one sort:
+        # a voxel's members are contiguous in ``order``).
+        measured = ~inferred[order]
+        has_measured = np.maximum.reduceat(measured, starts)
+        voxel_of = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(order))))
+        keep = measured | ~has_measured[voxel_of]
+        order, fs = order[keep], fs[keep]
+        starts = np.concatenate([[0], np.nonzero(np.diff(fs))[0] + 1]).astype(np.int64)
     pts, cols, nrm, views, conf = kernels.merge_sorted(order, starts, X, C, N, V, S)
     # A voxel's members are all measured or all inferred (see above): its first member says.
     flag = inferred[order[starts]].astype(np.uint8)
