@@ -110,6 +110,42 @@ def test_completion_fills_a_blank_floor_but_not_behind_the_cube():
     assert not (filled & ~near_floor).any()
 
 
+def test_textured_floor_is_completed_where_its_pattern_matches_not_behind_the_cube():
+    """With no stereo depth at all (the worst case), textured floor pixels are completed
+    where the other views' images, warped through the plane, match their pattern; the
+    cube's textured sides are not put onto the floor behind them, which the colour test
+    alone would do (random textures share their mean colour)."""
+    rects = box_scene()
+    images, depths = {}, {}
+    for i in IDS:
+        images[i], depths[i] = render(RIG[i], rects)
+    none = {i: np.zeros(d.shape, np.float32) for i, d in depths.items()}
+    plane = Plane(normal=(0.0, 0.0, 1.0), offset=0.0, support=1000, rms=0.0)
+    regions = {i: np.ones(d.shape, bool) for i, d in depths.items()}
+    textured = {i: np.ones(d.shape, bool) for i, d in depths.items()}
+    cams = {i: RIG[i] for i in IDS}
+    far = {i: 20.0 for i in IDS}
+
+    def run(min_ncc: float) -> np.ndarray:
+        out = complete_with_plane(
+            plane, none, cams, images, regions, far, 0.01, 20.0, 1,
+            textured=textured, min_ncc=min_ncc,
+        )  # fmt: skip
+        return out[0][0]
+
+    z = _world_z(RIG[0], depths[0])
+    floor_px = (depths[0] > 0) & (np.abs(z) < 1e-4)
+    cube_px = (depths[0] > 0) & (np.abs(z) >= 1e-4)
+    d = run(0.5)
+    filled = d > 0
+    assert filled[floor_px].mean() > 0.5
+    assert np.allclose(d[filled & floor_px], depths[0][filled & floor_px], rtol=1e-4)
+    # (A few pixels at the cube's foot, whose windows hold the floor too, measured: 0.5 %.)
+    assert (filled & cube_px).sum() < 0.01 * cube_px.sum()
+    # The colour test alone (any NCC passes) puts most of the cube onto the floor (89 %).
+    assert (run(-1.0) > 0)[cube_px].mean() > 0.5
+
+
 def _world_z(cam, depth):
     rows, cols = np.indices(depth.shape)
     X = cam.backproject(np.c_[cols.ravel(), rows.ravel()], depth.ravel())

@@ -57,11 +57,14 @@ def test_inferred_points_are_the_completed_ones(runs):
     # ... every inferred point lies exactly on the fitted plane ...
     h = cloud.points3D @ np.asarray(plane["normal"]) - plane["offset"]
     assert np.abs(h[flag]).max() < 1e-6
-    # ... and on the floor's blank part, off the tiles and the cube.
+    # ... and on the floor's blank part: never under the cube (its textured sides do not
+    # match the floor's pattern), on the textured tiles only at a few pixels stereo left
+    # (the pattern test confirms them; they lie on the floor too).
     P = cloud.points3D[flag]
     tile = (np.abs(np.abs(P[:, 0]) - 1.2) < 0.28) & (np.abs(np.abs(P[:, 1]) - 1.2) < 0.28)
     cube = (np.abs(P[:, 0]) < 0.38) & (np.abs(P[:, 1]) < 0.38)
-    assert not (tile | cube).any()
+    assert not cube.any()
+    assert tile.sum() < 0.005 * len(P)
     # Without completion nothing is inferred; completion leaves the measured points alone
     # (the same voxels, the same positions) except those it drops below the plane.
     assert off.cloud.num_inferred == 0 and "inferred" in off.cloud.attributes

@@ -1,16 +1,23 @@
-"""Planar-prior completion of textureless floors.
+"""Planar-prior completion of floors that stereo left without depth.
 
 Photo-consistency (NCC) cannot place pixels of an untextured floor: every depth looks the
-same. Planar-prior MVS (e.g. Xu & Tao's ACMP) fills such regions from planes supported by
+same; and where only two views see a floor at grazing angles, the two depth maps rarely
+agree. Planar-prior MVS (e.g. Xu & Tao's ACMP) fills such regions from planes supported by
 the reliable depths. Here, the ground plane is perpendicular to the scene's up direction,
 at the height of the dominant bin of a height histogram of the consistent stereo points
-whose normals are near vertical (refined to the median height of its inliers); then every pixel that has no depth and whose ray meets the plane is tested by
-projecting the plane point into the other views:
+whose normals are near vertical (refined to the median height of its inliers); then every
+pixel that has no depth, whose ray meets the plane within the depth bounds the search had
+and whose texture is mild (``DenseConfig.ground_max_texture``) is tested by projecting the
+plane point into the other views:
 
 * a view whose own depth lies clearly *behind* the point contradicts it (it sees through
   the point: free-space violation) -> rejected;
 * a view whose depth lies clearly in front is occluded there and gives no evidence;
-* otherwise the view must see a similar colour (box-filtered BGR, per-channel tolerance).
+* otherwise the view must see a similar colour (box-filtered BGR, per-channel tolerance)
+  and, where the pixel's window is textured (``BLANK_TEXTURE``), the same pattern: the
+  view's image warped onto the pixel's window through the plane's homography must match it
+  (NCC, ``DenseConfig.ground_min_ncc``). Mean colours alone agree by chance on textured
+  surfaces: the textured side of a box would be put onto the floor behind it.
 
 Near-black pixels are never completed (no colour evidence), nor pixels whose colour the
 plane's stereo points never showed (walls above a floor), nor points outside the convex hull
@@ -39,6 +46,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.dense.cost import WindowStats, ncc, to_grey, window_stats
 from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap, Image
@@ -47,6 +55,12 @@ logger = logging.getLogger(__name__)
 
 #: Pixels darker than this (5x5 mean of the brightest channel, 0..255) are never completed.
 MIN_BRIGHTNESS = 24.0
+#: Side of the windows whose grey standard deviation decides whether a pixel is blank (under
+#: ``BLANK_TEXTURE``: its colour is the only evidence) or textured (its pattern must match
+#: in the confirming views, ``complete_with_plane``).
+TEXTURE_WINDOW = 7
+#: Grey-level standard deviation of a blank window.
+BLANK_TEXTURE = 4.0
 #: Points whose normal is within this angle of 'up' take part in the ground-plane vote.
 _HORIZONTAL_DEG = 40.0
 #: Largest share of all points more than 3 bands below a ground-plane candidate.
@@ -404,31 +418,81 @@ def plane_depth(camera: Camera, plane: Plane) -> DepthMap:
     return np.where(np.isfinite(z) & (z > 0), z, 0.0).astype(np.float32)
 
 
+def plane_homography(cam_i: Camera, cam_j: Camera, plane: Plane) -> NDArray[np.float64]:
+    """The 3x3 homography that maps a pixel of ``cam_i`` whose ray meets ``plane`` to the
+    pixel of ``cam_j`` that sees the same plane point (pinhole cameras)."""
+    n = np.asarray(plane.normal, np.float64)
+    nc = cam_i.R @ n  # plane in camera i's frame: nc . Xc = dc
+    dc = plane.offset + float(nc @ cam_i.t)
+    R_ji = cam_j.R @ cam_i.R.T
+    t_ji = cam_j.t - R_ji @ cam_i.t
+    H = cam_j.K @ (R_ji + np.outer(t_ji, nc) / dc) @ np.linalg.inv(cam_i.K)
+    return np.asarray(H / H[2, 2], np.float64)
+
+
+def _plane_ncc(
+    cam_i: Camera,
+    crop_i: WindowStats,
+    cam_j: Camera,
+    grey_j: NDArray[np.float32],
+    plane: Plane,
+    origin: tuple[int, int],
+) -> NDArray[np.float32]:
+    """NCC of the windows of view i's crop (``crop_i``, top-left pixel ``origin``) with view
+    j's image warped onto it through the plane (NaN where a window leaves view j)."""
+    h, w = crop_i.image.shape
+    shift = np.array([[1.0, 0.0, origin[0]], [0.0, 1.0, origin[1]], [0.0, 0.0, 1.0]])
+    H = plane_homography(cam_i, cam_j, plane) @ shift
+    warped = cv2.warpPerspective(
+        grey_j,
+        H,
+        (w, h),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float("nan"),
+    )
+    return ncc(crop_i, np.asarray(warped, np.float32))
+
+
 def complete_with_plane(
     plane: Plane,
     depths: Mapping[int, DepthMap],
     cameras: Mapping[int, Camera],
     colors: Mapping[int, Image],
     regions: Mapping[int, NDArray[np.bool_]],
-    far: Mapping[int, float],
+    far: Mapping[int, float | DepthMap],
     rel_tol: float,
     color_tol: float,
     min_views: int,
     colors_known: NDArray[np.bool_] | None = None,
     region: PlaneRegion | None = None,
-    stereo_on_plane: Mapping[int, int] | None = None,
     num_threads: int = 1,
+    textured: Mapping[int, NDArray[np.bool_]] | None = None,
+    min_ncc: float = 0.5,
+    near: Mapping[int, float | DepthMap] | None = None,
 ) -> dict[int, tuple[DepthMap, NDArray[np.int16]]]:
     """Per view, (depth map of the accepted plane pixels, number of confirming views).
+
+    Completed depths lie within the view's ``near`` (when given) and ``far`` bounds: numbers
+    or per-pixel maps (the depth bounds the dense stage searched).
+
+    A ``textured`` pixel (per view, True where the window has a pattern to compare) is
+    confirmed by a view only where that view's image, warped through the plane, also
+    matches its window's pattern (NCC of ``TEXTURE_WINDOW`` windows >= ``min_ncc``), and
+    denied where it does not: mean colours alone agree by chance on textured surfaces (the
+    side of a box completed onto the floor behind it). A view with distortion cannot be
+    warped by a homography and gives no evidence on textured pixels.
 
     ``colors_known`` (``color_model`` of the plane's stereo points) restricts completion to
     pixels of the plane's own colours: a white wall above a green floor is not floor even
     where every view agrees it is white. ``region`` (``support_region``) bounds the completed
-    points in the plane. A view whose stereo pixels on the plane (``stereo_on_plane``)
-    outnumber its candidates is left alone: its floor is textured and already matched, and
-    its blank pixels that meet the plane are other things (walls, furniture, occluders).
-    Views run on ``num_threads`` threads (``keep_off_levels`` then verifies the result)."""
+    points in the plane. Every view is completed, also one whose floor stereo mostly matched
+    already: its pixels left without a depth are judged one by one, and walls, furniture and
+    occluders fail the colour and free-space tests there (a rule that left such views alone
+    kept 4 of the demo scene's 5 views from completing anything; docs/BENCHMARKS.md). Views run on ``num_threads`` threads
+    (``keep_off_levels`` then verifies the result)."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
+    greys = {i: to_grey(c) for i, c in colors.items()} if textured is not None else {}
 
     def one(i: int) -> tuple[DepthMap, NDArray[np.int16]]:
         cam_i = cameras[i]
@@ -436,6 +500,8 @@ def complete_with_plane(
         # Near-black pixels carry no colour evidence (unlit background, sensor noise).
         lit = blurred[i].max(axis=2) >= MIN_BRIGHTNESS
         cand = (depths[i] <= 0) & (zp > 0) & (zp < far[i]) & regions[i] & lit
+        if near is not None:
+            cand &= zp >= near[i]
         if colors_known is not None:
             q = (np.clip(blurred[i], 0, 255).astype(np.int32) * COLOR_BINS) // 256
             cand &= colors_known[q[..., 2], q[..., 1], q[..., 0]]  # BGR image, RGB model
@@ -460,15 +526,35 @@ def complete_with_plane(
             rows, cols, z, X = rows[inside], cols[inside], z[inside], X[inside]
             if len(rows) == 0:
                 return result, support
-        if stereo_on_plane is not None and stereo_on_plane.get(i, 0) >= len(rows):
-            return result, support
         col_i = blurred[i][rows, cols]
         agree = np.zeros(len(z), np.int16)
         deny = np.zeros(len(z), np.int16)
         contra = np.zeros(len(z), bool)
+        tex = (
+            textured[i][rows, cols]
+            if textured is not None and i in textured
+            else np.zeros(len(z), bool)
+        )
+        crop_i = None
+        if tex.any():
+            # The windows of the textured candidates' bounding box, compared in every view.
+            r = TEXTURE_WINDOW // 2 + 1
+            ty, tx = rows[tex], cols[tex]
+            x0, y0 = max(0, int(tx.min()) - r), max(0, int(ty.min()) - r)
+            x1, y1 = (
+                min(zp.shape[1], int(tx.max()) + r + 1),
+                min(zp.shape[0], int(ty.max()) + r + 1),
+            )
+            crop_i = window_stats(np.ascontiguousarray(greys[i][y0:y1, x0:x1]), TEXTURE_WINDOW // 2)
         for j, cam_j in cameras.items():
             if j == i:
                 continue
+            pattern = np.zeros(len(z), np.float32)
+            if crop_i is not None:
+                pattern = np.full(len(z), np.nan, np.float32)
+                if not (cam_i.has_distortion or cam_j.has_distortion):
+                    nmap = _plane_ncc(cam_i, crop_i, cam_j, greys[j], plane, (x0, y0))
+                    pattern[tex] = nmap[rows[tex] - y0, cols[tex] - x0]
             uv, zj = cam_j.project(X)
             with np.errstate(invalid="ignore"):
                 inside = (zj > 0) & cam_j.in_image(uv, margin=0.5)
@@ -483,8 +569,12 @@ def complete_with_plane(
             front = (dj > 0) & (dj < zz * (1 - rel_tol))
             visible = ~behind & ~front
             cdiff = np.abs(blurred[j][rj, cj] - col_i[idx]).max(axis=1)
-            good = visible & (cdiff <= color_tol)
-            bad = visible & (cdiff > color_tol)
+            t_idx = tex[idx]
+            p_idx = pattern[idx]
+            matches = ~t_idx | (p_idx >= min_ncc)  # NaN: no evidence either way
+            differs = t_idx & (p_idx < min_ncc)
+            good = visible & (cdiff <= color_tol) & matches
+            bad = visible & ((cdiff > color_tol) | differs)
             contra[idx[behind]] = True
             agree[idx[good]] += 1
             deny[idx[bad]] += 1

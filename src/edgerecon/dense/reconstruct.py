@@ -21,6 +21,8 @@ from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid
 from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
 from edgerecon.dense.neighbors import point_weights, select_sources
 from edgerecon.dense.planes import (
+    BLANK_TEXTURE,
+    TEXTURE_WINDOW,
     Plane,
     below_plane,
     color_model,
@@ -620,8 +622,8 @@ def _complete_ground(
     config: DenseConfig,
     stats: dict[str, Any] | None = None,
 ) -> tuple[Plane | None, dict[int, tuple[DepthMap, NDArray[np.int16]]]]:
-    """Fit the ground plane to the stereo points and fill textureless floor pixels (not where
-    the level map finds another measured level; its counts go to ``stats``)."""
+    """Fit the ground plane to the stereo points and fill the floor pixels stereo left (not
+    where the level map finds another measured level; its counts go to ``stats``)."""
     pts = np.concatenate([p.points3D for p in parts])
     # The plane and its outline from an even subsample of the millions of depth points
     # (support counts scaled alike): the same plane for a third of the stage's time.
@@ -642,22 +644,26 @@ def _complete_ground(
     on_plane = np.abs(pts @ np.asarray(plane.normal) - plane.offset) <= 3.0 * voxel
     known = color_model(np.concatenate([p.colors for p in parts])[on_plane])
     hull = support_region(plane, pts[on_plane][sub])
-    # Stereo points on the plane per view (parts are in the order of ``kept``).
-    sizes = np.cumsum([0] + [len(p.points3D) for p in parts])
-    on_plane_count = {i: int(on_plane[sizes[k] : sizes[k + 1]].sum()) for k, i in enumerate(kept)}
     by_index = {p["index"]: p for p in plans}
 
-    def region_of(i: int) -> NDArray[np.bool_]:
-        """The view's pixels to complete: in its bounds and mask, and textureless."""
+    def region_of(i: int) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """The view's pixels to complete (in its bounds and mask, texture under
+        ``ground_max_texture``) and which of them are textured (``planes.BLANK_TEXTURE``)."""
         p = by_index[i]
         region = p["near"] > 0 if "near" in p else np.zeros(kept[i].shape, bool)
         if masks[i] is not None:
             region = region & masks[i]
-        _, var, _ = kernels.window_stats(to_grey(colors[i]), 3)
-        return np.asarray(region & (var < config.ground_max_texture**2), bool)
+        _, var, _ = kernels.window_stats(to_grey(colors[i]), TEXTURE_WINDOW // 2)
+        var = var - kernels.VAR_EPS
+        region = np.asarray(region & (var < config.ground_max_texture**2), bool)
+        return region, np.asarray(region & (var >= BLANK_TEXTURE**2), bool)
 
-    regions = dict(zip(kept, thread_map(region_of, kept, config.num_threads), strict=True))
-    far = {i: float(by_index[i]["range"][1]) if by_index[i].get("range") else 0.0 for i in kept}
+    found = dict(zip(kept, thread_map(region_of, kept, config.num_threads), strict=True))
+    regions = {i: r for i, (r, _) in found.items()}
+    textured = {i: t for i, (_, t) in found.items()}
+    # The per-pixel bounds the depth search had (regions hold only pixels that have them).
+    near = {i: by_index[i].get("near", 0.0) for i in kept}
+    far = {i: by_index[i].get("far", 0.0) for i in kept}
     extra = complete_with_plane(
         plane,
         kept,
@@ -670,8 +676,10 @@ def _complete_ground(
         config.min_consistent_views,
         known,
         hull,
-        on_plane_count,
         num_threads=config.num_threads,
+        textured=textured,
+        min_ncc=config.ground_min_ncc,
+        near=near,
     )
     completed = int(sum(int((d > 0).sum()) for d, _ in extra.values()))
     refused: dict[int, int] = {}
