@@ -301,6 +301,27 @@ def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
     return pred
 
 
+def _with_setting(config: Any, item: str) -> Any:
+    """``config`` with one dotted ``field=value`` setting replaced (value parsed as a Python
+    literal: numbers, booleans, tuples)."""
+    import ast
+
+    path, sep, text = item.partition("=")
+    if not sep:
+        raise SystemExit(f"--set wants FIELD=VALUE, got {item!r}")
+    head, _, rest = path.partition(".")
+    if not hasattr(config, head):
+        raise SystemExit(f"--set: {type(config).__name__} has no field {head!r}")
+    if rest:
+        value = _with_setting(getattr(config, head), f"{rest}={text}")
+    else:
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text
+    return dataclasses.replace(config, **{head: value})
+
+
 def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
     from edgerecon.io.dataset import open_dataset
     from edgerecon.quality.masks import score_mask_set
@@ -514,6 +535,13 @@ def main() -> None:
     ap.add_argument(
         "--online", default=None, help="dataset folder or preset: the online scene stage vs truth"
     )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a ForegroundConfig setting, dotted for nested ones (background.ghost_min_matches=1)",
+    )
     ap.add_argument("--tasks", default=None, help="--online: timestamps A:B:STEP (default 40)")
     ap.add_argument(
         "--work", default="/tmp/edgerecon-bench", help="--online: where presets are written"
@@ -535,6 +563,8 @@ def main() -> None:
         static_check=args.static_check,
         static=StaticCheckConfig(every_s=args.static_every_s, keep=args.static_keep),
     )
+    for item in args.set:
+        config = _with_setting(config, item)
     results: list[dict[str, Any]] = []
     if args.utrecht:
         r = run_utrecht(args.time, config, args.dense)
