@@ -21,9 +21,10 @@ plane point into the other views:
 
 Near-black pixels are never completed (no colour evidence), nor pixels whose colour the
 plane's stereo points never showed (walls above a floor), nor points outside the convex hull
-of the plane's stereo points (behind the walls of a room). A pixel is kept when at least ``min_consistent_views`` views confirm its colour, more
-views confirm than deny, and none contradicts. Completed points lie exactly on the fitted
-plane, so they are only as good as the fit (reported in the stage's stats).
+of the plane's stereo points (behind the walls of a room). A pixel is kept when at least
+``min_consistent_views`` views confirm it, more views confirm than deny, and none
+contradicts. Completed points lie exactly on the fitted plane, so they are only as good as
+the fit (reported in the stage's stats).
 
 A floor need not be one plane (a raised deck, a platform, a step). ``level_map`` bins the
 measured horizontal stereo points in cells of the plane's 2D coordinates: a cell whose
@@ -327,8 +328,9 @@ def level_map(
     A cell holds a raised (or lower) level when at least ``min_points`` of its horizontal
     points lie more than ``band`` above (below) the plane and they are at least a quarter of
     its points on the plane; so does a neighbouring cell with any point of that level (the
-    level's edge), and, for a raised level, a cell without points that it encloses. Only points confirmed by 3 views count when at least ``min_support`` are
-    (two-view ghosts below a floor are no level)."""
+    level's edge), and, for a raised level, a cell without points that it encloses. Only
+    points confirmed by 3 views count when at least ``min_support`` are (two-view ghosts
+    below a floor are no level)."""
     from scipy import ndimage
 
     n = np.asarray(plane.normal)
@@ -489,8 +491,8 @@ def complete_with_plane(
     points in the plane. Every view is completed, also one whose floor stereo mostly matched
     already: its pixels left without a depth are judged one by one, and walls, furniture and
     occluders fail the colour and free-space tests there (a rule that left such views alone
-    kept 4 of the demo scene's 5 views from completing anything; docs/BENCHMARKS.md). Views run on ``num_threads`` threads
-    (``keep_off_levels`` then verifies the result)."""
+    kept 4 of the demo scene's 5 views from completing anything; docs/BENCHMARKS.md). Views
+    run on ``num_threads`` threads (``keep_off_levels`` then verifies the result)."""
     blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
     greys = {i: to_grey(c) for i, c in colors.items()} if textured is not None else {}
 
