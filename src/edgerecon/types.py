@@ -28,7 +28,7 @@ BACKGROUND_LABEL = 0
 #: Label of points whose foreground/background status is unknown.
 UNKNOWN_LABEL = -1
 #: Per-point attribute (uint8 0/1) of points that were inferred, not measured: 1 = the point
-#: was synthesised (e.g. ground-plane completion of a blank floor), 0 = measured by stereo.
+#: was synthesised (e.g. ground-plane completion of a floor stereo left), 0 = measured by stereo.
 #: Absent = all measured (clouds from before the flag existed).
 INFERRED = "inferred"
 
