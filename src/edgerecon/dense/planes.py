@@ -551,12 +551,6 @@ def complete_with_plane(
         for j, cam_j in cameras.items():
             if j == i:
                 continue
-            pattern = np.zeros(len(z), np.float32)
-            if crop_i is not None:
-                pattern = np.full(len(z), np.nan, np.float32)
-                if not (cam_i.has_distortion or cam_j.has_distortion):
-                    nmap = _plane_ncc(cam_i, crop_i, cam_j, greys[j], plane, (x0, y0))
-                    pattern[tex] = nmap[rows[tex] - y0, cols[tex] - x0]
             uv, zj = cam_j.project(X)
             with np.errstate(invalid="ignore"):
                 inside = (zj > 0) & cam_j.in_image(uv, margin=0.5)
@@ -572,8 +566,16 @@ def complete_with_plane(
             visible = ~behind & ~front
             cdiff = np.abs(blurred[j][rj, cj] - col_i[idx]).max(axis=1)
             t_idx = tex[idx]
-            p_idx = pattern[idx]
-            matches = ~t_idx | (p_idx >= min_ncc)  # NaN: no evidence either way
+            # The pattern test, for the textured candidates this view sees (NaN: no evidence
+            # either way; a view with distortion has none).
+            p_idx = np.full(len(idx), np.nan, np.float32)
+            judge = t_idx & visible
+            if crop_i is not None and judge.any():
+                if not (cam_i.has_distortion or cam_j.has_distortion):
+                    nmap = _plane_ncc(cam_i, crop_i, cam_j, greys[j], plane, (x0, y0))
+                    k = idx[judge]
+                    p_idx[judge] = nmap[rows[k] - y0, cols[k] - x0]
+            matches = ~t_idx | (p_idx >= min_ncc)
             differs = t_idx & (p_idx < min_ncc)
             good = visible & (cdiff <= color_tol) & matches
             bad = visible & ((cdiff > color_tol) | differs)
