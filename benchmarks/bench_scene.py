@@ -301,25 +301,31 @@ def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
     return pred
 
 
-def _with_setting(config: Any, item: str) -> Any:
-    """``config`` with one dotted ``field=value`` setting replaced (value parsed as a Python
-    literal: numbers, booleans, tuples)."""
-    import ast
+def _with_settings(config: ForegroundConfig, items: list[str]) -> ForegroundConfig:
+    """``config`` with ``--set`` settings on top, read as the ``[runtime.foreground]`` table of
+    a ``--config`` file would be (``configfile.build``: TOML values, the same checks)."""
+    import tomllib
 
-    path, sep, text = item.partition("=")
-    if not sep:
-        raise SystemExit(f"--set wants FIELD=VALUE, got {item!r}")
-    head, _, rest = path.partition(".")
-    if not hasattr(config, head):
-        raise SystemExit(f"--set: {type(config).__name__} has no field {head!r}")
-    if rest:
-        value = _with_setting(getattr(config, head), f"{rest}={text}")
-    else:
+    from edgerecon.configfile import ConfigError, build
+
+    table: dict[str, Any] = {}
+    for item in items:
+        path, sep, text = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set wants FIELD=VALUE, got {item!r}")
+        *parents, name = path.strip().split(".")
         try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text
-    return dataclasses.replace(config, **{head: value})
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()  # a bare word: a string setting
+        node = table
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[name] = value
+    try:
+        return build(ForegroundConfig, table, base=config, where="runtime.foreground")
+    except ConfigError as exc:
+        raise SystemExit(f"--set: {exc}") from None
 
 
 def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:
@@ -563,8 +569,7 @@ def main() -> None:
         static_check=args.static_check,
         static=StaticCheckConfig(every_s=args.static_every_s, keep=args.static_keep),
     )
-    for item in args.set:
-        config = _with_setting(config, item)
+    config = _with_settings(config, args.set)
     results: list[dict[str, Any]] = []
     if args.utrecht:
         r = run_utrecht(args.time, config, args.dense)
