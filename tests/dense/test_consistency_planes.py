@@ -167,6 +167,22 @@ def test_support_region_is_the_convex_hull_of_the_inliers():
     assert support_region(plane, inliers[:2]) is None
 
 
+def test_support_region_inside_agrees_with_a_triangulation_of_the_hull():
+    """The wedge test (one edge per point) gives what testing every edge gives."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(5)
+    plane = Plane(normal=(0.0, 0.0, 1.0), offset=-0.2, support=400, rms=0.0)
+    inliers = np.c_[rng.normal(0.0, [2.0, 0.5], (400, 2)), np.full(400, -0.2)]
+    region = support_region(plane, inliers, trim=0.0)
+    assert region is not None and len(region.vertices) >= 8
+    probe = np.c_[rng.uniform(-8, 8, (20000, 2)), np.full(20000, -0.2)]
+    uv = probe @ region.basis
+    expected = Delaunay(region.vertices).find_simplex(uv) >= 0
+    assert 0.05 < expected.mean() < 0.5
+    assert np.array_equal(region.inside(probe), expected)
+
+
 def test_ground_plane_is_never_above_most_of_the_scene():
     # A foreground-only cloud: two standing people, the tops of their heads the largest
     # horizontal patch. A plane there would cut away everything below it.
