@@ -624,15 +624,17 @@ def _complete_ground(
 ) -> tuple[Plane | None, dict[int, tuple[DepthMap, NDArray[np.int16]]]]:
     """Fit the ground plane to the stereo points and fill the floor pixels stereo left (not
     where the level map finds another measured level; its counts go to ``stats``)."""
-    pts = np.concatenate([p.points3D for p in parts])
     # The plane and its outline from an even subsample of the millions of depth points
-    # (support counts scaled alike): the same plane for a third of the stage's time.
-    step = max(1, len(pts) // _GROUND_SAMPLE)
+    # (support counts scaled alike): the same plane for a third of the stage's time. The
+    # subsamples are taken part by part (copying every point into one array cost more than
+    # the fit).
+    step = max(1, sum(len(p.points3D) for p in parts) // _GROUND_SAMPLE)
     sub = slice(None, None, step)
-    sub_normals = np.concatenate([p.normals for p in parts])[sub]
-    sub_views = np.concatenate([p.num_views for p in parts])[sub]
+    sub_pts = _every([p.points3D for p in parts], step)
+    sub_normals = _every([p.normals for p in parts], step)
+    sub_views = _every([p.num_views for p in parts], step)
     plane = fit_ground_plane(
-        pts[sub],
+        sub_pts,
         sub_normals,
         sub_views,
         up,
@@ -641,9 +643,13 @@ def _complete_ground(
     )
     if plane is None:
         return None, {}
-    on_plane = np.abs(pts @ np.asarray(plane.normal) - plane.offset) <= 3.0 * voxel
-    known = color_model(np.concatenate([p.colors for p in parts])[on_plane])
-    hull = support_region(plane, pts[on_plane][sub])
+    normal = np.asarray(plane.normal)
+    on_plane = [np.abs(p.points3D @ normal - plane.offset) <= 3.0 * voxel for p in parts]
+    known = color_model(
+        np.concatenate([p.colors[on] for p, on in zip(parts, on_plane, strict=True)])
+    )
+    on_points = np.concatenate([p.points3D[on] for p, on in zip(parts, on_plane, strict=True)])
+    hull = support_region(plane, on_points[sub])
     by_index = {p["index"]: p for p in plans}
 
     def region_of(i: int) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
@@ -688,7 +694,7 @@ def _complete_ground(
         t0 = time.perf_counter()
         levels = level_map(
             plane,
-            pts[sub],
+            sub_pts,
             sub_normals,
             sub_views,
             3.0 * voxel,
@@ -707,6 +713,16 @@ def _complete_ground(
         stats["completed_depths"] = completed - stats["refused_depths"]
     logger.info("dense: ground plane %s", plane)
     return plane, extra
+
+
+def _every(arrays: Sequence[NDArray[Any]], step: int) -> NDArray[Any]:
+    """Every ``step``-th row of the concatenation of ``arrays`` (rows 0, step, 2 step, ...),
+    without copying them all into one array first."""
+    out, offset = [], 0
+    for a in arrays:
+        out.append(a[(-offset) % step :: step])
+        offset += len(a)
+    return np.concatenate(out)
 
 
 def _drop_below(part: ViewPoints, plane: Plane, band: float) -> ViewPoints:
