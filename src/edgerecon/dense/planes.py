@@ -48,7 +48,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.dense.cost import WindowStats, ncc, to_grey, window_stats
+from edgerecon.dense.cost import WindowStats, as_f32, ncc, to_grey, window_stats
 from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap, Image
@@ -517,7 +517,7 @@ def complete_with_plane(
     occluders fail the colour and free-space tests there (a rule that left such views alone
     kept 4 of the demo scene's 5 views from completing anything; docs/BENCHMARKS.md). Views
     run on ``num_threads`` threads (``keep_off_levels`` then verifies the result)."""
-    blurred = {i: cv2.blur(np.asarray(c, np.float32), (5, 5)) for i, c in colors.items()}
+    blurred = {i: as_f32(cv2.blur(np.asarray(c, np.float32), (5, 5))) for i, c in colors.items()}
     flat_width = {i: b.shape[1] for i, b in blurred.items()}
     greys = {i: to_grey(c) for i, c in colors.items()} if textured is not None else {}
 
@@ -598,9 +598,21 @@ def complete_with_plane(
             judge = t_idx & visible
             if crop_i is not None and judge.any():
                 if not (cam_i.has_distortion or cam_j.has_distortion):
-                    nmap = _plane_ncc(cam_i, crop_i, cam_j, greys[j], plane, (x0, y0))
                     k = idx[judge]
-                    p_idx[judge] = nmap[rows[k] - y0, cols[k] - x0]
+                    ky, kx = rows[k] - y0, cols[k] - x0
+                    # Only the part of the crop that holds these candidates' windows.
+                    sy = slice(max(0, int(ky.min()) - r), int(ky.max()) + r + 1)
+                    sx = slice(max(0, int(kx.min()) - r), int(kx.max()) + r + 1)
+                    sub = WindowStats(
+                        image=crop_i.image[sy, sx],
+                        mean=crop_i.mean[sy, sx],
+                        std=crop_i.std[sy, sx],
+                        radius=crop_i.radius,
+                    )
+                    nmap = _plane_ncc(
+                        cam_i, sub, cam_j, greys[j], plane, (x0 + sx.start, y0 + sy.start)
+                    )
+                    p_idx[judge] = nmap[ky - sy.start, kx - sx.start]
             matches = ~t_idx | (p_idx >= min_ncc)
             differs = t_idx & (p_idx < min_ncc)
             good = visible & (cdiff <= color_tol) & matches
