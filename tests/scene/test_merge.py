@@ -71,6 +71,25 @@ def test_merge_removes_background_inside_the_hull() -> None:
     np.testing.assert_allclose(bg_part.points3D, outside)
 
 
+def test_merge_overrides_exactly_the_points_near_the_foreground_or_in_the_hull() -> None:
+    """Only points in the foreground's or the hull's box are searched: the result is that of
+    testing every background point."""
+    rig = ring_with_top(6)
+    lo, hi = np.array([-0.3, -0.3, 0.5]), np.array([0.3, 0.3, 1.5])
+    hull = visual_hull(
+        rig.cameras, [box_silhouette(c, lo, hi) for c in rig], HullConfig(voxel_size=0.04)
+    )
+    rng = np.random.default_rng(3)
+    fg = PointCloud(points3D=rng.uniform([0.2, 0.2, 0.4], [0.8, 0.5, 1.0], (400, 3)))
+    bg = PointCloud(points3D=rng.uniform(-1.0, 1.6, (20000, 3)))
+    radius = 0.05
+    merged = merge_clouds(fg, bg, bg_version=1, config=MergeConfig(clear_radius=radius), hull=hull)
+    d = np.linalg.norm(bg.points3D[:, None, :] - fg.points3D[None, :, :], axis=2).min(axis=1)
+    expected = (d >= radius) & ~hull.contains(bg.points3D)
+    assert 0.5 < expected.mean() < 0.999
+    np.testing.assert_array_equal(split_merged(merged)[1].points3D, bg.points3D[expected])
+
+
 def test_merge_scene_scale_sets_radius() -> None:
     fg, bg = _clouds()
     merged = merge_clouds(fg, bg, bg_version=1, scene_scale=5.0)  # radius 0.05
