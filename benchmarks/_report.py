@@ -10,9 +10,11 @@ import subprocess
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+
+T = TypeVar("T")
 
 
 def report_header() -> dict[str, Any]:
@@ -67,3 +69,31 @@ def print_rows(title: str, columns: Sequence[str], rows: Sequence[dict[str, Any]
 def write_report(path: str | Path, data: dict[str, Any]) -> None:
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(data, indent=2, default=str) + "\n")
+
+
+def with_settings(config: T, items: Sequence[str], where: str) -> T:
+    """``config`` (a configuration dataclass) with ``FIELD=VALUE`` settings (``--set``) on top,
+    read as the ``[where]`` table of a ``--config`` file would be (``configfile.build``: TOML
+    values, the same checks and messages; dotted fields reach nested tables)."""
+    import tomllib
+
+    from edgerecon.configfile import ConfigError, build
+
+    table: dict[str, Any] = {}
+    for item in items:
+        path, sep, text = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set wants FIELD=VALUE, got {item!r}")
+        *parents, name = path.strip().split(".")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()  # a bare word: a string setting
+        node = table
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[name] = value
+    try:
+        return build(type(config), table, base=config, where=where)
+    except ConfigError as exc:
+        raise SystemExit(f"--set: {exc}") from None

@@ -54,7 +54,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from _report import print_rows, report_header
+from _report import print_rows, report_header, with_settings
 from edgerecon.quality import evaluate_clouds
 from edgerecon.quality.masks import at_resolution
 from edgerecon.scene import (
@@ -304,28 +304,7 @@ def _like(pred: np.ndarray | None, truth: np.ndarray) -> np.ndarray:
 def _with_settings(config: ForegroundConfig, items: list[str]) -> ForegroundConfig:
     """``config`` with ``--set`` settings on top, read as the ``[runtime.foreground]`` table of
     a ``--config`` file would be (``configfile.build``: TOML values, the same checks)."""
-    import tomllib
-
-    from edgerecon.configfile import ConfigError, build
-
-    table: dict[str, Any] = {}
-    for item in items:
-        path, sep, text = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--set wants FIELD=VALUE, got {item!r}")
-        *parents, name = path.strip().split(".")
-        try:
-            value = tomllib.loads(f"v = {text.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = text.strip()  # a bare word: a string setting
-        node = table
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[name] = value
-    try:
-        return build(ForegroundConfig, table, base=config, where="runtime.foreground")
-    except ConfigError as exc:
-        raise SystemExit(f"--set: {exc}") from None
+    return with_settings(config, items, "runtime.foreground")
 
 
 def run_online(spec: str, config: ForegroundConfig, args: argparse.Namespace) -> dict[str, Any]:

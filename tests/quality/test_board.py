@@ -7,7 +7,9 @@ import pytest
 
 from edgerecon.quality.board import (
     CornerDetections,
+    BoardCorners,
     board_check,
+    board_surface,
     read_corner_csv,
     triangulate_corners,
 )
@@ -43,6 +45,29 @@ def test_corners_are_triangulated_through_the_lens_distortion():
     np.testing.assert_allclose(check.distances, 0.002, atol=1e-6)
     assert check.board_rms < 1e-6
     assert np.isinf(board_check(np.zeros((0, 3)), corners, 7).median)
+
+
+def test_board_surface_takes_the_points_over_the_corners_and_near_their_plane():
+    g = np.stack(np.meshgrid(np.arange(4) * 0.054, np.arange(3) * 0.054), -1).reshape(-1, 2)
+    R = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]  # a tilted board
+    corners = BoardCorners(
+        corner_id=np.arange(12),
+        points3D=np.column_stack([g, np.zeros(12)]) @ R.T + [0.1, -0.2, 1.5],
+        num_views=np.full(12, 4),
+        reprojection_error_px=np.zeros(12),
+    )
+    rng = np.random.default_rng(2)
+    on = np.column_stack([rng.uniform(0, [0.162, 0.108], (1000, 2)), rng.normal(0, 0.001, 1000)])
+    off_side = np.column_stack([rng.uniform(0.2, 0.3, (100, 2)), np.zeros(100)])  # beside it
+    behind = np.column_stack([rng.uniform(0, [0.162, 0.108], (100, 2)), np.full(100, 0.2)])
+    cloud = np.vstack([on, off_side, behind]) @ R.T + [0.1, -0.2, 1.5]
+    surface = board_surface(cloud, corners, 7, band=0.03)
+    assert surface.num_points == 1000
+    np.testing.assert_allclose(surface.distances, np.abs(on[:, 2]), atol=1e-9)
+    assert 0.6 < surface.within(0.001) < 0.75 and surface.within(0.005) == 1.0
+    assert board_surface(cloud, corners, 7, band=0.0005).num_points < 500
+    assert board_surface(np.zeros((0, 3)), corners, 7, band=0.03).num_points == 0
+    assert np.isnan(board_surface(np.zeros((0, 3)), corners, 7, band=0.03).median)
 
 
 @pytest.mark.shared_data

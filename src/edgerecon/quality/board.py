@@ -6,6 +6,10 @@ triangulated, lie on the board to a fraction of a millimetre. A dense cloud that
 the board has a point close to each corner; the distance from each corner to its nearest dense
 point is the check (``caliscope_charuco/checks/charuco_corners_2d.csv``: ChArUco corners found
 by OpenCV, one row per detection).
+
+The corners also give the board's plane, so the board is a precision check as well
+(``board_surface``): the dense points over the area the corners span should lie on that plane,
+and their distances to it show how noisy the cloud is on a real, textured surface.
 """
 
 from __future__ import annotations
@@ -175,3 +179,53 @@ def board_check(cloud: PointCloud | Points3D, corners: BoardCorners, time_index:
         max=float(np.max(d)) if C else float("nan"),
         board_rms=rms,
     )
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class BoardSurface:
+    """Distances of the dense points over the board to the plane of its corners."""
+
+    time_index: int
+    distances: NDArray[np.float64]
+    """(P,) absolute distance to the corners' plane of each point that lies over the corners'
+    convex hull and within the band (rig units)."""
+    band: float
+
+    @property
+    def num_points(self) -> int:
+        return int(self.distances.shape[0])
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.distances)) if self.num_points else float("nan")
+
+    def within(self, threshold: float) -> float:
+        """Share of the points within ``threshold`` of the plane (the cloud's precision on the
+        board at that threshold); NaN without points."""
+        return float(np.mean(self.distances <= threshold)) if self.num_points else float("nan")
+
+
+def board_surface(
+    cloud: PointCloud | Points3D, corners: BoardCorners, time_index: int, band: float
+) -> BoardSurface:
+    """The points of ``cloud`` over the convex hull of the board's corners (in the plane fitted
+    to them) and within ``band`` of that plane, with their distances to it. The band (rig
+    units) keeps what is in front of or behind the board (the hand holding it, the wall
+    behind) out; with fewer than 3 corners there is no plane and no point."""
+    from scipy.spatial import Delaunay, QhullError
+
+    pts = cloud.points3D if isinstance(cloud, PointCloud) else np.asarray(cloud, np.float64)
+    empty = BoardSurface(time_index=time_index, distances=np.zeros(0), band=band)
+    if len(corners) < 3 or len(pts) == 0:
+        return empty
+    center = corners.points3D.mean(axis=0)
+    _, _, vt = np.linalg.svd(corners.points3D - center, full_matrices=False)
+    try:
+        outline = Delaunay((corners.points3D - center) @ vt[:2].T)
+    except QhullError:  # collinear corners: no area
+        return empty
+    rel = pts - center
+    d = np.abs(rel @ vt[2])
+    near = np.flatnonzero(d <= band)
+    inside = outline.find_simplex(rel[near] @ vt[:2].T) >= 0
+    return BoardSurface(time_index=time_index, distances=d[near[inside]], band=band)
