@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import uuid
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -89,20 +90,26 @@ def _ray() -> Any:
 
 class _BackendActor:
     """Actor shell around :class:`BackEnd` (thin: all logic lives in the role class). A
-    (re)started actor asks the front-end for its epoch."""
+    (re)started actor finds the front-end actor by its name and registers with it: its epoch,
+    and on the first start the frames of the first background.
 
-    def __init__(
-        self, dataset: Dataset, config: RuntimeConfig, scene: SceneModel, frontend: Any
-    ) -> None:
+    The constructor takes plain values only. Ray cannot be relied on to restart an actor
+    whose constructor arguments live in its object store or hold references (their lineage
+    is not counted, ray-project/ray#53727), and it logs an error for every such actor with
+    restarts; an actor handle counts as a reference."""
+
+    def __init__(self, dataset: Dataset, config: RuntimeConfig, frontend_name: str) -> None:
         from edgerecon.runtime.backend import BackEnd
 
-        start = _ray().get(frontend.register_backend.remote())
+        ray = _ray()
+        frontend = ray.get_actor(frontend_name)
+        start, initial = ray.get(frontend.register_backend.remote())
         self._frontend = frontend
         self.backend = BackEnd(
             dataset.rig,
             config,
             push=self._push,
-            initial_background=scene.initial_background if start.first else None,
+            initial_background=initial,
             epoch=start.epoch,
         ).start()
 
@@ -166,6 +173,7 @@ class _FrontendActor:
         background: Any,
     ) -> None:
         self.frontend = start_frontend(dataset, config, controller, scene, restored, background)
+        self._initial_background: FrameSet | None = scene.initial_background
         self.config = config
         self.backend: Any = None
         self.link = BackendLink(self._ping, config.backend_retry_s)
@@ -174,8 +182,12 @@ class _FrontendActor:
     def set_backend(self, backend: Any) -> None:
         self.backend = backend
 
-    def register_backend(self) -> Any:
-        return self.frontend.register_backend()
+    def register_backend(self) -> tuple[Any, FrameSet | None]:
+        """A back-end actor (re)starts: its ``BackendStart`` and, on the first start, the
+        frames of the first background (then released here)."""
+        start = self.frontend.register_backend()
+        initial, self._initial_background = self._initial_background, None
+        return start, initial if start.first else None
 
     def _ping(self) -> dict[str, Any] | None:
         ray = _ray()
@@ -264,8 +276,11 @@ class RayEngine:
         self._scene_ref = ray.put(scene)
         # The models' working sizes (to reduce update frames before they travel).
         self._sizes = RigForeground.from_states(dataset.rig, scene.states, config.foreground)
+        # Named, so that the back-end actor finds it (on every restart) without a handle in
+        # its constructor arguments (see _BackendActor).
+        name = f"edgerecon-frontend-{uuid.uuid4().hex}"
         self.frontend = front_cls.options(
-            num_cpus=0, resources={"frontend": 1}, max_concurrency=4
+            name=name, num_cpus=0, resources={"frontend": 1}, max_concurrency=4
         ).remote(dataset, config, controller, self._scene_ref, restored, background)
         self.backend = back_cls.options(
             num_cpus=0,
@@ -273,7 +288,7 @@ class RayEngine:
             max_concurrency=4,
             max_restarts=-1,
             max_task_retries=0,
-        ).remote(dataset, config, self._scene_ref, self.frontend)
+        ).remote(dataset, config, name)
         ray.get(self.frontend.set_backend.remote(self.backend))
         ray.get(self.backend.ping.remote())  # wait until the back-end has started
 
