@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from edgerecon.quality.board import (
-    CornerDetections,
     BoardCorners,
+    CornerDetections,
     board_check,
     board_surface,
     read_corner_csv,
