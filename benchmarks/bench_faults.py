@@ -11,7 +11,8 @@ with a fixed configuration (``--fixed 0.8``, all cameras: the optimizer's choice
 timings, the clouds of a fixed configuration do not) and background updates on.
 
 Columns per drill: tasks recorded, lost (timestamps never recorded), duplicated (recorded
-twice), files that do not parse (metrics lines, state.json, summary.json, every PLY),
+twice), files that do not parse (metrics lines, state.json, summary.json, every PLY, every
+task's merged cloud composed from its foreground and background version),
 failed tasks, degraded tasks, background continuity (the version never goes back, and after
 every resume or back-end restart a newer background is merged: "advanced/boundaries"), and
 how many tasks equal the uninterrupted run's (same configuration; same foreground cloud,
@@ -37,6 +38,7 @@ import numpy as np
 from _report import print_rows, report_header, write_report
 from edgerecon.io.ply import read_ply
 from edgerecon.runtime.messages import BgVersion
+from edgerecon.viewer.rundir import RunFolder
 
 CONFIG_KEYS = ("status", "phase", "scale", "camera_ids", "num_cameras")
 CLOUD_KEYS = ("num_sparse", "num_sparse_fg", "num_fg_points", "num_objects")
@@ -143,16 +145,22 @@ def read_run(out: Path) -> tuple[list[dict[str, Any]], int]:
             json.loads((out / name).read_text())
         except (OSError, ValueError):
             bad += 1
-    for ply in [*out.glob("tasks/*/merged.ply"), *out.glob("background.ply")]:
+    plys = [*out.glob("tasks/*/fg.ply"), *out.glob("backgrounds/*.ply")]
+    for ply in [*plys, *out.glob("background.ply")]:
         try:
             read_ply(ply)
         except Exception:
+            bad += 1
+    run = RunFolder(out)
+    for x in lines:  # every recorded task's merged cloud composes (its background exists)
+        if x.get("status") == "ok" and run.cloud(x["time_index"]) is None:
             bad += 1
     return lines, bad
 
 
 def foreground(out: Path, t: int) -> np.ndarray:
-    cloud = read_ply(out / "tasks" / f"{t:06d}" / "merged.ply")
+    cloud = RunFolder(out).cloud(t)
+    assert cloud is not None and cloud.labels is not None
     return cloud.points3D[cloud.labels > 0]
 
 

@@ -46,7 +46,6 @@ import numpy as np
 
 from _report import SHARED, print_rows, report_header, write_report
 from edgerecon.io.dataset import open_dataset
-from edgerecon.io.ply import read_ply
 from edgerecon.pipeline import SPARSE_SCOPES, reconstruct, reconstruct_task, warm_up
 from edgerecon.quality import evaluate_clouds
 from edgerecon.quality.metrics import evaluate_against
@@ -55,6 +54,7 @@ from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_onl
 from edgerecon.runtime.config import median_camera_distance
 from edgerecon.scene.stream import bootstrap_scene
 from edgerecon.types import PointCloud
+from edgerecon.viewer.rundir import RunFolder
 
 
 def dataset_root(name: str, work: Path) -> Path | None:
@@ -142,7 +142,8 @@ def run_deadline(
     vs_moving: list[list[float]] = []
     seated = gt.seated_from_start if gt is not None else []
     for m in ok:
-        merged = read_ply(out / "tasks" / f"{m.time_index:06d}" / "merged.ply")
+        merged = RunFolder(out).cloud(m.time_index)
+        assert merged is not None and merged.labels is not None
         fg = merged.select(merged.labels > 0)
         ref = golden_fg.get(m.time_index)
         if ref is not None and len(ref):

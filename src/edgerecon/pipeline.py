@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -27,7 +27,7 @@ from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense,
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.hull import VisualHull, hull_depth_range
-from edgerecon.scene.merge import merge_clouds
+from edgerecon.scene.merge import compose, merge_radius, overridden
 from edgerecon.scene.split import SplitConfig, split_sparse
 from edgerecon.sparse import SparseConfig, SparseReconstruction, reconstruct_sparse
 from edgerecon.types import (
@@ -437,6 +437,9 @@ class SplitReconstructionResult:
     bg_version: int
     merged: PointCloud
     timings: StageTimings
+    bg_dropped: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    """Indices of the ``background`` points the foreground overrides (left out of
+    ``merged``: ``scene.merge.overridden``)."""
 
     def summary(self) -> dict[str, Any]:
         labels = self.foreground.labels
@@ -540,13 +543,13 @@ def reconstruct_task(
         background = bg_dense.cloud
     checkpoint("the merge")
     with timings.stage("merge"):
-        merged = merge_clouds(
-            fg_rec.cloud,
-            background,
-            bg_version=bg_version,
-            scene_scale=rig.scene_scale(),
-            hull=fg.hull,
+        dropped = overridden(
+            fg_rec.cloud.points3D,
+            background.points3D,
+            merge_radius(None, rig.scene_scale()),
+            fg.hull,
         )
+        merged = compose(fg_rec.cloud, background, bg_version=bg_version, dropped=dropped)
     return SplitReconstructionResult(
         time_index=frames.time_index,
         config=config,
@@ -557,6 +560,7 @@ def reconstruct_task(
         background=background,
         bg_version=bg_version,
         merged=merged,
+        bg_dropped=dropped,
         timings=timings,
     )
 

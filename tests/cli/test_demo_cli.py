@@ -23,7 +23,7 @@ def test_demo_runs_online_system_and_reuses_scene(tmp_path, capsys):
     assert tasks[0]["phase"] == "golden"
     assert all(t["status"] == "ok" and t["offline_fscore"] is not None for t in tasks)
     assert result["deadline_s"] > 0 and result["golden"]["seconds"] > 0
-    assert (tmp_path / "run" / "tasks" / "000004" / "merged.ply").exists()
+    assert (tmp_path / "run" / "tasks" / "000004" / "fg.ply").exists()
     # A second run finds the scene already generated.
     assert main([*args, "--frames", "0:2"]) == 0
     again = json.loads(capsys.readouterr().out)

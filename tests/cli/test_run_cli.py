@@ -64,7 +64,11 @@ def test_run_refuses_a_used_folder_resumes_and_overwrites(tiny_dataset, tmp_path
     # The task clouds say which points are inferred (PLY 'uchar inferred').
     from edgerecon.io.ply import read_ply_meta
 
-    assert "inferred" in read_ply_meta(out / "tasks" / "000001" / "merged.ply").vertex_properties
+    assert "inferred" in read_ply_meta(out / "tasks" / "000001" / "fg.ply").vertex_properties
+    from edgerecon.viewer.rundir import RunFolder
+
+    merged = RunFolder(out).cloud(1)
+    assert merged is not None and "inferred" in merged.attributes
     # A finished run is not replaced silently.
     assert _run(tiny_dataset, out, "--frames", "0:2", "--fixed", "0.6") == 2
     assert "not empty" in capsys.readouterr().err
@@ -112,3 +116,40 @@ def test_run_help_documents_exit_codes(capsys):
         parser.parse_args(["run", "--help"])
     text = capsys.readouterr().out
     assert "exit codes:" in text and "130" in text and "tasks failed" in text.replace("\n", " ")
+
+
+def test_export_of_a_run_task_composes_its_merged_cloud(tiny_dataset, tmp_path, capsys):
+    """A run stores a task's foreground and each background version once; exporting the
+    task's folder gives the merged cloud (the run's reader composes it), or its foreground."""
+    import numpy as np
+
+    from edgerecon.io.ply import read_ply
+    from edgerecon.viewer.rundir import RunFolder
+
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(tiny_dataset), "--out", str(out), "--deadline", "20"]
+    assert main([*args, "--frames", "0:3", "--fixed", "0.6"]) == 0
+    capsys.readouterr()
+    task = out / "tasks" / "000002"
+    merged = RunFolder(out).cloud(2)
+    assert merged is not None and (merged.labels > 0).any()
+    ply = tmp_path / "t2.ply"
+    assert main(["export", str(task), "--to", "ply", "-o", str(ply), "--max-range", "none"]) == 0
+    got = read_ply(ply)
+    np.testing.assert_array_equal(got.points3D, merged.points3D.astype(got.points3D.dtype))
+    np.testing.assert_array_equal(got.labels, merged.labels)
+    fg = tmp_path / "fg.ply"
+    cmd = [
+        "export",
+        str(task),
+        "--to",
+        "ply",
+        "--cloud",
+        "fg",
+        "-o",
+        str(fg),
+        "--max-range",
+        "none",
+    ]
+    assert main(cmd) == 0
+    assert len(read_ply(fg)) == int((merged.labels > 0).sum())

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from edgerecon.io.dataset import open_dataset
-from edgerecon.io.ply import read_ply
 from edgerecon.runtime import FrameRange, SessionOptions, run_online
+from edgerecon.viewer.rundir import RunFolder
 from tests.runtime.conftest import runtime_config
 
 
@@ -33,10 +34,23 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     assert {"scene", "sfm", "split", "merge", "online_quality"} <= set(metrics[0].stages)
     lines = _lines(tmp_path / "metrics.jsonl")
     assert [x["time_index"] for x in lines] == [0, 1, 2, 3]
+    run = RunFolder(tmp_path)
     for m in metrics:
-        merged = read_ply(tmp_path / "tasks" / f"{m.time_index:06d}" / "merged.ply")
-        assert len(merged) == m.num_merged_points
+        merged = run.cloud(m.time_index)
+        assert merged is not None and len(merged) == m.num_merged_points
         assert (merged.labels > 0).sum() == m.num_fg_points
+        np.testing.assert_array_equal(merged.attributes["bg_version"], m.bg_version)
+    # Each background version the tasks merged with is stored once, the newest also as
+    # background.ply (for --resume); a task stores its foreground, not the background.
+    versions = {(m.bg_epoch, m.bg_version) for m in metrics if m.bg_version}
+    stored = {p.name for p in (tmp_path / "backgrounds").glob("*.ply")}
+    assert stored == {f"v{e}.{c}.ply" for e, c in versions}
+    if versions:
+        newest = max(versions)
+        assert (tmp_path / "background.ply").read_bytes() == (
+            tmp_path / "backgrounds" / f"v{newest[0]}.{newest[1]}.ply"
+        ).read_bytes()
+    assert not list(tmp_path.glob("tasks/*/merged.ply"))
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["tasks"] == 4 and saved["failed"] == 0
     assert summary.avg_time_s == pytest.approx(sum(m.critical_path_s for m in metrics) / 4)

@@ -19,6 +19,7 @@ from edgerecon.runtime.messages import BackgroundUpdate, BgVersion
 from edgerecon.runtime.online import make_controller
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
 from edgerecon.types import EdgereconError, PointCloud
+from edgerecon.viewer.rundir import RunFolder
 from tests.runtime.conftest import run_frames, runtime_config
 
 
@@ -65,6 +66,13 @@ def test_frontend_takes_a_restarted_backends_backgrounds():
     assert fe.bg_version == BgVersion(2, 1)
     state = fe.state()
     assert state.backend_epoch == 2 and state.backgrounds_received == 6
+    # The state names the background a task published (saved as background.ply), not the
+    # newest held: none before a task merged one.
+    assert state.bg_version == BgVersion()
+    assert fe._background_to_publish(*fe.background()) is not None  # a task merged v2.1
+    assert fe._background_to_publish(*fe.background()) is None  # published once
+    state = fe.state()
+    assert state.bg_version == BgVersion(2, 1)
     # Restored (resume): the next back-end continues the epochs, the background is kept.
     again = FrontEnd(
         _rig(),
@@ -137,14 +145,14 @@ def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp
     # The saved background is the background itself, not a merged cloud with holes cut
     # where the last task's foreground was (a resumed run's clouds held ~7k of ~144k points).
     saved_bg = read_ply(part / "background.ply")
-    last = read_ply(part / "tasks" / f"{first[-1].time_index:06d}" / "merged.ply")
+    last = RunFolder(part).cloud(first[-1].time_index)
+    assert last is not None
     held = state.frontend.bg_version
     assert held.counter >= 1
-    merged_version = first[-1].background_version
-    if merged_version == held:
-        assert len(saved_bg) > (last.labels == 0).sum()
-    else:  # a newer background arrived after the last task's merge: that one is saved
-        assert held > merged_version
+    # The saved version is the one the last task merged with, which background.ply holds
+    # (not a newer one that arrived after that task: the file would not match it).
+    assert first[-1].background_version == held
+    assert len(saved_bg) > (last.labels == 0).sum()
     # A crash left a torn last line: it is cut off and that task is done again.
     with open(part / "metrics.jsonl", "a") as f:
         f.write('{"task": 3, "time_index": 3, "sta')
@@ -174,8 +182,9 @@ def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp
             b.num_fg_points,
             b.num_sparse_fg,
         ), a.task
-        fa = read_ply(part / "tasks" / f"{a.time_index:06d}" / "merged.ply")
-        fb = read_ply(whole / "tasks" / f"{b.time_index:06d}" / "merged.ply")
+        fa = RunFolder(part).cloud(a.time_index)
+        fb = RunFolder(whole).cloud(b.time_index)
+        assert fa is not None and fb is not None
         np.testing.assert_array_equal(
             fa.points3D[fa.labels > 0], fb.points3D[fb.labels > 0], err_msg=str(a.task)
         )
@@ -298,9 +307,9 @@ def test_golden_task_refreshes_camera_mapping_and_late_golden_is_degraded(tiny):
 def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, monkeypatch):
     import errno
 
-    import edgerecon.runtime.session as session_module
+    import edgerecon.runtime.state as state_module
 
-    real = session_module.write_ply
+    real = state_module.write_ply
     calls = {"n": 0}
 
     def full(path, cloud, **kw):
@@ -309,12 +318,12 @@ def test_outputs_that_cannot_be_written_stop_the_run_cleanly(tiny, tmp_path, mon
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(path, cloud, **kw)
 
-    monkeypatch.setattr(session_module, "write_ply", full)
+    monkeypatch.setattr(state_module, "write_ply", full)
     config = runtime_config()  # background rebuilds on: their files are written too
     with pytest.raises(EdgereconError, match=r"No space left.*after 1 committed tasks.*--resume"):
         run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None))
     assert RunState.load(tmp_path).tasks_done == 1
-    monkeypatch.setattr(session_module, "write_ply", real)
+    monkeypatch.setattr(state_module, "write_ply", real)
     _, metrics = run_frames(tiny, tmp_path, 0, 3, config, fixed=(0.6, None), resume=True)
     assert [m.time_index for m in metrics] == [0, 1, 2]
 

@@ -11,8 +11,10 @@ from typing import Any
 from edgerecon.cli._common import add_json_flag, console, emit_json
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.export import export_colmap, z_up_metres
-from edgerecon.io.ply import read_ply, read_ply_meta, write_ply
+from edgerecon.io.ply import PlyMeta, read_ply, read_ply_meta, write_ply
+from edgerecon.runtime.state import TASK_DROPPED, TASK_FOREGROUND
 from edgerecon.types import DataError, PointCloud
+from edgerecon.viewer.rundir import RunFolder
 
 #: Clouds a reconstruction folder may hold, in the order ``--cloud auto`` picks them for
 #: each format (COLMAP: the SfM points first, as COLMAP's own models hold).
@@ -92,14 +94,39 @@ def _cloud_path(source: Path, choice: str, order: tuple[str, ...]) -> Path:
         return source
     if choice == "auto":
         for name in order:
-            if (source / name).is_file():
+            if _exists(source / name):
                 return source / name
         raise DataError(f"{source}: no {', '.join(order)} to export")
     named = {"fg": "fg.ply", "bg": "bg.ply"}.get(choice, f"{choice}.ply")
     path = source / named if not choice.endswith(".ply") else Path(choice)
-    if not path.is_file():
+    if not _exists(path):
         raise DataError(f"cloud {choice!r} not found: {path}")
     return path
+
+
+def _is_run_task(folder: Path) -> bool:
+    """A task folder of ``run`` (RUN/tasks/<time>): the task's foreground and the background
+    points it overrode; its merged cloud is composed with the run's background version."""
+    return (folder / TASK_FOREGROUND).is_file() and (folder / TASK_DROPPED).is_file()
+
+
+def _exists(path: Path) -> bool:
+    return path.is_file() or (path.name == "merged.ply" and _is_run_task(path.parent))
+
+
+def _read_cloud(path: Path) -> PointCloud:
+    """The cloud at ``path``; a run task's ``merged.ply`` is composed from its parts."""
+    if path.is_file():
+        return read_ply(path)
+    task = path.parent
+    cloud = RunFolder(task.parent.parent).cloud(int(task.name))
+    if cloud is None:
+        raise DataError(f"{task}: the task's merged cloud cannot be composed (see the log)")
+    return cloud
+
+
+def _read_meta(path: Path) -> PlyMeta:
+    return read_ply_meta(path if path.is_file() else path.parent / TASK_FOREGROUND)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -115,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
         raise DataError("--to colmap needs the dataset (--dataset DIR): the cameras come from it")
     dataset = open_dataset(dataset_path)
     cloud_path = _cloud_path(source, args.cloud, _COLMAP_ORDER)
-    cloud, dropped = crop_range(read_ply(cloud_path), dataset.rig, args.max_range)
+    cloud, dropped = crop_range(_read_cloud(cloud_path), dataset.rig, args.max_range)
     occluders = _occluders(source, cloud_path)
     frames = None
     if not args.no_images:
@@ -187,15 +214,15 @@ def _occluders(source: Path, cloud_path: Path) -> PointCloud | None:
     folder = source if source.is_dir() else source.parent
     for name in ("merged.ply", "dense.ply"):
         path = folder / name
-        if path.is_file() and path != cloud_path:
-            return read_ply(path)
+        if _exists(path) and path != cloud_path:
+            return _read_cloud(path)
     return None
 
 
 def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
     cloud_path = _cloud_path(source, args.cloud, _PLY_ORDER)
-    cloud = read_ply(cloud_path)
-    meta = read_ply_meta(cloud_path)
+    cloud = _read_cloud(cloud_path)
+    meta = _read_meta(cloud_path)
     dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
     dropped = 0
     if dataset is not None:

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.geometry.camera import Rig
@@ -66,14 +67,18 @@ _MIN_SELECTION_POINTS = 200
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class TaskOutput:
-    """What a task publishes: its metrics and, unless it failed, its clouds."""
+    """What a task publishes: its metrics and, unless it failed, its clouds. The merged
+    cloud is ``scene.merge.compose(foreground, <the background of the task's version>,
+    bg_version=..., dropped=bg_dropped)``; the background travels once per version, not with
+    every task (a million points on an HD rig)."""
 
     metrics: TaskMetrics
-    merged: PointCloud | None
     foreground: PointCloud | None
+    bg_dropped: NDArray[np.int64] | None = None
+    """Indices of the task's background points the foreground overrides."""
     background: PointCloud | None = None
-    """The background the front-end holds, when it changed since the last task that
-    published one (the session saves it for ``--resume``)."""
+    """The background the task merged with, when no earlier task published that version
+    (the session saves each version once, and the newest for ``--resume``)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -209,11 +214,14 @@ class FrontEnd:
 
     # ------------------------------------------------------------------ run state
     def state(self) -> FrontEndState:
+        """The state to save after a task. Its background version is the newest one a task
+        published (the one ``background.ply`` holds), not a newer one received since: a
+        resumed run restores that file with that version."""
         with self._lock:
             return FrontEndState(
                 controller=self.controller.to_dict(),
                 pi_source=self.pi_source,
-                bg_version=self._bg_version,
+                bg_version=self._bg_published,
                 backend_epoch=self._backend_epoch,
                 backgrounds_received=self.backgrounds_received,
             )
@@ -252,12 +260,15 @@ class FrontEnd:
         with self._lock:
             return self._background, self._bg_version
 
-    def _background_to_publish(self) -> PointCloud | None:
+    def _background_to_publish(self, cloud: PointCloud, version: BgVersion) -> PointCloud | None:
+        """``cloud`` (the background of ``version``, which a task merged with) unless that
+        version was published already. The version a task used, not the newest held: every
+        version a task refers to is then published (a newer one may arrive during a task)."""
         with self._lock:
-            if self._bg_version == self._bg_published:
+            if version == self._bg_published:
                 return None
-            self._bg_published = self._bg_version
-            return self._background
+            self._bg_published = version
+            return cloud
 
     # ------------------------------------------------------------------ planning
     def next_plan(self, time_index: int) -> TaskPlan:
@@ -353,7 +364,7 @@ class FrontEnd:
         m = TaskMetrics.failed(
             task=task, time_index=frames.time_index, error=error, deadline_s=self.config.deadline_s
         )
-        return TaskOutput(metrics=m, merged=None, foreground=None)
+        return TaskOutput(metrics=m, foreground=None)
 
     def _process(self, job: _Job, defects: dict[str, str], guard: TaskGuard) -> TaskOutput:
         frames, plan, golden, task = job.frames, job.plan, job.golden, job.task
@@ -432,8 +443,9 @@ class FrontEnd:
         return self._output(
             job,
             bg_version,
-            result.merged,
+            background,
             fg_rec.cloud,
+            result.bg_dropped,
             camera_ids=list(result.camera_ids),
             critical_path_s=round(critical, 6),
             stages=timings.to_dict(),
@@ -464,6 +476,7 @@ class FrontEnd:
             bg_version,
             background,
             PointCloud.empty(),
+            np.zeros(0, np.int64),
             camera_ids=job.frames.available,
             deadline_met=True,
             frame_defects=defects,
@@ -473,11 +486,14 @@ class FrontEnd:
         self,
         job: _Job,
         bg_version: BgVersion,
-        merged: PointCloud,
+        background: PointCloud,
         foreground: PointCloud,
+        dropped: NDArray[np.int64],
         **fields: Any,
     ) -> TaskOutput:
-        """An ok task's output; ``fields`` are the metrics that differ between tasks."""
+        """An ok task's output: ``foreground`` merged with ``background`` (of ``bg_version``)
+        without the points at ``dropped``; ``fields`` are the metrics that differ between
+        tasks."""
         metrics = TaskMetrics(
             task=job.task,
             time_index=job.frames.time_index,
@@ -489,16 +505,16 @@ class FrontEnd:
             bg_version=bg_version.counter,
             bg_epoch=bg_version.epoch,
             num_fg_points=len(foreground),
-            num_merged_points=len(merged),
+            num_merged_points=len(foreground) + len(background) - len(dropped),
             search_steps=int(getattr(self.controller, "total_search_steps", 0)),
             wall_time=time.time(),
             **fields,
         )
         return TaskOutput(
             metrics=metrics,
-            merged=merged,
             foreground=foreground,
-            background=self._background_to_publish(),
+            bg_dropped=dropped,
+            background=self._background_to_publish(background, bg_version),
         )
 
     def _set_mapping(

@@ -157,6 +157,11 @@ def run_online(
         restored = None if saved is None else saved.frontend
         background = None if saved is None else folder.read_background()
         if saved is not None:
+            rig = dataset.rig
+            version = saved.frontend.bg_version
+            folder.ensure_background(
+                background, (version.epoch, version.counter), unit=rig.unit, up=rig.up
+            )
             logger.warning(
                 "resuming after %d tasks (background %s, back-end epoch %d)",
                 saved.tasks_done,

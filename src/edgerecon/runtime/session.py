@@ -18,9 +18,14 @@ adds the source's counts (waits, cameras left out, frames dropped).
 Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn file; 0644):
 
 * ``metrics.jsonl``: one JSON line per task (:class:`TaskMetrics`), failed tasks included;
-* ``tasks/<time>/merged.ply``: the merged cloud of each task (label and ``bg_version`` per point);
-* ``background.ply``: the newest background cloud the front-end holds (the background itself,
-  as the back-end built it);
+* ``tasks/<time>/fg.ply`` and ``bg_dropped.npy``: each task's part of its merged cloud (the
+  foreground, labels and ``bg_version`` per point, its background version in a header
+  comment; the indices of the background points it overrode). ``viewer.rundir.RunFolder.cloud``
+  composes the merged cloud (a background is a million points on an HD rig: stored with every
+  task it was 47 MB per task on an 8-camera 1080p rig);
+* ``backgrounds/v<epoch>.<counter>.ply``: every background version a task merged with, once;
+* ``background.ply``: the newest of them (the background itself, as the back-end built it;
+  ``--resume`` restores it);
 * ``rig.json``: the rig (written when the run starts; the viewer draws its cameras);
 * ``state.json``: the run state (:class:`~edgerecon.runtime.state.RunState`), written last for
   each task: the commit point of ``--resume``;
@@ -52,13 +57,14 @@ from edgerecon.config import MIN_CAMERAS
 from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.frames import FrameSource
-from edgerecon.io.ply import atomic_write_text, write_ply
+from edgerecon.io.ply import atomic_write_text
 from edgerecon.quality.frames import FrameCheckConfig, frame_defects, without_defective
 from edgerecon.quality.metrics import fscore
 from edgerecon.runtime.engine import Engine
 from edgerecon.runtime.frontend import TaskOutput
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
+from edgerecon.scene.merge import foreground_part
 from edgerecon.types import EdgereconError, FrameSet
 
 logger = logging.getLogger(__name__)
@@ -106,7 +112,8 @@ class SessionOptions:
     arrival_fps: float | None = None
     """Frame arrival rate for the "newest" policy (default: dataset fps / step)."""
     write_clouds: bool = True
-    """Write each task's merged cloud (tasks/<time>/merged.ply)."""
+    """Write each task's cloud (``tasks/<time>/fg.ply`` and ``bg_dropped.npy``; the background
+    versions are written either way: ``--resume`` needs the newest)."""
     ground_truth_threshold: float | None = None
     """When the dataset has ground truth: score each task's foreground against it at this
     distance (rig units) — the offline F-score. None = no offline scoring."""
@@ -329,12 +336,19 @@ class Session:
             if m.status == "ok":
                 self._score(m, t, out)
                 rig = self.dataset.rig
-                if self.options.write_clouds and out.merged is not None:
-                    path = self.out / "tasks" / f"{t:06d}" / "merged.ply"
-                    write_ply(path, out.merged, unit=rig.unit, up=rig.up)
-                if out.background is not None:
-                    write_ply(self.out / "background.ply", out.background, unit=rig.unit, up=rig.up)
-            # Cloud, background, metrics line, then the run state: the commit point.
+                version = (m.bg_epoch, m.bg_version)
+                if out.background is not None:  # before the task that refers to it
+                    self.folder.write_background(out.background, version, unit=rig.unit, up=rig.up)
+                if self.options.write_clouds and out.foreground is not None:
+                    self.folder.write_task_cloud(
+                        t,
+                        foreground_part(out.foreground, m.bg_version),
+                        np.zeros(0, np.int64) if out.bg_dropped is None else out.bg_dropped,
+                        version,
+                        unit=rig.unit,
+                        up=rig.up,
+                    )
+            # Background, cloud, metrics line, then the run state: the commit point.
             self.folder.append_metrics(m)
             self.metrics.append(m)
             RunState(
@@ -376,7 +390,7 @@ class Session:
             logger.error("task %d (time %d) failed: %s", task, t, error)
             logger.debug("traceback", exc_info=exc)
             m = TaskMetrics.failed(task=task, time_index=t, error=error, deadline_s=self.deadline_s)
-            return TaskOutput(metrics=m, merged=None, foreground=None)
+            return TaskOutput(metrics=m, foreground=None)
 
     def _update_frames(self, source: FrameSource, t: int) -> list[FrameSet]:
         """The frames of the background models' scheduled updates due before ``t``, unusable

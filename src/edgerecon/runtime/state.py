@@ -31,9 +31,10 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from edgerecon.io.dataset import Dataset
-from edgerecon.io.ply import atomic_write_text, read_ply
+from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, read_ply, write_ply
 from edgerecon.runtime.frontend import FrontEndState
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.types import EdgereconError, PointCloud
@@ -49,11 +50,31 @@ RUN_FILES = (
     "state.json",
     "summary.json",
     "background.ply",
+    "backgrounds",
     "tasks",
     "rig.json",
     "report",
 )
 LOCK_NAME = ".lock"
+#: Every background version a task merged with, once: ``backgrounds/v<epoch>.<counter>.ply``.
+BACKGROUNDS = "backgrounds"
+#: A task's foreground (the merged cloud's labelled part) and the indices of its background's
+#: points the foreground overrode (``scene.merge.overridden``), under ``tasks/<time>/``.
+TASK_FOREGROUND = "fg.ply"
+TASK_DROPPED = "bg_dropped.npy"
+#: The header comment of a task's foreground that names its background version.
+BACKGROUND_COMMENT = "background"
+
+
+def background_file(version: tuple[int, int]) -> str:
+    """File name of the background of ``version`` (back-end epoch, counter) in
+    ``BACKGROUNDS``."""
+    return f"v{int(version[0])}.{int(version[1])}.ply"
+
+
+def task_dir(folder: str | os.PathLike[str], time_index: int) -> Path:
+    """Where a run writes the files of the task at ``time_index``."""
+    return Path(folder) / "tasks" / f"{time_index:06d}"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -318,6 +339,46 @@ class OutputFolder:
     def read_background(self) -> PointCloud | None:
         path = self.path / "background.ply"
         return read_ply(path) if path.exists() else None
+
+    def write_background(self, cloud: PointCloud, version: tuple[int, int], **ply: Any) -> None:
+        """Save the background of ``version`` in ``BACKGROUNDS`` (the tasks that merged with it
+        refer to it) and as ``background.ply`` (the newest, for ``--resume``: a hard link to
+        the same file where the file system has them, else a copy). ``ply``: ``write_ply``'s
+        ``unit`` and ``up``."""
+        path = write_ply(self.path / BACKGROUNDS / background_file(version), cloud, **ply)
+        newest = self.path / "background.ply"
+        tmp = newest.with_name(f".{newest.name}.{os.getpid()}.link")
+        tmp.unlink(missing_ok=True)
+        try:
+            os.link(path, tmp)
+        except OSError:
+            shutil.copyfile(path, tmp)
+        os.replace(tmp, newest)
+
+    def ensure_background(
+        self, cloud: PointCloud | None, version: tuple[int, int], **ply: Any
+    ) -> None:
+        """On resume: the restored background saved under its version too, when a run
+        written before ``BACKGROUNDS`` existed (or an interrupted write) left it out."""
+        if cloud is not None and not (self.path / BACKGROUNDS / background_file(version)).exists():
+            self.write_background(cloud, version, **ply)
+
+    def write_task_cloud(
+        self,
+        time_index: int,
+        foreground: PointCloud,
+        dropped: NDArray[np.int64],
+        version: tuple[int, int],
+        **ply: Any,
+    ) -> None:
+        """The task's part of its merged cloud: the foreground as merged (labels, background
+        version), its background version (a header comment) and the background points it
+        overrode. ``viewer.rundir.RunFolder.cloud`` composes the merged cloud from them and
+        the version's file; a background is stored once, not with every task."""
+        d = task_dir(self.path, time_index)
+        atomic_write_bytes(d / TASK_DROPPED, lambda f: np.save(f, np.asarray(dropped, np.int64)))
+        comment = f"{BACKGROUND_COMMENT} {background_file(version)}"
+        write_ply(d / TASK_FOREGROUND, foreground, comments=[comment], **ply)
 
 
 def _frames_text(frames: tuple[Any, ...]) -> str:

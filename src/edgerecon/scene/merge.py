@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from edgerecon.io.ply import write_ply
@@ -56,23 +57,76 @@ def merge_clouds(
 ) -> PointCloud:
     """One labelled cloud: the foreground (labels >= 1 kept; unlabelled or non-positive
     labels become object 1) and the background (label 0) minus the points the foreground
-    overrides. ``attributes["bg_version"]`` (int32) is the background version each point comes
-    from: the background cloud's own ``bg_version`` attribute when it has one, else
-    ``bg_version``; foreground points get ``bg_version`` (the background they were merged with).
-    """
+    overrides (``overridden``). ``attributes["bg_version"]`` (int32) is the background version
+    each point comes from: the background cloud's own ``bg_version`` attribute when it has
+    one, else ``bg_version``; foreground points get ``bg_version`` (the background they were
+    merged with)."""
+    dropped = overridden(
+        foreground.points3D,
+        background.points3D,
+        merge_radius(config, scene_scale),
+        hull,
+    )
+    return compose(foreground, background, bg_version=bg_version, dropped=dropped)
+
+
+def merge_radius(config: MergeConfig | None, scene_scale: float | None) -> float:
+    """The clearing radius of ``config`` (rig units; 0 without a radius or a scale)."""
     config = config or MergeConfig()
     if config.clear_radius is not None:
-        radius = config.clear_radius
-    elif scene_scale is not None:
-        radius = config.clear_fraction * scene_scale
-    else:
-        radius = 0.0
-    fg_labels = (
+        return config.clear_radius
+    return config.clear_fraction * scene_scale if scene_scale is not None else 0.0
+
+
+def overridden(
+    fg_points: NDArray[np.float64],
+    bg_points: NDArray[np.float64],
+    radius: float,
+    hull: VisualHull | None = None,
+) -> NDArray[np.int64]:
+    """Sorted indices of the background points the foreground overrides: closer than
+    ``radius`` to a foreground point, or inside ``hull``."""
+    keep = np.ones(len(bg_points), bool)
+    # Only the background points in the box of the foreground (grown by the radius) or of
+    # the hull can be overridden: the rest of a room-sized background (a million points
+    # on an 8-camera HD rig) is not searched, on the critical path of every task.
+    if len(bg_points) and len(fg_points) and radius > 0:
+        P = np.asarray(fg_points)
+        idx = _in_box(bg_points, P.min(axis=0) - radius, P.max(axis=0) + radius)
+        if len(idx):
+            d, _ = cKDTree(P).query(bg_points[idx], k=1, distance_upper_bound=radius)
+            keep[idx[np.isfinite(d)]] = False
+    if hull is not None and len(bg_points) and hull.num_voxels:
+        # The occupied voxels' box, half a voxel wider (points on its faces round either way).
+        lo = hull.origin + (hull.indices.min(axis=0) - 0.5) * hull.voxel_size
+        hi = hull.origin + (hull.indices.max(axis=0) + 1.5) * hull.voxel_size
+        idx = _in_box(bg_points, lo, hi)
+        keep[idx[hull.contains(bg_points[idx])]] = False
+    return np.flatnonzero(~keep).astype(np.int64)
+
+
+def foreground_part(foreground: PointCloud, bg_version: int) -> PointCloud:
+    """The foreground as a merged cloud holds it: labels >= 1 kept (unlabelled or
+    non-positive labels become object 1) and ``bg_version`` per point."""
+    labels = (
         np.ones(len(foreground), np.int32)
         if foreground.labels is None
         else np.where(foreground.labels >= 1, foreground.labels, 1).astype(np.int32)
     )
-    fg = _with(foreground, fg_labels, np.full(len(foreground), bg_version, np.int32))
+    return _with(foreground, labels, np.full(len(foreground), bg_version, np.int32))
+
+
+def compose(
+    foreground: PointCloud,
+    background: PointCloud,
+    *,
+    bg_version: int,
+    dropped: NDArray[np.int64],
+) -> PointCloud:
+    """The merged cloud: ``foreground_part`` first, then the background (label 0) without the
+    points at ``dropped`` (``overridden``). A reader of a run folder rebuilds a task's merged
+    cloud with it from the task's foreground, its background version and ``dropped``."""
+    fg = foreground_part(foreground, bg_version)
     bg_ver = background.attributes.get(BG_VERSION)
     bg_ver = (
         np.full(len(background), bg_version, np.int32)
@@ -80,26 +134,11 @@ def merge_clouds(
         else np.asarray(bg_ver).astype(np.int32)
     )
     bg = _with(background, np.full(len(background), BACKGROUND_LABEL, np.int32), bg_ver)
-    # Only the background points in the box of the foreground (grown by the radius) or of
-    # the hull can be overridden: the rest of a room-sized background (a million points
-    # on an 8-camera HD rig) is not searched, on the critical path of every task.
     keep = np.ones(len(bg), bool)
-    if len(bg) and len(fg) and radius > 0:
-        P = fg.points3D
-        idx = _in_box(bg.points3D, P.min(axis=0) - radius, P.max(axis=0) + radius)
-        if len(idx):
-            d, _ = cKDTree(P).query(bg.points3D[idx], k=1, distance_upper_bound=radius)
-            keep[idx[np.isfinite(d)]] = False
-    if hull is not None and len(bg) and hull.num_voxels:
-        # The occupied voxels' box, half a voxel wider (points on its faces round either way).
-        lo = hull.origin + (hull.indices.min(axis=0) - 0.5) * hull.voxel_size
-        hi = hull.origin + (hull.indices.max(axis=0) + 1.5) * hull.voxel_size
-        idx = _in_box(bg.points3D, lo, hi)
-        keep[idx[hull.contains(bg.points3D[idx])]] = False
+    keep[np.asarray(dropped, np.int64)] = False
     if not keep.all():
-        logger.debug("merge: %d background points overridden by the foreground", int((~keep).sum()))
-    merged = PointCloud.concatenate([fg, bg.select(keep)])
-    return merged
+        logger.debug("merge: %d background points overridden by the foreground", len(dropped))
+    return PointCloud.concatenate([fg, bg.select(keep)])
 
 
 def _in_box(points3D: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -2,7 +2,8 @@
 
 The session (``runtime.session``) writes every file atomically or by appending whole lines,
 so a reader never sees a torn file: ``metrics.jsonl`` gains one JSON line per task,
-``tasks/<time>/merged.ply`` appears (renamed into place) before its metrics line,
+a task's cloud files (``tasks/<time>/fg.ply`` and the background version they refer to)
+appear (renamed into place) before its metrics line,
 ``rig.json`` is written when the run starts and ``summary.json`` when it ends. A fresh run in
 the same folder deletes ``metrics.jsonl`` first; :meth:`RunFolder.poll` notices that (the file
 shrank or was replaced) and starts over. This is all the viewer and ``edgerecon report``
@@ -18,10 +19,21 @@ import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.calibration import read_rig_json
-from edgerecon.io.ply import read_ply
+from edgerecon.io.ply import read_ply, read_ply_meta
 from edgerecon.runtime.messages import TaskMetrics
+from edgerecon.runtime.state import (
+    BACKGROUND_COMMENT,
+    BACKGROUNDS,
+    TASK_DROPPED,
+    TASK_FOREGROUND,
+    background_file,
+    task_dir,
+)
+from edgerecon.scene.merge import compose
 from edgerecon.types import EdgereconError, PointCloud
 
 logger = logging.getLogger(__name__)
@@ -34,8 +46,15 @@ BACKGROUND = "background.ply"
 
 
 def task_cloud_path(run_dir: str | os.PathLike[str], time_index: int) -> Path:
-    """Where the session writes the merged cloud of the task at ``time_index``."""
-    return Path(run_dir) / "tasks" / f"{time_index:06d}" / "merged.ply"
+    """Where runs written before the background was stored once per version kept the merged
+    cloud of the task at ``time_index`` (``RunFolder.cloud`` reads both layouts)."""
+    return task_dir(run_dir, time_index) / "merged.ply"
+
+
+def has_task_cloud(run_dir: str | os.PathLike[str], time_index: int) -> bool:
+    """Whether the run wrote the cloud of the task at ``time_index`` (either layout)."""
+    d = task_dir(run_dir, time_index)
+    return (d / TASK_FOREGROUND).exists() or (d / "merged.ply").exists()
 
 
 class RunFolder:
@@ -54,6 +73,7 @@ class RunFolder:
         self._partial = b""
         self._rig: Rig | None = None
         self._rig_tried = False
+        self._bg_cache: tuple[str, PointCloud] | None = None
 
     @property
     def metrics_path(self) -> Path:
@@ -125,15 +145,43 @@ class RunFolder:
         return self._rig
 
     def cloud(self, time_index: int) -> PointCloud | None:
-        """The merged cloud of the task at ``time_index``, None when it was not written."""
-        path = task_cloud_path(self.path, time_index)
-        if not path.exists():
-            return None
+        """The merged cloud of the task at ``time_index``, None when it was not written:
+        the task's foreground, then its background version without the points the
+        foreground overrode (``scene.merge.compose``; the session writes the parts,
+        ``runtime.state.OutputFolder.write_task_cloud``), or a run's older ``merged.ply``."""
+        d = task_dir(self.path, time_index)
         try:
-            return read_ply(path)
-        except EdgereconError as exc:
-            logger.warning("%s", exc)
+            if (d / "merged.ply").exists():
+                return read_ply(d / "merged.ply")
+            if not (d / TASK_FOREGROUND).exists():
+                return None
+            meta = read_ply_meta(d / TASK_FOREGROUND)
+            names = [
+                c.split(None, 1)[1]
+                for c in meta.comments
+                if c.startswith(BACKGROUND_COMMENT + " ") and len(c.split(None, 1)) == 2
+            ]
+            if not names:
+                raise EdgereconError(f"{d / TASK_FOREGROUND}: no background version in its header")
+            foreground = read_ply(d / TASK_FOREGROUND)
+            dropped = np.load(d / TASK_DROPPED)
+            background = self._background_file(names[0])
+            counter = int(names[0].removesuffix(".ply").rsplit(".", 1)[1])
+        except (EdgereconError, OSError, ValueError) as exc:
+            logger.warning("%s: task %d: %s", self.path, time_index, exc)
             return None
+        return compose(foreground, background, bg_version=counter, dropped=dropped)
+
+    def _background_file(self, name: str) -> PointCloud:
+        """The background version ``name`` (an empty cloud for v0.0, before the first one);
+        the last one read is kept (consecutive tasks share their background)."""
+        if self._bg_cache is not None and self._bg_cache[0] == name:
+            return self._bg_cache[1]
+        path = self.path / BACKGROUNDS / name
+        cloud = read_ply(path) if path.exists() or name != background_file((0, 0)) else None
+        cloud = PointCloud.empty() if cloud is None else cloud
+        self._bg_cache = (name, cloud)
+        return cloud
 
     def background(self) -> PointCloud | None:
         """The newest background the run has written, None before the first."""
@@ -162,7 +210,7 @@ class RunFolder:
         exists."""
         stop = len(self.tasks) if upto is None else min(upto + 1, len(self.tasks))
         for m in reversed(self.tasks[:stop]):
-            if m.status == "ok" and task_cloud_path(self.path, m.time_index).exists():
+            if m.status == "ok" and has_task_cloud(self.path, m.time_index):
                 return m
         return None
 
