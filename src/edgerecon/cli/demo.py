@@ -168,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
         ],
     )
     console.print(
-        f"merged clouds in {out / 'run' / 'tasks'}; metrics in "
+        f"task clouds in {out / 'run' / 'tasks'} (one task's merged cloud: edgerecon export "
+        f"{out / 'run' / 'tasks' / '<time>'} --to ply -o FILE.ply); metrics in "
         f"{out / 'run' / 'metrics.jsonl'}; figures in {out / 'run' / 'report'}; "
         f"total {result['total_s']:.0f} s"
     )
