@@ -344,3 +344,44 @@ def test_a_pushed_background_leaves_the_scene_stage_alone():
     fe.push_background(BackgroundUpdate(version=BgVersion(1, 1), cloud=cloud, seconds=0))
     assert fe.background()[1] == BgVersion(1, 1)
     assert scene.foreground.static_depth is None and scene.static_from is None
+
+
+def test_a_task_cloud_is_its_foreground_and_a_background_stored_once(tmp_path):
+    """What a task merged is rebuilt from its foreground, the background points it overrode
+    and its background version, stored once for all the tasks that merged with it; a run
+    written before (one merged.ply per task) is read as it is."""
+    from edgerecon.io.ply import write_ply
+    from edgerecon.scene.merge import compose, foreground_part
+
+    folder = OutputFolder(tmp_path)
+    bg = _cloud(500)
+    folder.write_background(bg, (2, 3), unit="m")
+    assert (tmp_path / "background.ply").read_bytes() == (
+        tmp_path / "backgrounds" / "v2.3.ply"
+    ).read_bytes()
+    fg = PointCloud(points3D=_cloud(40).points3D, labels=np.r_[np.ones(30), -np.ones(10)])
+    dropped = np.array([0, 7, 499])
+    for t in (5, 6):  # two tasks, one background file
+        folder.write_task_cloud(t, foreground_part(fg, 3), dropped, (2, 3), unit="m")
+    run = RunFolder(tmp_path)
+    expected = compose(fg, bg, bg_version=3, dropped=dropped)
+    for t in (5, 6):
+        got = run.cloud(t)
+        assert got is not None and len(got) == 40 + 500 - 3
+        np.testing.assert_array_equal(got.points3D, expected.points3D.astype(np.float32))
+        np.testing.assert_array_equal(got.labels, expected.labels)
+        np.testing.assert_array_equal(got.attributes["bg_version"], 3)
+    assert len(list((tmp_path / "backgrounds").iterdir())) == 1
+    # Before the first background (v0.0) a task's cloud is its foreground.
+    folder.write_task_cloud(7, foreground_part(fg, 0), np.zeros(0, np.int64), (0, 0))
+    assert len(run.cloud(7)) == 40
+    # A missing background version: no cloud (a warning), never a wrong one.
+    folder.write_task_cloud(8, foreground_part(fg, 4), dropped, (2, 4))
+    assert run.cloud(8) is None
+    # A resume saves the restored background under its version when it is missing.
+    folder.ensure_background(read_ply(tmp_path / "background.ply"), (2, 4))
+    assert run.cloud(8) is not None
+    # The older layout.
+    write_ply(tmp_path / "tasks" / "000009" / "merged.ply", expected)
+    assert len(run.cloud(9)) == len(expected)
+    assert run.cloud(10) is None
