@@ -14,7 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -437,7 +437,7 @@ class SplitReconstructionResult:
     bg_version: int
     merged: PointCloud
     timings: StageTimings
-    bg_dropped: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    bg_dropped: NDArray[np.int64]
     """Indices of the ``background`` points the foreground overrides (left out of
     ``merged``: ``scene.merge.overridden``)."""
 

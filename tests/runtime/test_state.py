@@ -17,7 +17,13 @@ from edgerecon.runtime.engine import EmbeddedEngine
 from edgerecon.runtime.frontend import FixedController, FrontEnd
 from edgerecon.runtime.messages import BackgroundUpdate, BgVersion
 from edgerecon.runtime.online import make_controller
-from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
+from edgerecon.runtime.state import (
+    DatasetIdentity,
+    OutputFolder,
+    RunState,
+    background_comment,
+    comment_background,
+)
 from edgerecon.types import EdgereconError, PointCloud
 from edgerecon.viewer.rundir import RunFolder
 from tests.runtime.conftest import run_frames, runtime_config
@@ -372,6 +378,8 @@ def test_a_task_cloud_is_its_foreground_and_a_background_stored_once(tmp_path):
         np.testing.assert_array_equal(got.labels, expected.labels)
         np.testing.assert_array_equal(got.attributes["bg_version"], 3)
     assert len(list((tmp_path / "backgrounds").iterdir())) == 1
+    assert comment_background(["unit m", background_comment((2, 3))]) == (2, 3)
+    assert comment_background(["background", "background vx.3", "unit m"]) is None
     # Before the first background (v0.0) a task's cloud is its foreground.
     folder.write_task_cloud(7, foreground_part(fg, 0), np.zeros(0, np.int64), (0, 0))
     assert len(run.cloud(7)) == 40

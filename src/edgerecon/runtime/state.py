@@ -25,7 +25,7 @@ import os
 import shutil
 import socket
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -70,6 +70,22 @@ def background_file(version: tuple[int, int]) -> str:
     """File name of the background of ``version`` (back-end epoch, counter) in
     ``BACKGROUNDS``."""
     return f"v{int(version[0])}.{int(version[1])}.ply"
+
+
+def background_comment(version: tuple[int, int]) -> str:
+    """The header comment of a task's foreground that names its background ``version``."""
+    return f"{BACKGROUND_COMMENT} v{int(version[0])}.{int(version[1])}"
+
+
+def comment_background(comments: Sequence[str]) -> tuple[int, int] | None:
+    """The background version a task's foreground names (``background_comment``), None
+    when none of ``comments`` does."""
+    for c in comments:
+        word, _, value = c.partition(" ")
+        epoch, dot, counter = value.strip().removeprefix("v").partition(".")
+        if word == BACKGROUND_COMMENT and dot and epoch.isdigit() and counter.isdigit():
+            return int(epoch), int(counter)
+    return None
 
 
 def task_dir(folder: str | os.PathLike[str], time_index: int) -> Path:
@@ -377,8 +393,7 @@ class OutputFolder:
         the version's file; a background is stored once, not with every task."""
         d = task_dir(self.path, time_index)
         atomic_write_bytes(d / TASK_DROPPED, lambda f: np.save(f, np.asarray(dropped, np.int64)))
-        comment = f"{BACKGROUND_COMMENT} {background_file(version)}"
-        write_ply(d / TASK_FOREGROUND, foreground, comments=[comment], **ply)
+        write_ply(d / TASK_FOREGROUND, foreground, comments=[background_comment(version)], **ply)
 
 
 def _frames_text(frames: tuple[Any, ...]) -> str:

@@ -26,11 +26,11 @@ from edgerecon.io.calibration import read_rig_json
 from edgerecon.io.ply import read_ply, read_ply_meta
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.state import (
-    BACKGROUND_COMMENT,
     BACKGROUNDS,
     TASK_DROPPED,
     TASK_FOREGROUND,
     background_file,
+    comment_background,
     task_dir,
 )
 from edgerecon.scene.merge import compose
@@ -73,7 +73,7 @@ class RunFolder:
         self._partial = b""
         self._rig: Rig | None = None
         self._rig_tried = False
-        self._bg_cache: tuple[str, PointCloud] | None = None
+        self._bg_cache: tuple[tuple[int, int], PointCloud] | None = None
 
     @property
     def metrics_path(self) -> Path:
@@ -155,32 +155,27 @@ class RunFolder:
                 return read_ply(d / "merged.ply")
             if not (d / TASK_FOREGROUND).exists():
                 return None
-            meta = read_ply_meta(d / TASK_FOREGROUND)
-            names = [
-                c.split(None, 1)[1]
-                for c in meta.comments
-                if c.startswith(BACKGROUND_COMMENT + " ") and len(c.split(None, 1)) == 2
-            ]
-            if not names:
+            version = comment_background(read_ply_meta(d / TASK_FOREGROUND).comments)
+            if version is None:
                 raise EdgereconError(f"{d / TASK_FOREGROUND}: no background version in its header")
             foreground = read_ply(d / TASK_FOREGROUND)
             dropped = np.load(d / TASK_DROPPED)
-            background = self._background_file(names[0])
-            counter = int(names[0].removesuffix(".ply").rsplit(".", 1)[1])
+            background = self._background_version(version)
         except (EdgereconError, OSError, ValueError) as exc:
             logger.warning("%s: task %d: %s", self.path, time_index, exc)
             return None
-        return compose(foreground, background, bg_version=counter, dropped=dropped)
+        return compose(foreground, background, bg_version=version[1], dropped=dropped)
 
-    def _background_file(self, name: str) -> PointCloud:
-        """The background version ``name`` (an empty cloud for v0.0, before the first one);
-        the last one read is kept (consecutive tasks share their background)."""
-        if self._bg_cache is not None and self._bg_cache[0] == name:
+    def _background_version(self, version: tuple[int, int]) -> PointCloud:
+        """The background of ``version`` (empty for v0.0: no background yet); the last one
+        read is kept (consecutive tasks share their background)."""
+        if self._bg_cache is not None and self._bg_cache[0] == version:
             return self._bg_cache[1]
-        path = self.path / BACKGROUNDS / name
-        cloud = read_ply(path) if path.exists() or name != background_file((0, 0)) else None
-        cloud = PointCloud.empty() if cloud is None else cloud
-        self._bg_cache = (name, cloud)
+        if version == (0, 0):
+            cloud = PointCloud.empty()
+        else:
+            cloud = read_ply(self.path / BACKGROUNDS / background_file(version))
+        self._bg_cache = (version, cloud)
         return cloud
 
     def background(self) -> PointCloud | None:
