@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from edgerecon.dense import DenseConfig
-from edgerecon.dense.consistency import support_and_conflicts
+from edgerecon.dense.consistency import agreement_tolerance, depth_noise, support_and_conflicts
 from edgerecon.dense.filters import (
     consistency_keep,
     depth_edge_mask,
@@ -17,6 +17,7 @@ from edgerecon.dense.filters import (
     outlier_mask,
 )
 from edgerecon.dense.fusion import ViewPoints
+from edgerecon.geometry.camera import Camera
 from tests.conftest import ring_rig
 from tests.dense.scene import box_scene, render
 
@@ -113,3 +114,40 @@ def test_grazing_points_and_outliers_are_flagged():
 def test_filter_options_are_validated(field, value):
     with pytest.raises(ValueError, match=field):
         DenseConfig(**{field: value})
+
+
+def test_the_agreement_tolerance_follows_the_measured_depth_noise():
+    # Three parallel cameras 0.3 m apart facing a wall 5 m away: every view's depth is 5 m
+    # everywhere, so the views' disagreement is the noise added to their depth maps.
+    K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    cams = {
+        i: Camera(name=f"c{i}", width=320, height=240, K=K, R=np.eye(3), t=(-0.3 * i, 0, 0))
+        for i in range(3)
+    }
+    rng = np.random.default_rng(3)
+
+    def noisy(sigma: float) -> dict[int, np.ndarray]:
+        return {
+            i: (5.0 * (1 + sigma * rng.standard_normal((240, 320)))).astype(np.float32)
+            for i in cams
+        }
+
+    # The median of |a - b| for a, b ~ N(0, s^2) is 0.954 s.
+    for sigma in (0.0005, 0.002):
+        noise, pairs = depth_noise(noisy(sigma), cams, 0.02)
+        assert pairs > 500 and noise is not None
+        assert noise == pytest.approx(0.954 * sigma, rel=0.1)
+    cfg = DenseConfig()  # 4 x the noise, within [0.3 %, 1 %]
+    tol, noise = agreement_tolerance(noisy(0.0005), cams, cfg)
+    assert noise is not None and tol == cfg.consistency_rel_depth_min  # tight: the floor
+    tol, noise = agreement_tolerance(noisy(0.0015), cams, cfg)
+    assert noise is not None and tol == pytest.approx(4.0 * noise) and 0.004 < tol < 0.008
+    tol, _ = agreement_tolerance(noisy(0.004), cams, cfg)
+    assert tol == cfg.consistency_rel_depth  # as noisy as real video: the fixed tolerance
+    # Off, or nothing to measure: the fixed tolerance.
+    off = DenseConfig(consistency_noise_factor=0.0)
+    assert agreement_tolerance(noisy(0.0005), cams, off) == (off.consistency_rel_depth, None)
+    empty = {i: np.zeros((240, 320), np.float32) for i in cams}
+    assert agreement_tolerance(empty, cams, cfg) == (cfg.consistency_rel_depth, None)
+    with pytest.raises(ValueError, match="consistency_rel_depth_min"):
+        DenseConfig(consistency_rel_depth_min=0.0)

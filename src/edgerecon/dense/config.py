@@ -98,7 +98,16 @@ class DenseConfig:
     are lost with the mismatches), while utrecht4cam's floor moves only 4 mm closer to
     z = 0 (27 vs 31 mm median)."""
     consistency_rel_depth: float = 0.01
-    """A depth agrees with another view when their depths differ by less than this share."""
+    """A depth agrees with another view when their depths differ by less than this share
+    (the most; see ``consistency_noise_factor``)."""
+    consistency_noise_factor: float = 4.0
+    """The agreement tolerance is this multiple of the views' measured depth noise (the
+    median relative difference of agreeing view pairs, ``consistency.depth_noise``), within
+    [``consistency_rel_depth_min``, ``consistency_rel_depth``]; 0 = always
+    ``consistency_rel_depth``."""
+    consistency_rel_depth_min: float = 0.003
+    """The least agreement tolerance ``consistency_noise_factor`` may set (at or above
+    ``consistency_rel_depth``: the fixed tolerance)."""
     consistency_px: float = 0.0
     """... and, when > 0, when the other view's point reprojects within this many working
     pixels of the pixel (COLMAP's fusion: 2 px and 1 %); 0 = the depth test alone."""
@@ -219,6 +228,8 @@ class DenseConfig:
         need(self.min_epipolar_texture >= 0.0, "min_epipolar_texture", ">= 0")
         need(0.0 <= self.min_epipolar_share < 1.0, "min_epipolar_share", "in [0, 1)")
         need(0.0 < self.consistency_rel_depth < 1.0, "consistency_rel_depth", "in (0, 1)")
+        need(self.consistency_noise_factor >= 0, "consistency_noise_factor", ">= 0")
+        need(0.0 < self.consistency_rel_depth_min < 1.0, "consistency_rel_depth_min", "in (0, 1)")
         need(self.min_consistent_views >= 0, "min_consistent_views", ">= 0")
         need(
             self.voxel_size is None or (self.voxel_size > 0 and math.isfinite(self.voxel_size)),

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from edgerecon.dense import filters, kernels
 from edgerecon.dense.config import DenseConfig
-from edgerecon.dense.consistency import support_and_conflicts
+from edgerecon.dense.consistency import agreement_tolerance, support_and_conflicts
 from edgerecon.dense.cost import as_f32, to_grey
 from edgerecon.dense.depth import DepthEstimate, Roi, ViewPyramid, build_pyramid, estimate_depth
 from edgerecon.dense.fusion import ViewPoints, view_points, voxel_merge
@@ -346,10 +346,12 @@ def reconstruct_dense(
 
     with timings.stage("consistency"):
         id_cams = {i: cams[i] for i in depths}
+        rel_tol, noise = agreement_tolerance(depths, id_cams, config)
+        stats.update(depth_noise=noise, consistency_rel_depth=rel_tol)
         support, averaged, conflicts, candidates = support_and_conflicts(
             depths,
             id_cams,
-            config.consistency_rel_depth,
+            rel_tol,
             num_threads=config.num_threads,
             max_reproj_px=config.consistency_px,
         )
@@ -397,8 +399,9 @@ def reconstruct_dense(
         with timings.stage("ground"):
             ground_stats: dict[str, Any] = {}
             plane, extra = _complete_ground(
-                parts, kept, cams, colors, masks, plans, up_vec, voxel, config, ground_stats
-            )
+                parts, kept, cams, colors, masks, plans, up_vec, voxel, rel_tol, config,
+                ground_stats,
+            )  # fmt: skip
             if plane is not None:
                 band = 3.0 * voxel
                 parts = thread_map(lambda p: _drop_below(p, plane, band), parts, config.num_threads)
@@ -619,6 +622,7 @@ def _complete_ground(
     plans: Sequence[dict[str, Any]],
     up: NDArray[np.float64],
     voxel: float,
+    rel_tol: float,
     config: DenseConfig,
     stats: dict[str, Any] | None = None,
 ) -> tuple[Plane | None, dict[int, tuple[DepthMap, NDArray[np.int16]]]]:
@@ -677,7 +681,7 @@ def _complete_ground(
         {i: colors[i] for i in kept},
         regions,
         far,
-        config.consistency_rel_depth,
+        rel_tol,
         config.ground_color_tol,
         config.min_consistent_views,
         known,
