@@ -26,6 +26,9 @@ from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap
 
+#: Pairs :func:`agreement_tolerance` needs to measure the noise.
+MIN_NOISE_PAIRS = 500
+
 
 def depth_noise(
     depths: Mapping[int, DepthMap],
@@ -67,7 +70,7 @@ def agreement_tolerance(
     ``config.consistency_noise_factor`` times the noise, within
     [``consistency_rel_depth_min``, ``consistency_rel_depth``]: views that agree far more
     tightly than the fixed tolerance (sharp, well calibrated captures) are held to their own
-    agreement; real video (noise 0.5-0.7 % at the working resolution) keeps the fixed one.
+    agreement; real video (noise 0.45-0.65 % at the working resolution) keeps the fixed one.
     The noise is taken within twice the fixed tolerance; with fewer than
     ``MIN_NOISE_PAIRS`` pairs the fixed tolerance is used."""
     fixed = config.consistency_rel_depth
@@ -78,10 +81,6 @@ def agreement_tolerance(
         return fixed, noise
     tol = config.consistency_noise_factor * noise
     return float(min(max(tol, config.consistency_rel_depth_min), fixed)), noise
-
-
-#: Pairs :func:`agreement_tolerance` needs to measure the noise.
-MIN_NOISE_PAIRS = 500
 
 
 def support_counts(
