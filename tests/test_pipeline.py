@@ -160,18 +160,32 @@ def test_foreground_dense_settings():
 
     base = DenseConfig(window_radius=3, resolution_level=1, refine_median_px=5)
     fg = foreground_dense_config(base)
-    # 5x5 windows, the dense level kept, no floor completion, the search from the map itself.
+    # 5x5 windows, the dense level kept, no floor completion, the search from the median
+    # only where it is within 1 % of the pixel's depth.
     assert fg.window_radius == 2
     assert fg.resolution_level == 1
     assert not fg.ground_completion
-    assert fg.refine_median_px == 0
+    assert fg.refine_median_px == 5 and fg.refine_median_rel == 0.01
     # The whole-scene settings are not changed.
     assert base.window_radius == 3 and base.ground_completion
+    assert base.refine_median_rel == DenseConfig().refine_median_rel
     full = foreground_dense_config(
-        base, SplitPipelineConfig(fg_resolution_level=0, fg_window_radius=None)
+        base,
+        SplitPipelineConfig(
+            fg_resolution_level=0,
+            fg_window_radius=None,
+            fg_refine_median_px=0,
+            fg_refine_median_rel=None,
+        ),
     )
     assert full.resolution_level == 0 and full.window_radius == 3
+    assert full.refine_median_px == 0 and full.refine_median_rel == base.refine_median_rel
     assert full.level_for((1920, 1080)) == 0
-    for bad in ({"fg_resolution_level": 5}, {"fg_window_radius": 0}):
+    for bad in (
+        {"fg_resolution_level": 5},
+        {"fg_window_radius": 0},
+        {"fg_refine_median_px": 4},
+        {"fg_refine_median_rel": 0.0},
+    ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SplitPipelineConfig(**bad)

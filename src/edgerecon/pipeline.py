@@ -171,6 +171,18 @@ class SplitPipelineConfig:
     golden foreground F at 2 % 0.882 -> 0.904 (at 1 % 0.659 -> 0.699) for 10 % less CPU;
     caliscope_charuco's foreground 2 % fewer points. (For whole scenes 5x5 windows cost
     caliscope_charuco 23 % of its points: docs/BENCHMARKS.md.)"""
+    fg_refine_median_px: int | None = None
+    """``DenseConfig.refine_median_px`` of the foreground's depth maps (the local search from
+    the map's 5x5 median); None = the dense configuration's, 0 = off."""
+    fg_refine_median_rel: float | None = 0.01
+    """``DenseConfig.refine_median_rel`` of the foreground's depth maps: the median is the
+    search's start only where it is within this share of the pixel's own depth; None = the
+    dense configuration's (5 %). At 5 % the median of an actor's limb mixes in the body
+    behind it (hd4 golden foreground, moving actors, 8 tasks: F at 2 % 0.899 -> 0.886); at
+    1 % it smooths only the actors' surfaces, not their parts' edges (5 tasks: hd4 0.885 ->
+    0.885, hd4p 0.876 -> 0.872) and gains precision on real surfaces (caliscope_charuco's
+    board in hand, t = 100 / 104 / 108: median distance to the corners' plane 2.03 / 2.35 /
+    2.87 -> 1.59 / 1.88 / 2.63 mm) and on arc7's people (F at 1 cm 0.890 -> 0.906)."""
 
     def __post_init__(self) -> None:
         if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
@@ -184,6 +196,16 @@ class SplitPipelineConfig:
             raise ValueError(
                 "SplitPipelineConfig.fg_window_radius must be None or in 1..15, got "
                 f"{self.fg_window_radius}"
+            )
+        if self.fg_refine_median_px not in (None, 0, 3, 5):
+            raise ValueError(
+                "SplitPipelineConfig.fg_refine_median_px must be None, 0, 3 or 5, got "
+                f"{self.fg_refine_median_px}"
+            )
+        if self.fg_refine_median_rel is not None and not 0 < self.fg_refine_median_rel < 1:
+            raise ValueError(
+                "SplitPipelineConfig.fg_refine_median_rel must be None or in (0, 1), got "
+                f"{self.fg_refine_median_rel}"
             )
         if self.min_fg_votes < 0:
             raise ValueError(
@@ -337,15 +359,16 @@ def bounding_hull(foreground: ForegroundResult, config: SplitPipelineConfig) -> 
 def foreground_dense_config(
     dense_config: DenseConfig, config: SplitPipelineConfig | None = None
 ) -> DenseConfig:
-    """The dense settings of the foreground: ``dense_config`` with the foreground's resolution
-    and window (``SplitPipelineConfig``), no ground-plane completion (foreground is never floor,
-    and a plane fitted to the tops of the actors' heads would cut away everything below
-    them), and the local search from the map itself: from its median
-    (``DenseConfig.refine_median_px``, which gains precision on whole scenes) the foreground
-    lost recall (hd4 golden foreground with 7x7 windows, 5 tasks: F at 2 % 0.882 -> 0.866,
-    recall 0.872 -> 0.843)."""
+    """The dense settings of the foreground: ``dense_config`` with the foreground's resolution,
+    window and local-search start (``SplitPipelineConfig``) and no ground-plane completion
+    (foreground is never floor, and a plane fitted to the tops of the actors' heads would cut
+    away everything below them)."""
     config = config or SplitPipelineConfig()
-    over: dict[str, object] = {"ground_completion": False, "refine_median_px": 0}
+    over: dict[str, object] = {"ground_completion": False}
+    if config.fg_refine_median_px is not None:
+        over["refine_median_px"] = config.fg_refine_median_px
+    if config.fg_refine_median_rel is not None:
+        over["refine_median_rel"] = config.fg_refine_median_rel
     if config.fg_resolution_level is not None:
         over["resolution_level"] = config.fg_resolution_level
     if config.fg_window_radius is not None:

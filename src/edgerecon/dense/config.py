@@ -71,8 +71,8 @@ class DenseConfig:
     each pixel's own depth: a window is warped through its neighbours' hypotheses, and their
     noise blurs the match of its own (``bench_precision.py``: arc7 t=20 P@1cm 0.868 ->
     0.930 with R 0.627 -> 0.636; demo F@2cm 0.595 -> 0.607; object P/R@0.1 % .727/.871 ->
-    .742/.884; same CPU). The foreground's settings turn it off
-    (``pipeline.foreground_dense_config``)."""
+    .742/.884; same CPU). The foreground keeps it only where the median is within 1 % of
+    the pixel's depth (``SplitPipelineConfig.fg_refine_median_rel``)."""
     refine_median_rel: float = 0.05
     """Largest relative difference between a pixel's depth and the median around it for the
     median to be its local search's starting point (depth edges keep their own depth)."""
