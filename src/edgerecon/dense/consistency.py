@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.dense.config import DenseConfig
+from edgerecon.dense.cost import F32
 from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
 from edgerecon.types import DepthMap
@@ -230,16 +231,9 @@ def _transfer(
     return R, t, M, c
 
 
-_F32 = NDArray[np.float32]
-
-
 def _land(
-    M: NDArray[np.float32],
-    c: NDArray[np.float32],
-    u: NDArray[np.float32],
-    v: NDArray[np.float32],
-    z: NDArray[np.float32],
-) -> tuple[NDArray[np.bool_], _F32, _F32, _F32, _F32, _F32]:
+    M: F32, c: F32, u: F32, v: F32, z: F32
+) -> tuple[NDArray[np.bool_], F32, F32, F32, F32, F32]:
     """Where the (N, 1) pixels (u, v) of depth z of view i land in view j (``_transfer``):
     in front of j (ok), their depth in j (Z; Zs = Z with 1 where not ok), the landing
     point (mx, my; far outside where not ok) and the ray factor ``m2`` (Z = z m2 + c_2)."""
