@@ -44,7 +44,7 @@ def test_identity_homography_ncc_equals_numpy_reference():
     kernels.sweep(
         ref, mean, var, count, srcs, sizes, ok, np.ones((h, w), bool), H, np.array([1.0]),
         np.ones((h, w), np.float32), np.ones((h, w), bool),
-        np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1,
+        np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1, np.inf,
         best, idx, prev, nxt, 0, h,
     )  # fmt: skip
     expected = ncc(window_stats(ref, R0), src)
@@ -66,7 +66,7 @@ def test_windows_touching_missing_samples_have_no_score():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.ones((1, h, w), bool), np.ones((h, w), bool), a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1, out, 0, h,
+        np.full((h, w), np.inf, np.float32), R0, 1, np.inf, out, 0, h,
     )  # fmt: skip
     full = out.copy()
     # Samples beyond x = w - 1 are missing: windows reaching x >= w - 10 have no score (-1).
@@ -77,7 +77,7 @@ def test_windows_touching_missing_samples_have_no_score():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.zeros((1, h, w), bool), np.ones((h, w), bool), a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1, out, 0, h,
+        np.full((h, w), np.inf, np.float32), R0, 1, np.inf, out, 0, h,
     )  # fmt: skip
     assert np.all(out == -1.0)
     # Sampling only an active block: windows inside it score exactly as before, windows
@@ -88,7 +88,7 @@ def test_windows_touching_missing_samples_have_no_score():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.ones((1, h, w), bool), active, a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1, out, 0, h,
+        np.full((h, w), np.inf, np.float32), R0, 1, np.inf, out, 0, h,
     )  # fmt: skip
     inner = np.s_[10 + R0 : 30 - R0, 5 + R0 : 25 - R0]
     assert np.allclose(out[inner], full[inner], atol=1e-5)  # running sums: rounding only
@@ -105,6 +105,44 @@ def test_aggregate_takes_the_mean_of_the_best_sources():
     assert np.allclose(aggregate([a, b, c], 2), [[0.8, 0.2]])
     assert np.allclose(aggregate([a, b, c], 3), [[0.7, 0.2]])
     assert np.allclose(aggregate([np.full((1, 1), np.nan, np.float32)], 1), [[-1.0]])
+
+
+def test_aggregate_bounds_what_a_worse_source_takes_off():
+    a = np.array([[0.9, 0.9]], np.float32)
+    b = np.array([[0.8, 0.1]], np.float32)  # sees the pixel / does not (an occlusion)
+    assert np.allclose(aggregate([a, b], 2, top_gap=0.2), [[0.85, 0.8]])
+    assert np.allclose(aggregate([a, b], 2, top_gap=0.0), [[0.9, 0.9]])
+    assert np.allclose(aggregate([a, b], 2, top_gap=np.inf), aggregate([a, b], 2))
+
+
+def test_scores_aggregate_sources_as_the_numpy_reference():
+    ref, src = _images()
+    h, w = ref.shape
+    noise = np.random.default_rng(1).normal(0, 50, ref.shape).astype(np.float32)
+    srcs = np.stack([src, noise])  # a noisy copy, and a source that sees something else
+    mean, var, count = kernels.window_stats(ref, R0)
+    a = np.zeros((2, 3, h, w), np.float32)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    a[:, 0], a[:, 1], a[:, 2] = u, v, 1.0  # identity mapping into both sources
+
+    def scores(pick: list[int], k: int, gap: float) -> np.ndarray:
+        out = np.empty((h, w), np.float32)
+        kernels.evaluate(
+            ref, mean, var, count, srcs[pick].copy(), np.array([[w, h]] * len(pick), np.int64),
+            np.ones((len(pick), h, w), bool), np.ones((h, w), bool), a[pick].copy(),
+            np.zeros((len(pick), 3), np.float32), np.ones((h, w), np.float32),
+            np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, k, gap, out,
+            0, h,
+        )  # fmt: skip
+        return out
+
+    one = [scores([s], 1, np.inf) for s in (0, 1)]
+    inner = np.s_[R0:-R0, R0:-R0]
+    for k, gap in ((1, np.inf), (2, np.inf), (2, 0.2), (2, 0.0)):
+        assert np.allclose(scores([0, 1], k, gap)[inner], aggregate(one, k, gap)[inner], atol=1e-5)
+    soft = scores([0, 1], 2, 0.2)[inner]
+    assert np.all(soft >= scores([0, 1], 2, np.inf)[inner] - 1e-6)
+    assert np.all(soft >= one[0][inner] - 0.1 - 1e-5)  # the worse source takes off <= 0.1
 
 
 def test_view_points_backproject_exactly_with_normals_facing_the_camera():
@@ -162,7 +200,7 @@ def test_row_bands_score_like_one_call():
         ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64),
         np.ones((1, h, w), bool), active, a, np.zeros((1, 3), np.float32),
         np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
-        np.full((h, w), np.inf, np.float32), R0, 1,
+        np.full((h, w), np.inf, np.float32), R0, 1, np.inf,
     )  # fmt: skip
     whole = np.empty((h, w), np.float32)
     kernels.evaluate(*args, whole, 0, h)
@@ -183,7 +221,7 @@ def test_row_bands_score_like_one_call():
                 np.ones((1, h, w), bool), active, H, np.array([1.0, 2.0]),
                 np.ones((h, w), np.float32), np.ones((h, w), bool),
                 np.zeros((h, w), np.float32), np.full((h, w), np.inf, np.float32), R0, 1,
-                *out, nxt, row0, row1,
+                np.inf, *out, nxt, row0, row1,
             )  # fmt: skip
         maps.append((*out, nxt))
     for one, split in zip(*maps, strict=True):

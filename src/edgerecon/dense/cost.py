@@ -9,6 +9,7 @@ float32.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,12 +78,16 @@ def ncc(ref: WindowStats, warped: F32) -> F32:
     return out
 
 
-def aggregate(nccs: list[F32], top_k: int) -> F32:
+def aggregate(nccs: list[F32], top_k: int, top_gap: float = math.inf) -> F32:
     """Multi-view score: per pixel, the mean of the ``top_k`` best source NCCs (fewer where
-    fewer sources have data); -1 where no source has data.
+    fewer sources have data), each counted as at least the best one's minus ``top_gap``;
+    -1 where no source has data.
 
     Taking the best sources rather than all of them keeps surfaces that are occluded in some
-    source views (the standard occlusion heuristic of multi-view stereo)."""
+    source views (the standard occlusion heuristic of multi-view stereo). The gap bounds what
+    a source that does not see the pixel (an occlusion) can take off the score, while a second
+    source that does see it still confirms the depth (the reference NumPy version of
+    ``kernels._scores``' aggregation)."""
     if not nccs:
         raise ValueError("aggregate needs at least one NCC map")
     if len(nccs) == 1:
@@ -100,8 +105,9 @@ def aggregate(nccs: list[F32], top_k: int) -> F32:
                 vals[i] = hi
     total = np.zeros_like(vals[0])
     count = np.zeros_like(vals[0])
+    floor = vals[0] - np.float32(top_gap)
     for x in vals[:k]:
         good = np.isfinite(x)
-        total += np.where(good, x, 0.0)
+        total += np.where(good, np.maximum(x, floor), 0.0)
         count += good
     return np.where(count > 0, total / np.maximum(count, 1.0), -1.0).astype(np.float32)

@@ -417,7 +417,7 @@ def _sweep(
             kernels.sweep,
             stats.image, stats.mean, stats.var, stats.count, srcs, sizes, src_ok, stats.active, Hs,
             lams.astype(np.float64), fam.nray, fam.usable, w_lo, w_hi, stats.radius,
-            config.ncc_top_k, best, idx, prev, nxt,
+            config.ncc_top_k, config.ncc_top_gap, best, idx, prev, nxt,
         )  # fmt: skip
         _run_rows(bands, rows, h)
         work += len(lams) * h * w * len(pairs)
@@ -521,6 +521,7 @@ def _evaluate(
     src: _Sources,
     stats: _RefStats,
     top_k: int,
+    top_gap: float,
     w_lo: F32,
     w_hi: F32,
     bands: RowBands | None = None,
@@ -530,7 +531,7 @@ def _evaluate(
         kernels.evaluate,
         stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok,
         stats.active, src.a, src.b, np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi,
-        stats.radius, top_k, out,
+        stats.radius, top_k, top_gap, out,
     )  # fmt: skip
     _run_rows(bands, rows, inv.shape[0])
     return out
@@ -585,12 +586,12 @@ def _refine(
     npix = inv.size
     k = config.ncc_top_k
     if score is None:
-        score = _evaluate(inv, src, stats, k, w_lo, w_hi, bands)
+        score = _evaluate(inv, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands)
         work += npix * n_src
     for _ in range(config.propagation_iterations):
         for dx, dy in _PROPAGATION:
             cand = _shift(inv, dx, dy)
-            s = _evaluate(cand, src, stats, k, w_lo, w_hi, bands)
+            s = _evaluate(cand, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands)
             work += npix * n_src
             better = s > score
             inv = np.where(better, cand, inv)
@@ -606,7 +607,9 @@ def _refine(
             if k_off == 0 and base is inv:
                 scores[i] = score
                 continue
-            scores[i] = _evaluate(base + k_off * step, src, stats, k, w_lo, w_hi, bands)
+            scores[i] = _evaluate(
+                base + k_off * step, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands
+            )
             work += npix * n_src
         idx = np.argmax(scores, axis=0)
         s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
@@ -615,7 +618,7 @@ def _refine(
         offsets = _subplane(s0, idx, sm, sp, np.arange(-K, K + 1, dtype=np.float64))
         cand = (base + offsets * step).astype(np.float32)
         # The sub-step position is a prediction: keep it only where it scores as well.
-        s_sub = _evaluate(cand, src, stats, k, w_lo, w_hi, bands)
+        s_sub = _evaluate(cand, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands)
         work += npix * n_src
         use_sub = s_sub >= s0 - 1e-3
         new = np.where(use_sub, cand, base + (idx - K).astype(np.float32) * step)

@@ -164,6 +164,7 @@ def _scores(
     inv: F32,
     r: int,
     top_k: int,
+    top_gap: float,
     out: F32,
     row0: int,
     row1: int,
@@ -296,9 +297,10 @@ def _scores(
                 out[y, x] = -1.0
             else:
                 kk = min(top_k, m)
-                t = 0.0
-                for j in range(kk):
-                    t += best[j]
+                t = best[0]
+                floor = best[0] - top_gap
+                for j in range(1, kk):
+                    t += max(best[j], floor)
                 out[y, x] = t / kk
 
 
@@ -320,6 +322,7 @@ def sweep(
     w_hi: F32,
     r: int,
     top_k: int,
+    top_gap: float,
     best: F32,
     best_idx: NDArray[np.int32],
     prev: F32,
@@ -346,7 +349,7 @@ def sweep(
         lam = lams[p]
         _scores(
             ref, mean, var, count, srcs, sizes, src_ok, active, 0, homographies[p], dummy_a, dummy_b,
-            dummy_inv, r, top_k, score, row0, row1,
+            dummy_inv, r, top_k, top_gap, score, row0, row1,
         )  # fmt: skip
         for y in range(row0, row1):
             for x in range(w):
@@ -381,6 +384,7 @@ def evaluate(
     w_hi: F32,
     r: int,
     top_k: int,
+    top_gap: float,
     out: F32,
     row0: int,
     row1: int,
@@ -393,7 +397,7 @@ def evaluate(
     w = ref.shape[1]
     dummy_H = np.zeros((1, 3, 3), np.float64)
     _scores(
-        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k, out,
+        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k, top_gap, out,
         row0, row1,
     )  # fmt: skip
     for y in range(row0, row1):
