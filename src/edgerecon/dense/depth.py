@@ -5,7 +5,8 @@ For one reference view and a few source views:
 1. **Plane sweep** at the coarsest level. Each plane of a family (``fronto``: parallel to the
    reference image; ``ground``: perpendicular to the scene's up direction) maps every source
    onto the reference by a homography; the windowed NCC of each source is aggregated over
-   the best ``ncc_top_k`` sources (:mod:`edgerecon.dense.kernels`). Planes are spaced so that
+   the best ``ncc_top_k`` sources, each counted as at least the best one's minus
+   ``ncc_top_gap`` (:mod:`edgerecon.dense.kernels`). Planes are spaced so that
    consecutive planes move the image of every sampled ray by at most ``plane_step_px``
    coarse pixels in every source, which adapts the number of planes to the baselines and to
    the depth range. Winner-take-all with a parabola through the neighbouring planes gives

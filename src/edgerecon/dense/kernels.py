@@ -281,7 +281,7 @@ def _scores(
                     vj = max(s1 / n - mj * mj, 0.0) + VAR_EPS
                     cov = s2 / n - mean[y, x] * mj
                     row_ncc[s, x] = cov / np.sqrt(var[y, x] * vj)
-        # Mean of the top_k finite scores.
+        # Mean of the top_k finite scores, each at least the best one minus top_gap.
         for x in range(x0, x1):
             m = 0
             for s in range(S):
