@@ -521,18 +521,19 @@ def _evaluate(
     inv: F32,
     src: _Sources,
     stats: _RefStats,
-    top_k: int,
-    top_gap: float,
+    config: DenseConfig,
     w_lo: F32,
     w_hi: F32,
     bands: RowBands | None = None,
 ) -> F32:
+    """Aggregated NCC of the per-pixel inverse depths ``inv`` (``kernels.evaluate``, scored
+    over the best ``config.ncc_top_k`` sources within ``config.ncc_top_gap``)."""
     out = np.empty(inv.shape, np.float32)
     rows = functools.partial(
         kernels.evaluate,
         stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok,
         stats.active, src.a, src.b, np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi,
-        stats.radius, top_k, top_gap, out,
+        stats.radius, config.ncc_top_k, config.ncc_top_gap, out,
     )  # fmt: skip
     _run_rows(bands, rows, inv.shape[0])
     return out
@@ -585,14 +586,13 @@ def _refine(
     work = 0
     n_src = len(src.b)
     npix = inv.size
-    k = config.ncc_top_k
     if score is None:
-        score = _evaluate(inv, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands)
+        score = _evaluate(inv, src, stats, config, w_lo, w_hi, bands)
         work += npix * n_src
     for _ in range(config.propagation_iterations):
         for dx, dy in _PROPAGATION:
             cand = _shift(inv, dx, dy)
-            s = _evaluate(cand, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands)
+            s = _evaluate(cand, src, stats, config, w_lo, w_hi, bands)
             work += npix * n_src
             better = s > score
             inv = np.where(better, cand, inv)
@@ -608,9 +608,7 @@ def _refine(
             if k_off == 0 and base is inv:
                 scores[i] = score
                 continue
-            scores[i] = _evaluate(
-                base + k_off * step, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands
-            )
+            scores[i] = _evaluate(base + k_off * step, src, stats, config, w_lo, w_hi, bands)
             work += npix * n_src
         idx = np.argmax(scores, axis=0)
         s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
@@ -619,7 +617,7 @@ def _refine(
         offsets = _subplane(s0, idx, sm, sp, np.arange(-K, K + 1, dtype=np.float64))
         cand = (base + offsets * step).astype(np.float32)
         # The sub-step position is a prediction: keep it only where it scores as well.
-        s_sub = _evaluate(cand, src, stats, k, config.ncc_top_gap, w_lo, w_hi, bands)
+        s_sub = _evaluate(cand, src, stats, config, w_lo, w_hi, bands)
         work += npix * n_src
         use_sub = s_sub >= s0 - 1e-3
         new = np.where(use_sub, cand, base + (idx - K).astype(np.float32) * step)

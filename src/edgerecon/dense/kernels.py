@@ -348,8 +348,8 @@ def sweep(
     for p in range(P):
         lam = lams[p]
         _scores(
-            ref, mean, var, count, srcs, sizes, src_ok, active, 0, homographies[p], dummy_a, dummy_b,
-            dummy_inv, r, top_k, top_gap, score, row0, row1,
+            ref, mean, var, count, srcs, sizes, src_ok, active, 0, homographies[p], dummy_a,
+            dummy_b, dummy_inv, r, top_k, top_gap, score, row0, row1,
         )  # fmt: skip
         for y in range(row0, row1):
             for x in range(w):
@@ -397,8 +397,8 @@ def evaluate(
     w = ref.shape[1]
     dummy_H = np.zeros((1, 3, 3), np.float64)
     _scores(
-        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k, top_gap, out,
-        row0, row1,
+        ref, mean, var, count, srcs, sizes, src_ok, active, 1, dummy_H, a, b, inv, r, top_k,
+        top_gap, out, row0, row1,
     )  # fmt: skip
     for y in range(row0, row1):
         for x in range(w):
