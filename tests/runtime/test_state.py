@@ -393,3 +393,32 @@ def test_a_task_cloud_is_its_foreground_and_a_background_stored_once(tmp_path):
     write_ply(tmp_path / "tasks" / "000009" / "merged.ply", expected)
     assert len(run.cloud(9)) == len(expected)
     assert run.cloud(10) is None
+
+
+def test_the_controller_sees_a_golden_task_without_its_one_off_sfm(tiny):
+    """A golden-configuration task runs SfM only to build pi(N') (the other tasks skip it,
+    sparse_scope "hull"): the controller judges the configuration by what it costs per task,
+    or a golden task that fits the deadline looks too slow and the search starts for
+    nothing. The task's own record keeps its whole critical path."""
+    ds, scene = tiny
+    seen: list[float] = []
+
+    class Recording(BisectionController):
+        def observe(self, time_s, quality=None):
+            seen.append(time_s)
+            super().observe(time_s, quality)
+
+    ctrl = Recording(ControllerConfig(deadline_s=100.0), None, len(ds.rig))
+    fe = FrontEnd(ds.rig, runtime_config(), ctrl, scene.tracker(ds.rig))
+    with ds.open_frames() as src:
+        framesets = [src.read(t) for t in range(2)]
+    outs = []
+    for task, frames in enumerate(framesets):
+        plan = fe.next_plan(frames.time_index)
+        outs.append((plan, fe.run_task(frames, plan, lambda w: None, time.sleep, task=task)))
+    (golden, first), (after, second) = outs
+    assert golden.phase == "golden" and after.phase != "golden"
+    sfm = first.metrics.stages["sfm"]
+    assert sfm > 0 and "sfm" not in second.metrics.stages
+    assert seen[0] == pytest.approx(first.metrics.critical_path_s - sfm, abs=1e-5)
+    assert seen[1] == pytest.approx(second.metrics.critical_path_s, abs=1e-5)
