@@ -120,6 +120,34 @@ def test_golden_feasible_ends_after_one_step():
     assert (nxt.phase, nxt.scale, nxt.num_cameras) == ("adjust", 1.0, 7)
 
 
+def test_a_noisy_golden_task_is_measured_once_more():
+    # The run's first task shares the machine with the back-end's first work: a golden task
+    # within baseline_confirm x the deadline is measured again before the search starts.
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(6.0, None)
+    cfg = ctrl.next_config()
+    assert (cfg.phase, cfg.scale, cfg.num_cameras) == ("golden", 1.0, 4)
+    ctrl.observe(4.0, None)  # it fits: no search
+    assert ctrl.phase == "adjust" and ctrl.search_steps == 2
+    assert ctrl.next_config().scale == 1.0
+    # Two misses in a row start the search; so does one clear miss.
+    for times in ((6.0, 6.5), (9.0,)):
+        ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+        for t in times:
+            assert ctrl.next_config().phase == "golden"
+            ctrl.observe(t, None)
+        cfg = ctrl.next_config()
+        assert (cfg.phase, cfg.scale, cfg.num_cameras) == ("search", 0.3, 4)
+    # A saved state from before the field existed loads.
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(6.0, None)
+    saved = ctrl.to_dict()
+    del saved["state"]["golden_misses"]
+    assert BisectionController.from_dict(saved).next_config().phase == "golden"
+
+
 def test_rule1_baseline_check_skips_a_camera_count():
     ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 6)
     ctrl.next_config()
