@@ -422,3 +422,12 @@ def test_the_controller_sees_a_golden_task_without_its_one_off_sfm(tiny):
     assert sfm > 0 and "sfm" not in second.metrics.stages
     assert seen[0] == pytest.approx(first.metrics.critical_path_s - sfm, abs=1e-5)
     assert seen[1] == pytest.approx(second.metrics.critical_path_s, abs=1e-5)
+    # With the paper's online estimate every task runs SfM: the golden task's is recurring.
+    seen.clear()
+    ctrl = Recording(ControllerConfig(deadline_s=100.0), None, len(ds.rig))
+    config = runtime_config(online_quality="golden", golden_timeout_s=0.1)
+    fe = FrontEnd(ds.rig, config, ctrl, scene.tracker(ds.rig))
+    plan = fe.next_plan(framesets[0].time_index)
+    out = fe.run_task(framesets[0], plan, lambda w: None, time.sleep, task=0)
+    assert plan.phase == "golden" and out.metrics.stages["sfm"] > 0
+    assert seen[0] == pytest.approx(out.metrics.critical_path_s, abs=1e-5)

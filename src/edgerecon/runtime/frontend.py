@@ -466,7 +466,10 @@ class FrontEnd:
         on caliscope_charuco, utrecht4cam, hd4, hd4p) made a golden configuration that fits
         the deadline look too slow, and the search spent 7-8 tasks finding r = 1 again."""
         want_golden = self.config.online_quality == "golden"
-        if phase != "golden" or self._sparse_scope(phase, want_golden) == self.config.sparse_scope:
+        # The paper's online estimate needs SfM on every task: then it is recurring.
+        if phase != "golden" or self._sparse_scope(phase, want_golden) == self._sparse_scope(
+            "adjust", want_golden
+        ):
             return critical
         return max(critical - timings.to_dict().get("sfm", 0.0), 0.0)
 
