@@ -82,7 +82,8 @@ class StreamConfig:
     is recorded failed); 3, what a reconstruction task needs (``config.MIN_CAMERAS``)."""
     open_timeout_s: float = 10.0
     """How long opening a stream may take (and, at dataset opening, how long to wait for
-    each camera's first frame), seconds."""
+    each camera's first frame), seconds. A read waits for cameras still opening this long,
+    then up to ``max_wait_s`` more for a synchronized set of the live ones."""
     reconnect_s: float = 1.0
     """Pause before a reader reopens a stream that failed or ended, seconds."""
     loop: bool = False
@@ -441,13 +442,19 @@ class StreamFrameSource(FrameSource):
                 }
                 group = best_group(fresh, self.tolerance_s)
                 # Cameras still connecting are waited for like live ones (the first read
-                # waits for the streams to open).
+                # waits for the streams to open), and then the live ones get the usual wait
+                # for a synchronized set: at the very end of the open timeout their newest
+                # frames may be one arrival apart (a loaded machine failed the first read so).
                 connecting = {i for i in range(len(newest)) if self._connecting(i, now)}
                 expected = set(live) | connecting
                 if connecting and len(group) < need:
                     deadline = max(
                         deadline,
-                        time.monotonic() + self._started_at + self.config.open_timeout_s - now,
+                        time.monotonic()
+                        + self._started_at
+                        + self.config.open_timeout_s
+                        - now
+                        + self.config.max_wait_s,
                     )
                 timed_out = time.monotonic() >= deadline
                 if group and (set(group) == expected or timed_out):
