@@ -448,14 +448,10 @@ class StreamFrameSource(FrameSource):
                 connecting = {i for i in range(len(newest)) if self._connecting(i, now)}
                 expected = set(live) | connecting
                 if connecting and len(group) < need:
-                    deadline = max(
-                        deadline,
-                        time.monotonic()
-                        + self._started_at
-                        + self.config.open_timeout_s
-                        - now
-                        + self.config.max_wait_s,
+                    opened_by = (
+                        time.monotonic() + self._started_at + self.config.open_timeout_s - now
                     )
+                    deadline = max(deadline, opened_by + self.config.max_wait_s)
                 timed_out = time.monotonic() >= deadline
                 if group and (set(group) == expected or timed_out):
                     if len(group) >= need:

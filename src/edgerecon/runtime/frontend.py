@@ -437,7 +437,9 @@ class FrontEnd:
                 # Every golden task refreshes pi(N') (a golden re-search included).
                 vis = result.sparse.visibility_matrix(len(self.rig))
                 self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
-            self.controller.observe(self._recurring(critical, timings, plan.phase), quality)
+            self.controller.observe(
+                self._recurring(critical, timings, plan.phase, want_golden), quality
+            )
             guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
         return self._output(
@@ -459,14 +461,16 @@ class FrontEnd:
             num_objects=max(num_objects(labels), _cloud_objects(fg_rec.cloud)),
         )
 
-    def _recurring(self, critical: float, timings: StageTimings, phase: str) -> float:
+    def _recurring(
+        self, critical: float, timings: StageTimings, phase: str, want_golden: bool
+    ) -> float:
         """What the task's configuration costs per task, for the controller: the critical
-        path, less the SfM a golden-configuration task runs only to build pi(N') where the
-        other tasks skip it (``sparse_scope`` "hull"). Otherwise that one-off SfM (0.2-0.6 s
-        on caliscope_charuco, utrecht4cam, hd4, hd4p) made a golden configuration that fits
-        the deadline look too slow, and the search spent 7-8 tasks finding r = 1 again."""
-        want_golden = self.config.online_quality == "golden"
-        # The paper's online estimate needs SfM on every task: then it is recurring.
+        path, less the SfM of a golden-configuration task whose sparse scope differs from the
+        other tasks' (``sparse_scope`` "hull": SfM only to build pi(N')). Otherwise that
+        one-off SfM (0.13-0.55 s on caliscope_charuco, utrecht4cam, hd4, hd4p) made a golden
+        configuration that fits the deadline look too slow, and the search spent 7-8 tasks
+        finding r = 1 again. With the paper's online estimate every task runs SfM: then it
+        counts."""
         if phase != "golden" or self._sparse_scope(phase, want_golden) == self._sparse_scope(
             "adjust", want_golden
         ):
