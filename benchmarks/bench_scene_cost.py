@@ -1,9 +1,10 @@
 """What the scene stage costs per camera and per task, at three sensor resolutions (issue 11).
 
 The scene stage of one task: every camera's background subtraction, the visual hull of the
-masks and the masks made consistent with it, their holes filled from the other cameras, and
-the objects of each mask (all at the working
-resolution, ``BackgroundConfig.working_pixels``), plus the scheduled background update. Its
+masks and the masks made consistent with it, their holes filled from the other cameras, the
+photo check of the ghosts (``ForegroundConfig.photo_check``), and the objects of each mask
+(all at the working resolution, ``BackgroundConfig.working_pixels``), plus the scheduled
+background update. Its
 share of the golden task is measured against the golden reconstruction of the same frames
 (``pipeline.reconstruct`` at r = 1 with all cameras, the product's own stage timings).
 
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from _report import print_rows, report_header, write_report
+from _report import print_rows, report_header, with_settings, write_report
 from edgerecon.pipeline import reconstruct, warm_up
 from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.foreground import ForegroundConfig, RigForeground
@@ -38,19 +39,26 @@ STAGES = (
     "visual_hull",
     "hull_consistency",
     "hull_rescue",
+    "tolerant_hull",
     "hull_fill",
+    "photo_check",
     "objects",
 )
 
 
 def measure(
-    preset: str, size: tuple[int, int], tasks: int, start: int, step: int
+    preset: str,
+    size: tuple[int, int],
+    tasks: int,
+    start: int,
+    step: int,
+    fg_config: ForegroundConfig | None = None,
 ) -> dict[str, Any]:
     config = preset_config(preset, width=size[0], height=size[1])
     scene = build_scene(config)
     renderer = Renderer(scene)
     rig = scene.rig
-    fg_config = ForegroundConfig()
+    fg_config = fg_config or ForegroundConfig()
 
     def frameset(t: int) -> tuple[FrameSet, Any]:
         fr = renderer.render(t)
@@ -110,13 +118,22 @@ def main() -> int:
     ap.add_argument("--tasks", type=int, default=10, help="tasks timed per size")
     ap.add_argument("--start", type=int, default=40, help="first timestamp")
     ap.add_argument("--step", type=int, default=10, help="timestamps between tasks")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a ForegroundConfig setting, as in [runtime.foreground] (repeatable), e.g. "
+        "photo_check=false",
+    )
     ap.add_argument("--json", type=Path, default=None, help="write a JSON report")
     args = ap.parse_args()
+    fg_config = with_settings(ForegroundConfig(), args.set, "runtime.foreground")
     warm_up()
     rows = []
     for text in args.sizes:
         w, h = (int(v) for v in text.lower().split("x"))
-        rows.append(measure(args.preset, (w, h), args.tasks, args.start, args.step))
+        rows.append(measure(args.preset, (w, h), args.tasks, args.start, args.step, fg_config))
         print_rows(f"scene stage, {args.preset}", list(rows[-1]), rows[-1:])
     print_rows(
         f"scene stage per task ({args.preset}, load {os.getloadavg()[0]:.1f})", list(rows[0]), rows

@@ -7,9 +7,14 @@ import numpy as np
 import pytest
 
 from edgerecon.geometry import Camera, Rig
-from edgerecon.scene.ghosts import StaticCheckConfig, static_consistent_masks
+from edgerecon.scene.ghosts import (
+    PhotoCheckConfig,
+    StaticCheckConfig,
+    photo_consistent_masks,
+    static_consistent_masks,
+)
 from edgerecon.types import DataError
-from tests.scene._scenes import box_silhouette, ring_with_top
+from tests.scene._scenes import box_silhouette, box_surface_points, ring_with_top
 
 LO = np.array([-0.3, -0.2, 0.5])
 HI = np.array([0.3, 0.2, 1.4])
@@ -102,6 +107,102 @@ def test_a_ghost_on_the_floor_goes_and_the_actor_stays(rig: Rig) -> None:
     assert flat[0][ghost].mean() < 0.1
     with pytest.raises(DataError, match="backgrounds"):
         static_consistent_masks(masks, images, rig.cameras, static, backgrounds=images[:2])
+
+
+def _box_samples(step: float = 0.02) -> np.ndarray:
+    """Points through the box's volume and on its faces (a hull that fits it)."""
+    axes = [np.arange(lo + step / 2, hi, step) for lo, hi in zip(LO, HI, strict=True)]
+    inner = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return np.concatenate([inner, box_surface_points(LO, HI, 60)])
+
+
+def _photo_scene(rig: Rig) -> tuple[list, list, list, np.ndarray, np.ndarray, np.ndarray]:
+    """Images and box masks; camera 0's mask with a ghost of floor beside the box; the hull's
+    points: the box, and where the ghost's rays pass in front of the box as other cameras
+    see it (what two opposite cameras' ghosts add to a hull); their labels (1 / 2)."""
+    views = [_view(c) for c in rig]
+    images = [v[0] for v in views]
+    masks = [v[2].copy() for v in views]
+    cam0 = rig[0]
+    ys, xs = np.nonzero(masks[0])
+    x1 = xs.max()
+    ghost = np.zeros_like(masks[0])
+    rows = slice(int(np.percentile(ys, 30)), int(np.percentile(ys, 70)))
+    ghost[rows, x1 + 1 : x1 + 13] = True  # floor beside the box in camera 0
+    masks[0] |= ghost
+    gy, gx = np.nonzero(ghost)
+    pix = np.stack([gx, gy], axis=1).astype(np.float64)
+    _, d0 = cam0.project(0.5 * (LO + HI)[None])
+    extra = []
+    for depth in np.linspace(d0[0] - 0.4, d0[0] + 0.4, 41):
+        pts = cam0.backproject(pix, np.full(len(pix), depth))
+        for cam, mask in zip(rig.cameras[1:], masks[1:], strict=True):
+            uv, d = cam.project(pts)
+            ok = (d > 0) & cam.in_image(uv)
+            u = np.clip(np.rint(uv[:, 0]).astype(int), 0, cam.width - 1)
+            v = np.clip(np.rint(uv[:, 1]).astype(int), 0, cam.height - 1)
+            ok &= mask[v, u]
+            extra.append(pts[ok])
+    inflated = np.concatenate(extra)
+    points = np.concatenate([_box_samples(), inflated])
+    labels = np.concatenate([np.ones(len(points) - len(inflated)), np.full(len(inflated), 2)])
+    return images, masks, [v[2] for v in views], ghost, points, labels.astype(np.int32)
+
+
+def test_the_photo_check_drops_a_ghost_that_the_hull_explains(rig: Rig) -> None:
+    images, masks, boxes, ghost, points, labels = _photo_scene(rig)
+    assert (labels == 2).sum() > 100  # the ghost's rays do pass in front of the box
+    everywhere = [np.ones_like(m) for m in masks]  # candidates: every pixel
+    # The box's pixels are not candidates anywhere: they tell how well colours agree here.
+    candidates = [e & ~b for e, b in zip(everywhere, boxes, strict=True)]
+    out, removed = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, candidates)
+    assert out[0] is not None and out[0][ghost].mean() < 0.1  # the ghost is gone
+    assert removed[0] >= 0.9 * ghost.sum() and removed[1:] == [0] * (len(rig) - 1)
+    for c, (m, box) in enumerate(zip(out, boxes, strict=True)):
+        assert m is not None and m[box].all(), f"camera {c} lost the box"
+    # The box itself as a candidate: its colour agrees in every view, it stays.
+    out, _ = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, everywhere)
+    assert all(m is not None and m[b].mean() > 0.97 for m, b in zip(out, boxes, strict=True))
+    # ... but then no pixel tells how well this rig's colours agree: nothing is judged.
+    assert out[0] is not None and out[0][ghost].all()
+
+    # The ghost's points as a second object: the judging cameras may see the box in front of
+    # them, so they do not judge, and the ghost stays.
+    kept, none = photo_consistent_masks(
+        points, 0.01, rig.cameras, masks, images, candidates, labels=labels
+    )
+    assert kept[0] is not None and kept[0][ghost].mean() > 0.9 and none[0] < 0.1 * ghost.sum()
+    # Where the other cameras show the ghost's colours on the box, it stays.
+    painted = [im.copy() for im in images]
+    floor = images[0][ghost].mean(axis=0)
+    for im, box in zip(painted[1:], boxes[1:], strict=True):
+        im[box] = floor
+    stays, _ = photo_consistent_masks(points, 0.01, rig.cameras, masks, painted, candidates)
+    assert stays[0] is not None and stays[0][ghost].mean() > 0.9
+    # Too few reference pixels: no check.
+    few = PhotoCheckConfig(min_reference_px=10**7)
+    same, n = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, candidates, few)
+    assert n == [0] * len(rig) and all(
+        np.array_equal(a, b) for a, b in zip(same, masks, strict=True)
+    )
+
+
+def test_photo_check_bad_input(rig: Rig) -> None:
+    n = len(rig)
+    pts = np.zeros((4, 3))
+    with pytest.raises(DataError, match="images"):
+        photo_consistent_masks(pts, 0.01, rig.cameras, [None] * n, [None] * (n - 1), [None] * n)
+    with pytest.raises(DataError, match="labels"):
+        photo_consistent_masks(
+            pts, 0.01, rig.cameras, [None] * n, [None] * n, [None] * n, labels=np.ones(3)
+        )
+    for bad in ({"blur_px": 0}, {"max_ratio": 1.0}, {"reference_quantile": 1.5}, {"footprint": 0}):
+        with pytest.raises(ValueError):
+            PhotoCheckConfig(**bad)  # type: ignore[arg-type]
+    out, removed = photo_consistent_masks(
+        np.zeros((0, 3)), 0.01, rig.cameras, [None] * n, [None] * n, [None] * n
+    )
+    assert out == [None] * n and removed == [0] * n
 
 
 def test_bad_input(rig: Rig) -> None:

@@ -654,6 +654,18 @@ def visual_hull(
     return hull
 
 
+def _cleared(hull: VisualHull) -> VisualHull:
+    """The hull's grid and box without any voxel."""
+    return dataclasses.replace(
+        hull,
+        indices=np.zeros((0, 3), np.int64),
+        labels=np.zeros(0, np.int32),
+        surface=np.zeros(0, bool),
+        normals=np.zeros((0, 3), np.float32),
+        status="empty",
+    )
+
+
 def _without_objects(hull: VisualHull, object_ids: Sequence[int]) -> VisualHull:
     """The hull without some objects; the others renumbered 1..K by decreasing size."""
     keep = ~np.isin(hull.labels, list(object_ids))
@@ -1111,6 +1123,48 @@ def _uncontradicted(
     return np.asarray(restore[comp], bool)
 
 
+def tolerant_hull(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    model_masks: Sequence[Mask | None],
+    config: HullConfig,
+    *,
+    occluders: Sequence[DepthMap | None] | None = None,
+    distances: SilhouetteDistances | None = None,
+) -> VisualHull:
+    """The hull that one camera may disagree with (``max_missing`` = 1), carved from
+    ``model_masks`` with voxels twice the exact hull's inside the exact hull ``hull``'s box
+    (plus 4 of its voxels), keeping only its objects that contain exact-hull voxels (the rest
+    are the phantoms that a tolerant hull of few views adds). Empty with fewer than 4
+    cameras with a mask (a 2-of-3 hull is too loose to vouch for anything) or an empty
+    ``hull``. ``distances``: ``silhouette_distances(model_masks)`` when the caller has
+    them."""
+    cams = list(cameras)
+    _check_masks(cams, model_masks)
+    with_mask = sum(m is not None for m in model_masks)
+    if hull.num_voxels == 0 or with_mask < 4:
+        return _cleared(hull)
+    centers = hull.centers
+    margin = 4.0 * hull.voxel_size
+    lo = np.maximum(centers.min(axis=0) - margin, hull.bounds[0])
+    hi = np.minimum(centers.max(axis=0) + margin, hull.bounds[1])
+    tolerant_cfg = dataclasses.replace(
+        config,
+        max_missing=max(config.max_missing, 1),
+        remove_phantoms=False,  # anchoring in the exact hull below does that job
+        voxel_size=2.0 * hull.voxel_size,  # its users clip it to outlines or sample it
+        bounds=(tuple(float(x) for x in lo), tuple(float(x) for x in hi)),  # type: ignore[arg-type]
+    )
+    tolerant = visual_hull(
+        cams, model_masks, tolerant_cfg, occluders=occluders, distances=distances
+    )
+    if tolerant.num_voxels == 0:
+        return tolerant
+    anchored = set(np.unique(tolerant.labels[hull.contains(tolerant.centers)]).tolist())
+    drop = [k for k in range(1, tolerant.num_objects + 1) if k not in anchored]
+    return _without_objects(tolerant, drop) if drop else tolerant
+
+
 def hull_filled_masks(
     hull: VisualHull,
     cameras: Sequence[Camera],
@@ -1122,19 +1176,19 @@ def hull_filled_masks(
     occluders: Sequence[DepthMap | None] | None = None,
     distances: SilhouetteDistances | None = None,
     allowed: Sequence[Mask | None] | None = None,
+    tolerant: VisualHull | None = None,
 ) -> list[Mask | None]:
     """Masks with their holes filled where the other cameras agree that an object is there.
 
     A still actor whose colours match the background model in places (a ghost-free model
     cannot be learned while it stands where it stood during the bootstrap) gets holes in
     some cameras' masks; the exact hull ``hull`` is then carved through by them. This
-    carves a tolerant hull (one camera may disagree: ``max_missing`` = 1) from
-    ``model_masks`` inside the exact hull's box, keeps its objects that contain exact-hull
-    voxels (the rest are the phantoms that a tolerant hull of few views adds), projects
-    them into every camera and adds the projection where it lies inside the camera's mask
-    outline: the mask closed by a disc of ``close_px`` pixels, holes filled. Foreground is
-    only ever added, and only inside an outline the camera itself drew, so the hull's
-    looseness does not leak out of the silhouettes.
+    takes the tolerant hull (``tolerant_hull``: one camera may disagree, anchored in the
+    exact hull; ``tolerant`` when the caller has it), projects it into every camera and
+    adds the projection where it lies inside the camera's mask outline: the mask closed by
+    a disc of ``close_px`` pixels, holes filled. Foreground is only ever added, and only
+    inside an outline the camera itself drew, so the hull's looseness does not leak out of
+    the silhouettes.
 
     ``allowed[c]``, when given, limits where camera c may be filled (its background
     model's ``unsettled`` pixels: elsewhere a hole is the camera's own carving of the
@@ -1167,30 +1221,17 @@ def hull_filled_masks(
         room.append(gap if gap.any() else None)
     if all(r is None for r in room):
         return out
-    centers = hull.centers
-    margin = 4.0 * hull.voxel_size
-    lo = np.maximum(centers.min(axis=0) - margin, hull.bounds[0])
-    hi = np.minimum(centers.max(axis=0) + margin, hull.bounds[1])
-    tolerant_cfg = dataclasses.replace(
-        config,
-        max_missing=max(config.max_missing, 1),
-        remove_phantoms=False,  # anchoring in the exact hull below does that job
-        voxel_size=2.0 * hull.voxel_size,  # the fill is clipped to each mask's outline
-        bounds=(tuple(float(x) for x in lo), tuple(float(x) for x in hi)),  # type: ignore[arg-type]
-    )
-    tolerant = visual_hull(
-        cams, model_masks, tolerant_cfg, occluders=occluders, distances=distances
-    )
+    if tolerant is None:
+        tolerant = tolerant_hull(
+            hull, cams, model_masks, config, occluders=occluders, distances=distances
+        )
     if tolerant.num_voxels == 0:
         return out
-    in_exact = hull.contains(tolerant.centers)
-    anchored = set(np.unique(tolerant.labels[in_exact]).tolist())
-    drop = [k for k in range(1, tolerant.num_objects + 1) if k not in anchored]
     # The projection of a solid is that of its surface, and the exact hull's projection lies
     # in the masks already: only the surface voxels outside the exact hull can add pixels.
-    tolerant = dataclasses.replace(tolerant, surface=tolerant.surface & ~in_exact)
-    if drop:
-        tolerant = _without_objects(tolerant, drop)
+    tolerant = dataclasses.replace(
+        tolerant, surface=tolerant.surface & ~hull.contains(tolerant.centers)
+    )
     if not tolerant.surface.any():
         return out
     for c, cam in enumerate(cams):
