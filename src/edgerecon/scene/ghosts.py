@@ -34,7 +34,7 @@ least ``max_diff``. Synthetic cameras agree to a few grey levels, real webcams w
 white balance and gamma to 20-50 (caliscope_charuco), and the test loosens with them.
 
 hd4 (20 tasks): moving-actor IoU 0.727 -> 0.804, precision 0.769 -> 0.854, recall of the
-two moving actors 0.938 / 0.944 -> 0.933 / 0.940; hd4p 0.695 -> see docs/BENCHMARKS.md.
+two moving actors 0.938 / 0.944 -> 0.933 / 0.940; hd4p 0.695 -> 0.752 (docs/BENCHMARKS.md).
 What it cannot remove: ghost pixels whose ray meets, by chance, a hull point that another
 camera sees in a colour within the limit (about half of what is left on hd4 at t = 228),
 and ghosts that no camera judges (no other camera's mask holds their hull points).
