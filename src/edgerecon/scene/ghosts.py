@@ -116,11 +116,13 @@ class PhotoCheckConfig:
     """Parameters of ``photo_consistent_masks``."""
 
     max_diff: float = 10.0
-    """Two colours agree when their channels differ by less than this (grey levels) ..."""
+    """The smallest colour tolerance: two colours agree when their channels differ by at
+    most the rig's limit (``reference_quantile``), never less than this (grey levels) ..."""
     max_chroma: float = 0.03
-    """... or their chromaticities (B, G, R over their sum) differ by less than this (L1) ..."""
+    """... or when their chromaticities (B, G, R over their sum) differ by less than this
+    (L1) ..."""
     max_ratio: float = 1.6
-    """... with brightnesses within this ratio."""
+    """... with brightnesses within this ratio (one surface at two exposures)."""
     blur_px: int = 3
     """Colours are compared as box means of this size (pixels of the working images)."""
     texture_px: int = 5
@@ -186,15 +188,19 @@ def photo_consistent_masks(
     """The masks without their candidate pixels that no point of the hull explains, and per
     camera how many pixels were removed (see the module docstring).
 
-    ``points`` (N, 3) are samples of the hull (voxel centres) and ``sizes`` (N,) their
-    spacing (one number: the same for all). A point is compared between two cameras when it lies in both images and inside
-    both masks; it agrees in camera c when some other camera sees it in c's colour there
-    (``PhotoCheckConfig``). A pixel of ``candidates[c]`` (the models' unsettled pixels:
-    where a model may hold a ghost) inside ``masks[c]`` is removed when points were compared
-    within its footprint and none of them agrees. Pixels that no compared point covers are
-    kept (nothing vouches against them). All images are per camera at the masks' resolution
-    (``cameras``), BGR at each model's exposure; a camera without a mask or an image neither
-    loses pixels nor vouches for others.
+    ``points`` (N, 3) are samples of the hull and ``sizes`` (N,) their spacing (or one
+    number for all). A point is compared between two cameras when it lies in both images
+    and inside both masks (after a per-pair colour ratio, ``calibrate``); a pixel's best
+    distance is the smallest colour difference over the points within its footprint and
+    the other cameras. The limit is the ``reference_quantile`` of the best distances of the
+    mask pixels outside ``candidates`` (at least ``max_diff``); with fewer than
+    ``min_reference_px`` such pixels nothing is removed. A pixel of ``candidates[c]`` (the
+    models' unsettled pixels: where a model may hold a ghost) inside ``masks[c]`` is removed
+    when points were compared within its footprint, its best distance exceeds the limit and
+    no point there has its tint at another brightness. Pixels that no compared point covers
+    are kept (nothing vouches against them). All images are per camera at the masks'
+    resolution (``cameras``), BGR at each model's exposure; a camera without a mask or an
+    image neither loses pixels nor vouches for others.
 
     ``labels`` (N,): the 3D object of each point. A camera then only judges a point where no
     other object's points project within a pixel: there it may see the other object in
@@ -546,9 +552,7 @@ def _local_contrast(
 
 
 def _same_colour(
-    a: NDArray[np.float32],
-    b: NDArray[np.float32],
-    config: StaticCheckConfig | PhotoCheckConfig,
+    a: NDArray[np.float32], b: NDArray[np.float32], config: StaticCheckConfig
 ) -> NDArray[np.bool_]:
     sa = a.sum(axis=1) + 1.0
     sb = b.sum(axis=1) + 1.0
