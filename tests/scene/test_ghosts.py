@@ -158,13 +158,23 @@ def test_the_photo_check_drops_a_ghost_that_the_hull_explains(rig: Rig) -> None:
     out, removed = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, candidates)
     assert out[0] is not None and out[0][ghost].mean() < 0.1  # the ghost is gone
     assert removed[0] >= 0.9 * ghost.sum() and removed[1:] == [0] * (len(rig) - 1)
+    # One pass: the second (the default) only ever removes more.
+    once = PhotoCheckConfig(passes=1)
+    one, _ = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, candidates, once)
+    for a, b in zip(out, one, strict=True):
+        assert a is not None and b is not None and not (a & ~b).any()
     for c, (m, box) in enumerate(zip(out, boxes, strict=True)):
         assert m is not None and m[box].all(), f"camera {c} lost the box"
-    # The box itself as a candidate: its colour agrees in every view, it stays.
+    # The box itself as a candidate: its colour agrees in every view, it stays. No pixel
+    # outside the candidates tells how well this rig's colours agree; the median of all
+    # judged pixels does (the box's agree, the ghost's do not), and the ghost goes.
     out, _ = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, everywhere)
     assert all(m is not None and m[b].mean() > 0.97 for m, b in zip(out, boxes, strict=True))
-    # ... but then no pixel tells how well this rig's colours agree: nothing is judged.
-    assert out[0] is not None and out[0][ghost].all()
+    assert out[0] is not None and out[0][ghost].mean() < 0.1
+    # Without that fallback, nothing is judged then.
+    strict = PhotoCheckConfig(fallback_scale=0)
+    out, n = photo_consistent_masks(points, 0.01, rig.cameras, masks, images, everywhere, strict)
+    assert n == [0] * len(rig) and out[0] is not None and out[0][ghost].all()
 
     # The ghost's points as a second object: the judging cameras may see the box in front of
     # them, so they do not judge, and the ghost stays.
@@ -196,7 +206,14 @@ def test_photo_check_bad_input(rig: Rig) -> None:
         photo_consistent_masks(
             pts, 0.01, rig.cameras, [None] * n, [None] * n, [None] * n, labels=np.ones(3)
         )
-    for bad in ({"blur_px": 0}, {"max_ratio": 1.0}, {"reference_quantile": 1.5}, {"footprint": 0}):
+    for bad in (
+        {"blur_px": 0},
+        {"max_ratio": 1.0},
+        {"reference_quantile": 1.5},
+        {"footprint": 0},
+        {"fallback_scale": -1.0},
+        {"passes": 0},
+    ):
         with pytest.raises(ValueError):
             PhotoCheckConfig(**bad)  # type: ignore[arg-type]
     out, removed = photo_consistent_masks(

@@ -96,8 +96,8 @@ class ForegroundConfig:
     cameras all see in other colours (``ghosts.photo_consistent_masks``): ghosts where an
     actor stood while a model learned, which two opposite cameras share and the hull
     therefore keeps. Needs only the frames of the moment and the hull, so every command gets
-    the same masks for a time index (hd4, 20 tasks: moving-actor IoU 0.727 -> 0.804, hd4p
-    0.695 -> 0.752; about 0.09 s per task; docs/BENCHMARKS.md)."""
+    the same masks for a time index (hd4, 20 tasks: moving-actor IoU 0.727 -> 0.814, hd4p
+    0.695 -> 0.765; about 0.065 s per task; docs/BENCHMARKS.md)."""
     photo: PhotoCheckConfig = field(default_factory=PhotoCheckConfig)
     """Parameters of that check."""
     static_check: bool = False
