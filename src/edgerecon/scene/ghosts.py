@@ -333,7 +333,7 @@ def _photo_pass(
             open_ = mask & np.asarray(cand, bool) if cand is not None else None
             if open_ is None or not open_.any():
                 continue
-            reach = int(np.ceil(radius.max()))
+            reach = int(np.clip(np.ceil(radius.max()), 0, _MAX_FOOTPRINT_PX))
             near = cv2.dilate(open_.view(np.uint8), disk(reach)).view(bool)
             sc = seen[c]
             assert sc is not None
@@ -512,6 +512,10 @@ def _colour_distance(
     return np.asarray(diff, np.float32), np.asarray(alike)
 
 
+#: A point's footprint never reaches farther than this (pixels).
+_MAX_FOOTPRINT_PX = 16
+
+
 def _splat_min(
     shape: tuple[int, ...],
     uv: NDArray[np.float64],
@@ -526,7 +530,7 @@ def _splat_min(
         return out
     u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.intp)
     v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
-    r = np.clip(np.ceil(radius), 0, 16).astype(np.intp)
+    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.intp)
     vals = np.minimum(np.asarray(values, np.float32), np.float32(_BIG))
     for rr in np.unique(r):
         sel = r == rr
@@ -556,7 +560,7 @@ def _splat(shape: tuple[int, ...], uv: NDArray[np.float64], radius: NDArray[np.f
         return out.astype(bool)
     u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.intp)
     v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
-    r = np.clip(np.ceil(radius), 0, 16).astype(np.intp)
+    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.intp)
     for rr in np.unique(r):
         sel = r == rr
         us, vs = u[sel], v[sel]
