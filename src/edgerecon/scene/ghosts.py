@@ -316,7 +316,7 @@ def _photo_pass(
         alone = (
             inside if labels is None else inside & _alone(labels, inside, sc.u, sc.v, mask.shape)
         )
-        views.append(_View(sc.uv, sc.depth, inside, alone, sc.colour, sc.contrast))
+        views.append(_View(sc, inside, alone))
     # Per camera: the best colour distance to another camera over the points within each
     # pixel's footprint (inf: none), and the pixels some camera judges.
     best: list[NDArray[np.float32] | None] = [None] * n
@@ -327,7 +327,7 @@ def _photo_pass(
         if here is None or mask is None or not mask.any():
             continue
         (idx,) = np.nonzero(here.inside)
-        radius = config.footprint * size[idx] * cam.focal_px / np.maximum(here.depth[idx], 1e-9)
+        radius = config.footprint * size[idx] * cam.focal_px / np.maximum(here.at.depth[idx], 1e-9)
         if not first and len(idx):
             # Only the candidates left can go: the points whose footprint reaches one.
             open_ = mask & np.asarray(cand, bool) if cand is not None else None
@@ -341,7 +341,7 @@ def _photo_pass(
             idx, radius = idx[on], radius[on]
         if len(idx) == 0:
             continue
-        mine = here.colour[:, idx]
+        mine = here.at.colour[:, idx]
         vouch = np.zeros(len(idx), bool)
         dist = np.full(len(idx), np.inf, np.float32)
         tinted = np.zeros(len(idx), bool)
@@ -351,7 +351,7 @@ def _photo_pass(
             both = there.inside[idx]
             if not both.any():
                 continue
-            colour = there.colour[:, idx]
+            colour = there.at.colour[:, idx]
             if config.calibrate:
                 # The ratio comes from every point both cameras hold.
                 if (c, o) not in ratios:
@@ -362,8 +362,8 @@ def _photo_pass(
                 if ratio is not None:
                     colour = colour * ratio[:, None]
             d, alike = _colour_distance(mine, colour, config)
-            if here.contrast is not None and there.contrast is not None:
-                a, b = here.contrast[idx], there.contrast[idx]
+            if here.at.contrast is not None and there.at.contrast is not None:
+                a, b = here.at.contrast[idx], there.at.contrast[idx]
                 unlike = np.abs(a - b) > np.maximum(config.texture_tol, 2 / 3 * np.maximum(a, b))
                 d[unlike] = np.inf
                 alike &= ~unlike
@@ -374,7 +374,7 @@ def _photo_pass(
             np.minimum(dist, np.where(both, d, np.inf), out=dist)
         if not vouch.any():
             continue
-        uv = here.uv[idx]
+        uv = here.at.uv[idx]
         best[c] = _splat_min(mask.shape, uv, radius, dist)
         tint[c] = _splat(mask.shape, uv[tinted], radius[tinted])
         judged[c] = _splat(mask.shape, uv[vouch], radius[vouch]) & mask
@@ -433,7 +433,7 @@ def _colour_ratio(
     both hold with channels within ``calibration_diff``; None with too few such points."""
     (both,) = np.nonzero(here.inside & there.inside)
     both = both[:: max(1, len(both) // _CALIBRATION_SAMPLES)]
-    a, b = here.colour[:, both].T, there.colour[:, both].T
+    a, b = here.at.colour[:, both].T, there.at.colour[:, both].T
     pair = np.abs(a - b).max(axis=1) < config.calibration_diff
     if np.count_nonzero(pair) < config.min_calibration_points:
         return None
@@ -457,17 +457,13 @@ class _Seen:
 
 @dataclass(frozen=True, eq=False)
 class _View:
-    """The hull's points as one camera sees them."""
+    """The hull's points as one camera sees them in one pass."""
 
-    uv: NDArray[np.float64]
-    depth: NDArray[np.float64]
+    at: _Seen
     inside: NDArray[np.bool_]
-    """In the image and inside the camera's mask."""
+    """In the image and inside the camera's mask (points carved by an earlier pass: out)."""
     alone: NDArray[np.bool_]
     """Inside, and no other object's point within a pixel."""
-    colour: NDArray[np.float32]
-    """(3, N) BGR."""
-    contrast: NDArray[np.float32] | None
 
 
 def _alone(
