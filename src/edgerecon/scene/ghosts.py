@@ -162,7 +162,7 @@ class PhotoCheckConfig:
     """Checks in a row: before each after the first, the points that project onto pixels
     the last one removed are carved (as the hull of the new masks would), so the phantom
     volume that two cameras' ghosts leave in the hull vouches no more (hd4 / hd4p, 20
-    tasks: moving IoU 0.809 / 0.758 with one, 0.815 / 0.765 with two, 0.816 with three)."""
+    tasks: moving IoU 0.809 / 0.758 with one, 0.814 / 0.765 with two, 0.816 with three)."""
     fallback_scale: float = 4.0
     """That multiple: the 95th percentile of the true foreground's best distance is 3-6
     times its median on hd4, caliscope_charuco and utrecht4cam, and the median of all judged
@@ -217,16 +217,17 @@ def photo_consistent_masks(
     the other cameras. The limit is the ``reference_quantile`` of the best distances of the
     mask pixels outside ``candidates`` (at least ``max_diff``); with fewer than
     ``min_reference_px`` such pixels, ``fallback_scale`` times the median over all judged
-    pixels (nothing is removed when fewer than that many are judged). A pixel of ``candidates[c]`` (the
-    models' unsettled pixels: where a model may hold a ghost) inside ``masks[c]`` is removed
-    when points were compared within its footprint, its best distance exceeds the limit and
-    no point there has its tint at another brightness. Pixels that no compared point covers
-    are kept (nothing vouches against them). All images are per camera at the masks'
-    resolution (``cameras``), BGR at each model's exposure; a camera without a mask or an
-    image neither loses pixels nor vouches for others.
+    pixels (nothing is removed when fewer than that many are judged). A pixel of
+    ``candidates[c]`` (the models' unsettled pixels: where a model may hold a ghost) inside
+    ``masks[c]`` is removed when points were compared within its footprint, its best distance
+    exceeds the limit and no point there has its tint at another brightness. Pixels that no
+    compared point covers are kept (nothing vouches against them). All images are per camera
+    at the masks' resolution (``cameras``), BGR at each model's exposure; a camera without a
+    mask or an image neither loses pixels nor vouches for others.
 
-    With ``passes`` > 1 the check runs again with the points that land on removed pixels
-    carved, the first pass's limit and colour ratios estimated anew from the points left.
+    With ``passes`` > 1 the check runs again: the points that land on removed pixels are
+    carved, the colour ratios are estimated anew from the points left, and the first pass's
+    limit judges the candidates still in the masks.
 
     ``labels`` (N,): the 3D object of each point. A camera then only judges a point where no
     other object's points project within a pixel: there it may see the other object in
