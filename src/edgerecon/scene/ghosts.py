@@ -268,17 +268,22 @@ def photo_consistent_masks(
     limit: float | None = None
     keep = np.ones(len(pts), bool)
     previous = out
+    carved: NDArray[np.bool_] | None = None
     for step in range(config.passes):
         if step:
             # Carve the points that land on a pixel the last pass removed: the hull of the
             # new masks has no point there, and such points (the phantom volume that two
             # cameras' ghosts leave in the hull) vouch no more for the pixels left.
+            before_keep = keep.copy()
             for sc, before, after in zip(seen, previous, out, strict=True):
                 if sc is not None and before is not None and after is not None:
                     keep &= ~(sc.inside & before[sc.v, sc.u] & ~after[sc.v, sc.u])
+            carved = before_keep & ~keep
+            if not carved.any():
+                break
         previous = list(out)
         out, gone, limit = _photo_pass(
-            seen, keep, size, labels, cameras, out, candidates, config, limit
+            seen, keep, size, labels, cameras, out, candidates, config, limit, carved
         )
         removed = [a + b for a, b in zip(removed, gone, strict=True)]
         if limit is None or not any(gone):
@@ -296,6 +301,7 @@ def _photo_pass(
     candidates: Sequence[Mask | None],
     config: PhotoCheckConfig,
     limit: float | None,
+    carved: NDArray[np.bool_] | None = None,
 ) -> tuple[list[Mask | None], list[int], float | None]:
     """One pass of ``photo_consistent_masks`` over the ``keep`` points: the masks, the
     pixels removed per camera and the colour limit (None: too few pixels to set it,
@@ -323,6 +329,7 @@ def _photo_pass(
     best: list[NDArray[np.float32] | None] = [None] * n
     judged: list[Mask | None] = [None] * n
     tint: list[Mask | None] = [None] * n  # a point in the same tint (another exposure)
+    opened: list[Mask | None] = [None] * n  # later passes: the pixels judged again
     for c, cam in enumerate(cameras):
         here, mask, cand = views[c], out[c], candidates[c]
         if here is None or mask is None or not mask.any():
@@ -330,14 +337,21 @@ def _photo_pass(
         (idx,) = np.nonzero(here.inside)
         radius = config.footprint * size[idx] * cam.focal_px / np.maximum(here.at.depth[idx], 1e-9)
         if not first and len(idx):
-            # Only the candidates left can go: the points whose footprint reaches one.
-            open_ = mask & np.asarray(cand, bool) if cand is not None else None
-            if open_ is None or not open_.any():
+            # Only the candidates left can go, and only where a carved point vouched: the
+            # points whose footprint reaches such a pixel.
+            sc = seen[c]
+            assert sc is not None and carved is not None
+            (gone_idx,) = np.nonzero(sc.inside & carved)
+            if cand is None or len(gone_idx) == 0:
                 continue
+            gone_r = config.footprint * size[gone_idx] * cam.focal_px
+            gone_r = gone_r / np.maximum(sc.depth[gone_idx], 1e-9)
+            open_ = mask & np.asarray(cand, bool) & _splat(mask.shape, sc.uv[gone_idx], gone_r)
+            if not open_.any():
+                continue
+            opened[c] = open_
             reach = int(np.clip(np.ceil(radius.max()), 0, _MAX_FOOTPRINT_PX))
             near = cv2.dilate(open_.view(np.uint8), disk(reach)).view(bool)
-            sc = seen[c]
-            assert sc is not None
             on = near[sc.v[idx], sc.u[idx]]
             idx, radius = idx[on], radius[on]
         if len(idx) == 0:
@@ -388,6 +402,8 @@ def _photo_pass(
         if mask is None or bc is None or jc is None or tc is None or cand is None:
             continue
         ghost = mask & np.asarray(cand, bool) & jc & (bc > limit) & ~tc
+        if not first:
+            ghost &= opened[c] if opened[c] is not None else False
         if ghost.any():
             out[c] = mask & ~ghost
             removed[c] = int(np.count_nonzero(ghost))
