@@ -382,6 +382,30 @@ def test_a_workload_that_outgrows_the_fastest_configuration_is_reported_once(cap
     assert "the fastest one (r=0.30, N'=3)" in said[0].getMessage()
 
 
+def test_a_floor_that_misses_on_average_searches_fewer_cameras_despite_a_lucky_task():
+    # The search settles on the fastest scale with 4 cameras; then the tasks at r_min take
+    # 1.25x the deadline, one in four meets it by chance. The saturation trigger counts the
+    # window's average, so a search with fewer cameras starts within a few windows.
+    ctrl = BisectionController(
+        ControllerConfig(deadline_s=1.0, research_jump=0.0, research_drift=0.0), LOWEST, 4
+    )
+    for _ in range(40):
+        c = ctrl.next_config()
+        ctrl.observe(0.9 if c.scale <= 0.3 + 1e-9 else 2.0, 0.5)
+        if ctrl.phase == "adjust":
+            break
+    assert ctrl.phase == "adjust" and ctrl.next_config().num_cameras == 4
+    assert ctrl.next_config().scale == pytest.approx(0.3)
+    searches = ctrl.num_searches
+    for i in range(20):
+        ctrl.next_config()
+        ctrl.observe(0.9 if i % 4 == 3 else 1.4, 0.5)
+        if ctrl.num_searches > searches:
+            break
+    assert ctrl.num_searches == searches + 1, "no search with fewer cameras"
+    assert i < 12
+
+
 def test_set_deadline_and_cameras_restart_the_search():
     ctrl = BisectionController(ControllerConfig(deadline_s=10), LOWEST, 7)
     ctrl.next_config()

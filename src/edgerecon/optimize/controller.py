@@ -631,7 +631,11 @@ class BisectionController:
         s.r_star = round(s.r_star, 6)
         at_min = r_old <= c.r_min + _EPS
         at_max = r_old >= c.r_max - _EPS
-        s.saturation_low = s.saturation_low + 1 if (want < 0 and at_min) else 0
+        # At r_min the count goes on while the window's average misses: a task that meets
+        # the deadline by chance (its time swings with the load) does not reset it, or a
+        # floor that misses on average could wait for a search with fewer cameras for ever
+        # (caliscope_charuco at 30 %: one met task in nine put it off to the run's end).
+        s.saturation_low = s.saturation_low + 1 if (at_min and avg > dl) else 0
         s.saturation_high = s.saturation_high + 1 if (want > 0 and at_max) else 0
         s.r_history.append(s.r_star)
         del s.r_history[:-_R_HISTORY]
