@@ -197,6 +197,24 @@ def test_the_photo_check_drops_a_ghost_that_the_hull_explains(rig: Rig) -> None:
     )
 
 
+def test_the_limit_is_none_when_too_many_true_pixels_agree_nowhere() -> None:
+    from edgerecon.scene.ghosts import _limit
+
+    config = PhotoCheckConfig()
+    shape = (50, 50)
+    judged = [np.ones(shape, bool)]
+    settled = [np.zeros(shape, bool)]  # no pixel is a candidate: all are the reference
+    best = np.linspace(0, 40, shape[0] * shape[1], dtype=np.float32).reshape(shape)
+    assert _limit([best], judged, settled, config) == pytest.approx(38.0, abs=0.1)
+    some = best.copy()
+    some.flat[:50] = np.inf  # 2 % agree with no other camera: still a limit
+    limit = _limit([some], judged, settled, config)
+    assert limit is not None and np.isfinite(limit)
+    many = best.copy()
+    many.flat[::16] = np.inf  # 6 %: the 95th percentile is not finite
+    assert _limit([many], judged, settled, config) is None
+
+
 def test_photo_check_bad_input(rig: Rig) -> None:
     n = len(rig)
     pts = np.zeros((4, 3))

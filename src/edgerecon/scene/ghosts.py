@@ -428,7 +428,15 @@ def _limit(
     ]
     pooled = np.concatenate(reference) if reference else np.zeros(0, np.float32)
     if len(pooled) >= config.min_reference_px:
-        return max(config.max_diff, float(np.quantile(pooled, config.reference_quantile)))
+        with np.errstate(invalid="ignore"):  # inf - inf between two infinite samples
+            q = float(np.quantile(pooled, config.reference_quantile))
+        if not np.isfinite(q):
+            # More of the surely-true pixels than the quantile leaves out agree with no
+            # other camera at all (inf: every comparison unlike in texture): these colours
+            # cannot tell a ghost from an actor (caliscope_charuco t = 48: 5.3 %; the limit
+            # had fallen to max_diff there, through a NaN).
+            return None
+        return max(config.max_diff, q)
     # Too few surely-true pixels: a robust scale of all judged pixels' distances.
     every = [
         bc[jc] for bc, jc in zip(best, judged, strict=True) if bc is not None and jc is not None
