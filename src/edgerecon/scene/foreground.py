@@ -97,7 +97,7 @@ class ForegroundConfig:
     actor stood while a model learned, which two opposite cameras share and the hull
     therefore keeps. Needs only the frames of the moment and the hull, so every command gets
     the same masks for a time index (hd4, 20 tasks: moving-actor IoU 0.727 -> 0.814, hd4p
-    0.695 -> 0.765; about 0.065 s per task; docs/BENCHMARKS.md)."""
+    0.695 -> 0.761; about 0.065 s per task; docs/BENCHMARKS.md)."""
     photo: PhotoCheckConfig = field(default_factory=PhotoCheckConfig)
     """Parameters of that check."""
     static_check: bool = False

@@ -40,7 +40,7 @@ every actor still stands where the models learned), the limit comes from all jud
 (``fallback_scale``).
 
 hd4 (20 tasks): moving-actor IoU 0.727 -> 0.814, precision 0.769 -> 0.869, recall of the
-two moving actors 0.938 / 0.944 -> 0.930 / 0.938; hd4p 0.695 -> 0.765 (docs/BENCHMARKS.md).
+two moving actors 0.938 / 0.944 -> 0.930 / 0.938; hd4p 0.695 -> 0.761 (docs/BENCHMARKS.md).
 What it cannot remove: ghost pixels whose ray meets, by chance, a hull point that another
 camera sees in a colour within the limit (about half of what is left on hd4 at t = 228),
 and ghosts that no camera judges (no other camera's mask holds their hull points).
@@ -162,7 +162,8 @@ class PhotoCheckConfig:
     """Checks in a row: before each after the first, the points that project onto pixels
     the last one removed are carved (as the hull of the new masks would), so the phantom
     volume that two cameras' ghosts leave in the hull vouches no more (hd4 / hd4p, 20
-    tasks: moving IoU 0.809 / 0.758 with one, 0.814 / 0.765 with two, 0.816 with three)."""
+    tasks: moving IoU 0.809 / 0.754 with one, 0.814 / 0.761 with two; hd4 0.816 with
+    three)."""
     fallback_scale: float = 4.0
     """That multiple: the 95th percentile of the true foreground's best distance is 3-6
     times its median on hd4, caliscope_charuco and utrecht4cam, and the median of all judged
