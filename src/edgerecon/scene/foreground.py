@@ -446,7 +446,7 @@ class RigForeground:
                     )
             if cfg.photo_check and hull.num_voxels:
                 with timings.stage("photo_check"):
-                    sampled = hull if not tolerant or not tolerant.num_voxels else tolerant
+                    sampled = tolerant if tolerant is not None and tolerant.num_voxels else hull
                     points, size, labels = _hull_samples(sampled)
                     # Each frame at its model's exposure (its gain divided out).
                     exposed: list[NDArray[np.float32] | None] = [
@@ -457,7 +457,7 @@ class RigForeground:
                     ]
                     masks, _ = photo_consistent_masks(
                         points,
-                        np.full(len(points), size),
+                        size,
                         list(cams),
                         masks,
                         exposed,

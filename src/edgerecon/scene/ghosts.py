@@ -256,11 +256,7 @@ def photo_consistent_masks(
             seen.append(None)
             continue
         colour = np.asarray(cv2.blur(np.asarray(im, np.float32), (k, k)), np.float32)
-        uv, depth = cam.project(pts)
-        inside = (depth > 0) & cam.in_image(uv)
-        safe = np.where(inside[:, None], uv, 0.0)
-        u = np.clip(np.rint(safe[:, 0]), 0, cam.width - 1).astype(np.intp)
-        v = np.clip(np.rint(safe[:, 1]), 0, cam.height - 1).astype(np.intp)
+        uv, depth, u, v, inside = _nearest_pixels(cam, pts)
         contrast = _local_contrast(im, config.texture_px)[v, u] if config.texture_px else None
         # Channel-first: the per-point tests are sums over three rows, not reductions over a
         # trailing axis of 3 (10x faster).
@@ -380,8 +376,9 @@ def _photo_pass(
                     colour = colour * ratio[:, None]
             d, alike = _colour_distance(mine, colour, config)
             if here.at.contrast is not None and there.at.contrast is not None:
-                a, b = here.at.contrast[idx], there.at.contrast[idx]
-                unlike = np.abs(a - b) > np.maximum(config.texture_tol, 2 / 3 * np.maximum(a, b))
+                unlike = ~_contrast_alike(
+                    here.at.contrast[idx], there.at.contrast[idx], config.texture_tol
+                )
                 d[unlike] = np.inf
                 alike &= ~unlike
             tinted |= both & alike
@@ -662,21 +659,14 @@ def static_consistent_masks(
             o_mask, o_colour, o_depth = masks[o], means[o], depths[o]
             if o == c or o_mask is None or o_colour is None or o_depth is None:
                 continue
-            uv, d = other.project(points)
-            seen = (d > 0) & other.in_image(uv)
-            safe = np.where(seen[:, None], uv, 0.0)
-            u = np.clip(np.rint(safe[:, 0]), 0, other.width - 1).astype(np.intp)
-            v = np.clip(np.rint(safe[:, 1]), 0, other.height - 1).astype(np.intp)
+            _, d, u, v, seen = _nearest_pixels(other, points)
             with np.errstate(invalid="ignore"):
                 seen &= np.abs(o_depth[v, u] - d) < config.depth_tol_rel * d
             seen &= ~np.asarray(o_mask, bool)[v, u]
             same = _same_colour(here, o_colour[v, u], config)
             mine, theirs = contrasts[c], contrasts[o]
             if mine is not None and theirs is not None:
-                a, b = mine[ys, xs], theirs[v, u]
-                # Alike: within texture_tol, or within a factor 3 (contrast scales with the
-                # surface's footprint, which differs between views).
-                same &= np.abs(a - b) <= np.maximum(config.texture_tol, 2 / 3 * np.maximum(a, b))
+                same &= _contrast_alike(mine[ys, xs], theirs[v, u], config.texture_tol)
             agree += seen & same
             disagree += seen & ~same
         static = (agree >= config.min_agree) & (agree > disagree)
@@ -690,6 +680,29 @@ def static_consistent_masks(
             out[c] = mask
             removed[c] = int(static.sum())
     return out, removed
+
+
+def _nearest_pixels(
+    cam: Camera, points: NDArray[np.float64]
+) -> tuple[
+    NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]
+]:
+    """The points' projections and depths in ``cam``, their nearest pixels (clipped into the
+    image) and whether they land in the image in front of the camera."""
+    uv, depth = cam.project(points)
+    inside = (depth > 0) & cam.in_image(uv)
+    safe = np.where(inside[:, None], uv, 0.0)
+    u = np.clip(np.rint(safe[:, 0]), 0, cam.width - 1).astype(np.intp)
+    v = np.clip(np.rint(safe[:, 1]), 0, cam.height - 1).astype(np.intp)
+    return uv, depth, u, v, inside
+
+
+def _contrast_alike(
+    a: NDArray[np.float32], b: NDArray[np.float32], tol: float
+) -> NDArray[np.bool_]:
+    """Local contrasts alike: within ``tol`` grey levels, or within a factor 3 (contrast
+    scales with the surface's footprint, which differs between views)."""
+    return np.asarray(np.abs(a - b) <= np.maximum(tol, 2 / 3 * np.maximum(a, b)))
 
 
 def _local_contrast(
