@@ -166,8 +166,10 @@ def test_foreground_dense_settings():
     assert fg.resolution_level == 1
     assert not fg.ground_completion
     assert fg.refine_median_px == 5 and fg.refine_median_rel == 0.01
+    assert fg.noise_adaptive_ncc
     # The whole-scene settings are not changed.
     assert base.window_radius == 3 and base.ground_completion
+    assert not base.noise_adaptive_ncc
     assert base.refine_median_rel == DenseConfig().refine_median_rel
     full = foreground_dense_config(
         base,
@@ -176,8 +178,10 @@ def test_foreground_dense_settings():
             fg_window_radius=None,
             fg_refine_median_px=0,
             fg_refine_median_rel=None,
+            fg_noise_adaptive_ncc=False,
         ),
     )
+    assert not full.noise_adaptive_ncc
     assert full.resolution_level == 0 and full.window_radius == 3
     assert full.refine_median_px == 0 and full.refine_median_rel == base.refine_median_rel
     assert full.level_for((1920, 1080)) == 0

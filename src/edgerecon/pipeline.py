@@ -184,6 +184,16 @@ class SplitPipelineConfig:
     board in hand, t = 100 / 104 / 108: median distance to the corners' plane 2.03 / 2.35 /
     2.87 -> 1.59 / 1.88 / 2.63 mm) and on arc7's people (F at 1 cm 0.890 -> 0.906)."""
 
+    fg_noise_adaptive_ncc: bool = True
+    """``DenseConfig.noise_adaptive_ncc`` for the foreground's depth maps: where a window's
+    texture is at least 1.5x the measured image noise, the NCC a depth needs follows what a
+    true match can reach through that noise. The hull bounds the search, so chance winners
+    are rare. Golden foreground, 5 tasks, moving actors, F at 0.5 / 1 / 2 %: hd4 .423 / .675
+    / .890 -> .431 / .681 / .892 (22.4k -> 27.3k points), hd4p .403 / .654 / .864 -> .418 /
+    .666 / .871; hd4 frames at 45 % exposure, F at 2 %: t = 98 .922 -> .930, t = 224 .763
+    -> .771. caliscope_charuco's board is unchanged (its webcams' noise, 0.25 grey levels,
+    is far below its texture). docs/BENCHMARKS.md."""
+
     def __post_init__(self) -> None:
         if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
             raise ValueError("SplitPipelineConfig mask dilations must be >= 0")
@@ -373,6 +383,8 @@ def foreground_dense_config(
         over["resolution_level"] = config.fg_resolution_level
     if config.fg_window_radius is not None:
         over["window_radius"] = config.fg_window_radius
+    if config.fg_noise_adaptive_ncc:
+        over["noise_adaptive_ncc"] = True
     return dataclasses.replace(dense_config, **over)  # type: ignore[arg-type]
 
 

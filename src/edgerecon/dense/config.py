@@ -91,6 +91,17 @@ class DenseConfig:
     """Rounds of whole-map propagation per level (neighbours' depths as hypotheses)."""
     min_ncc: float = 0.5
     """Depths whose aggregated NCC is lower are discarded."""
+    noise_adaptive_ncc: bool = False
+    """Scale ``min_ncc`` by the NCC that a true match can reach through the images' noise:
+    1 - sigma^2 / s^2 for a window of grey standard deviation s, in a reference view whose
+    noise sigma is measured from the image (``depth.noise_sigma``), where s is at least
+    ``ncc_min_snr`` sigma (``depth.ncc_threshold``). Weakly textured windows of noisy or dim
+    images keep their true matches; clean images (sigma << s) keep ``min_ncc``. On for the
+    foreground, whose search the visual hull bounds (``SplitPipelineConfig.
+    fg_noise_adaptive_ncc``): over a whole scene's depth range the chance winners of weak
+    windows score as high."""
+    ncc_min_snr: float = 1.5
+    """Windows whose texture is below this multiple of the noise keep ``min_ncc``."""
     min_texture: float = 1.5
     """Reference windows with a grey-level standard deviation below this (0..255 scale) are
     discarded: NCC is meaningless on flat patches."""
@@ -233,6 +244,7 @@ class DenseConfig:
         need(1 <= self.refine_passes <= 4, "refine_passes", "in 1..4")
         need(0 <= self.propagation_iterations <= 8, "propagation_iterations", "in 0..8")
         need(-1.0 <= self.min_ncc < 1.0, "min_ncc", "in [-1, 1)")
+        need(self.ncc_min_snr >= 1.0, "ncc_min_snr", ">= 1")
         need(self.min_texture >= 0.0, "min_texture", ">= 0")
         need(self.min_epipolar_texture >= 0.0, "min_epipolar_texture", ">= 0")
         need(0.0 <= self.min_epipolar_share < 1.0, "min_epipolar_share", "in [0, 1)")

@@ -74,6 +74,51 @@ class ViewPyramid:
     def num_levels(self) -> int:
         return len(self.cameras)
 
+    @functools.cached_property
+    def noise(self) -> float:
+        """Standard deviation of the working image's noise (``noise_sigma``), measured once."""
+        return noise_sigma(self.greys[0])
+
+
+#: Immerkaer's 3x3 mask: the difference of two Laplacians, blind to a pixel's local plane and
+#: curvature, so that on smooth image content only the noise answers it (36 sigma^2).
+_NOISE_MASK = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+
+
+def noise_sigma(grey: F32) -> float:
+    """Standard deviation of a grey image's additive noise, in grey levels: the median
+    absolute response to Immerkaer's mask (J. Immerkaer, "Fast noise variance estimation",
+    CVIU 1996) over 6 sigma's median for Gaussian noise (0.6745). The median leaves out the
+    edges and texture of a minority of pixels (texture everywhere reads as noise: an upper
+    bound). 0 for images smaller than 3x3."""
+    g = np.asarray(grey, np.float32)
+    if g.ndim != 2 or min(g.shape) < 3:
+        return 0.0
+    response = cv2.filter2D(g, cv2.CV_32F, _NOISE_MASK, borderType=cv2.BORDER_REFLECT)
+    inner = np.abs(response[1:-1:2, 1:-1:2])  # every other pixel: the same median, a quarter
+    return float(np.median(inner)) / (0.6745 * 6.0)
+
+
+def ncc_threshold(
+    texture: F32, noise: float, min_ncc: float, min_snr: float
+) -> NDArray[np.float32]:
+    """Per pixel, the least NCC that accepts a depth when windows of grey standard deviation
+    ``texture`` are seen through independent noise of standard deviation ``noise``. Two
+    views of the same surface then correlate at most 1 - noise^2 / texture^2 (the signal's
+    share of each window's variance: Spearman's attenuation), and a match needs ``min_ncc``
+    of that ceiling. Only where the texture is at least ``min_snr`` times the noise: below
+    it the best of many depth hypotheses scores as high by chance as the true one, and
+    ``min_ncc`` stays (a dim 7x7 scene with texture near the noise lost 96 % of its depths to
+    the chance winners that a lowered threshold let in, which then contradicted the true
+    depths of the other views)."""
+    std = np.asarray(texture, np.float32)
+    n2 = np.float32(noise * noise)
+    ceiling = np.clip(1.0 - n2 / np.maximum(std * std, np.float32(1e-12)), 0.0, 1.0)
+    measurable = std >= np.float32(min_snr * noise)
+    return np.where(measurable, np.float32(min_ncc) * ceiling, np.float32(min_ncc)).astype(
+        np.float32
+    )
+
 
 def build_pyramid(
     camera_id: int, camera: Camera, grey: F32, levels: int, top_side: int | None = None
@@ -782,9 +827,15 @@ def estimate_depth(
     assert inv is not None and score is not None and stats is not None
     with np.errstate(divide="ignore"):
         depth = np.where(inv > 0, 1.0 / inv, 0.0).astype(np.float32)
-    ok = (score >= config.min_ncc) & (stats.std >= config.min_texture) & (depth > 0)
+    texture = stats.std
+    if config.noise_adaptive_ncc:
+        least = ncc_threshold(texture, ref.noise, config.min_ncc, config.ncc_min_snr)
+        ok = score >= least
+    else:
+        ok = score >= config.min_ncc
+    ok &= (texture >= config.min_texture) & (depth > 0)
     ok &= near[roi.y0 : roi.y1, roi.x0 : roi.x1] > 0
     depth[~ok] = 0.0
     return DepthEstimate(
-        roi=roi, depth=depth, score=score, texture=stats.std, work=work, num_planes=planes
+        roi=roi, depth=depth, score=score, texture=texture, work=work, num_planes=planes
     )
