@@ -5,6 +5,7 @@ done-when numbers of the online system on real rigs (issue 11).
     python benchmarks/bench_online.py                                    # utrecht4cam + demo
     python benchmarks/bench_online.py --datasets caliscope_charuco --fractions 0.3 0.4 0.6
     python benchmarks/bench_online.py --datasets /data/hd4 --tasks 40 --json online.json
+    python benchmarks/bench_online.py --datasets /data/hd4 --split fg_noise_adaptive_ncc=false  # A/B
 
 Per dataset (a name under ../shared/data, a synthetic preset name, or a dataset folder):
 
@@ -44,9 +45,15 @@ from typing import Any
 
 import numpy as np
 
-from _report import SHARED, print_rows, report_header, write_report
+from _report import SHARED, print_rows, report_header, with_settings, write_report
 from edgerecon.io.dataset import open_dataset
-from edgerecon.pipeline import SPARSE_SCOPES, reconstruct, reconstruct_task, warm_up
+from edgerecon.pipeline import (
+    SPARSE_SCOPES,
+    SplitPipelineConfig,
+    reconstruct,
+    reconstruct_task,
+    warm_up,
+)
 from edgerecon.quality import evaluate_clouds
 from edgerecon.quality.metrics import evaluate_against
 from edgerecon.quality.online import online_offline_correlation
@@ -91,7 +98,9 @@ def golden_baseline(root: Path, times: list[int]) -> dict[str, Any]:
     }
 
 
-def golden_foregrounds(root: Path, times: list[int]) -> tuple[dict[int, PointCloud], float]:
+def golden_foregrounds(
+    root: Path, times: list[int], split: SplitPipelineConfig | None = None
+) -> tuple[dict[int, PointCloud], float]:
     """The golden configuration's foreground (the foreground pipeline at r = 1 with all
     cameras, masks as the online system computes them) of every timestamp, and the mean
     seconds of that golden task (scene stage + the task's stage timings: the online
@@ -107,7 +116,9 @@ def golden_foregrounds(root: Path, times: list[int]) -> tuple[dict[int, PointClo
             tracker.catch_up(source, t)
             frames = source.read(t)
             fg = tracker.segment(frames)
-            rec = reconstruct_task(frames, ds.rig, fg, background=PointCloud.empty())
+            rec = reconstruct_task(
+                frames, ds.rig, fg, background=PointCloud.empty(), split_config=split
+            )
             out[t] = rec.foreground.cloud
             seconds.append(fg.timings.total + rec.timings.total)
     if clip is not None:
@@ -123,10 +134,13 @@ def run_deadline(
     golden_fg: dict[int, PointCloud],
     original_s: float,
     sparse_scope: str = "hull",
+    split: SplitPipelineConfig | None = None,
 ) -> dict[str, Any]:
     ds = open_dataset(root)
     dist = median_camera_distance(ds.rig)
-    config = RuntimeConfig(deadline_s=deadline, sparse_scope=sparse_scope)
+    config = RuntimeConfig(
+        deadline_s=deadline, sparse_scope=sparse_scope, split=split or SplitPipelineConfig()
+    )
     options = SessionOptions(frames=frames, overwrite=True)
     load = os.getloadavg()[0]
     summary, metrics = run_online(ds, config, options, out)
@@ -259,8 +273,17 @@ def main() -> None:
         help="SfM of the foreground on golden-configuration tasks only (hull, default), on "
         "every task (foreground) or of the whole frames (scene, the paper)",
     )
+    ap.add_argument(
+        "--split",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a SplitPipelineConfig setting for the online runs and the golden foreground "
+        "(read as the [runtime.split] table of a --config file)",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    split = with_settings(SplitPipelineConfig(), args.split, "runtime.split")
     work = Path(args.work)
     report: dict[str, Any] = {**report_header(), "datasets": {}}
     for name in args.datasets:
@@ -281,7 +304,7 @@ def main() -> None:
             f"{name}: golden pipeline {base['mean_total_s']:.2f} s per task "
             f"({time.perf_counter() - t0:.0f} s for the baseline, load {os.getloadavg()[0]:.1f})"
         )
-        golden_fg, golden_task_s = golden_foregrounds(root, times)
+        golden_fg, golden_task_s = golden_foregrounds(root, times, split)
         print(f"  the online system's golden task (r = 1, all cameras): {golden_task_s:.2f} s")
         reference_s = base["mean_total_s"] if args.relative_to == "original" else golden_task_s
         runs = []
@@ -290,7 +313,14 @@ def main() -> None:
             deadline = round(frac * reference_s, 2)
             out = work / "runs" / f"{label}-{args.relative_to}-{frac:g}"
             row = run_deadline(
-                root, deadline, frames, out, golden_fg, base["mean_total_s"], args.sparse_scope
+                root,
+                deadline,
+                frames,
+                out,
+                golden_fg,
+                base["mean_total_s"],
+                args.sparse_scope,
+                split,
             )
             row["fraction"] = frac
             runs.append(row)
