@@ -6,15 +6,8 @@ import numpy as np
 import pytest
 
 from edgerecon.config import ReconstructionConfig
-from edgerecon.dense import DenseConfig
 from edgerecon.io.dataset import open_dataset
-from edgerecon.pipeline import (
-    SplitPipelineConfig,
-    foreground_dense_config,
-    reconstruct,
-    reconstruct_task,
-    small_objects,
-)
+from edgerecon.pipeline import SplitPipelineConfig, reconstruct, reconstruct_task
 from edgerecon.quality import evaluate_clouds
 from edgerecon.scene.foreground import RigForeground
 from edgerecon.synth import GroundTruth
@@ -162,6 +155,9 @@ def test_utrecht_frame_200_golden():
 
 
 def test_foreground_dense_settings():
+    from edgerecon.dense import DenseConfig
+    from edgerecon.pipeline import SplitPipelineConfig, foreground_dense_config
+
     base = DenseConfig(window_radius=3, resolution_level=1, refine_median_px=5)
     fg = foreground_dense_config(base)
     # 5x5 windows, the dense level kept, no floor completion, the search from the median
@@ -197,43 +193,3 @@ def test_foreground_dense_settings():
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SplitPipelineConfig(**bad)
-
-
-def test_small_objects_are_densified_over_their_crops_at_full_resolution(tiny):
-    """With depth maps at half resolution (forced here on a 320x240 rig), objects under
-    ``fg_small_object_px`` are densified on their own over their crops, at the views' own
-    resolution; the rest keep the half-resolution run."""
-    ds, frames, gt = tiny
-    with ds.open_background() as bg:
-        model = RigForeground.learn_from_framesets(ds.rig, bg.iter_frames())
-    fg = model.segment(frames)
-    assert fg.hull is not None and fg.hull.num_objects >= 1
-    half = ReconstructionConfig(dense_config=DenseConfig(min_resolution_px=0))
-    dense_half = foreground_dense_config(half.dense_config, SplitPipelineConfig())
-    assert dense_half.level_for((320, 240)) == 1
-    every = list(range(1, fg.hull.num_objects + 1))
-    assert small_objects(fg.hull, ds.rig, dense_half, SplitPipelineConfig()) == every
-    tall = SplitPipelineConfig(fg_small_object_px=1)
-    assert small_objects(fg.hull, ds.rig, dense_half, tall) == []
-    # Depth maps at the views' resolution already: nothing to do.
-    full = foreground_dense_config(DenseConfig(), SplitPipelineConfig())
-    assert small_objects(fg.hull, ds.rig, full, SplitPipelineConfig()) == []
-
-    def run(split: SplitPipelineConfig):
-        return reconstruct_task(
-            frames, ds.rig, fg, half, background=PointCloud.empty(), split_config=split
-        ).foreground
-
-    off = run(SplitPipelineConfig(fg_small_object_px=None))
-    on = run(SplitPipelineConfig())
-    assert on.dense is not None and on.dense.stats["small_objects"] == every
-    assert on.dense.stats["small_object_points"] > 0
-    assert off.dense is not None and "small_objects" not in off.dense.stats
-    # Full resolution: more points, on the actors all the same.
-    assert len(on.cloud) > 1.5 * len(off.cloud) > 300
-    ref = gt.reference_cloud(4, "foreground", min_views=2)
-    score_on, score_off = (evaluate_clouds(c.cloud, ref, 0.04)[0] for c in (on, off))
-    assert score_on.precision > score_off.precision - 0.05, (score_on, score_off)
-    assert score_on.recall > score_off.recall - 0.02, (score_on, score_off)
-    with pytest.raises(ValueError, match="fg_small_object_px"):
-        SplitPipelineConfig(fg_small_object_px=0)

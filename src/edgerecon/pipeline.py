@@ -24,11 +24,9 @@ from numpy.typing import NDArray
 from edgerecon import progress
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
-from edgerecon.dense.depth import crop_camera
-from edgerecon.dense.reconstruct import DepthBounds
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.foreground import ForegroundResult
-from edgerecon.scene.hull import VisualHull, hull_depth_range, hull_silhouette
+from edgerecon.scene.hull import VisualHull, hull_depth_range
 from edgerecon.scene.merge import compose, merge_radius, overridden
 from edgerecon.scene.split import SplitConfig, split_sparse
 from edgerecon.sparse import SparseConfig, SparseReconstruction, reconstruct_sparse
@@ -196,15 +194,6 @@ class SplitPipelineConfig:
     -> .771. caliscope_charuco's board is unchanged (its webcams' noise, 0.25 grey levels,
     is far below its texture). docs/BENCHMARKS.md."""
 
-    fg_small_object_px: int | None = 240
-    """A 3D object of the hull whose silhouette is under this many pixels tall at the
-    foreground depth maps' resolution (the median over the cameras it projects into) is
-    densified on its own, at the views' own resolution, over its crop of each view (its own
-    pyramids and consistency test, so the cost follows its area): a person far from the
-    cameras is a few hundred pixels tall, and at half resolution the consistency test keeps
-    a fraction of its depths. None = off; nothing changes where the depth maps are at the
-    views' resolution already. docs/BENCHMARKS.md."""
-
     def __post_init__(self) -> None:
         if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
             raise ValueError("SplitPipelineConfig mask dilations must be >= 0")
@@ -227,11 +216,6 @@ class SplitPipelineConfig:
             raise ValueError(
                 "SplitPipelineConfig.fg_refine_median_rel must be None or in (0, 1), got "
                 f"{self.fg_refine_median_rel}"
-            )
-        if self.fg_small_object_px is not None and self.fg_small_object_px < 1:
-            raise ValueError(
-                "SplitPipelineConfig.fg_small_object_px must be None or >= 1, got "
-                f"{self.fg_small_object_px}"
             )
         if self.min_fg_votes < 0:
             raise ValueError(
@@ -348,11 +332,6 @@ def reconstruct_foreground(
         fg_views = with_masks(views, rig, masks)
         ranges = None
         hull = bounding_hull(foreground, config)
-        small = [] if hull is None else small_objects(hull, rig, fg_dense_config, config)
-        crops: list[tuple[list[View], dict[int, DepthBounds]]] = []
-        if small:
-            assert hull is not None
-            crops, fg_views = _object_crops(hull, small, fg_views)
         if hull is not None:
             ranges = {}
             for v in fg_views:
@@ -371,20 +350,6 @@ def reconstruct_foreground(
         up=rig.up,
     )
     timings.merge(dense.timings, "fg_dense.")
-    if crops:
-        # Each small object over its crops, at the views' own resolution.
-        fine = dataclasses.replace(fg_dense_config, resolution_level=0)
-        parts = [dense.cloud]
-        for crop_views, crop_ranges in crops:
-            run = reconstruct_dense(crop_views, fine, None, depth_ranges=crop_ranges, up=rig.up)
-            timings.merge(run.timings, "fg_dense.")
-            parts.append(run.cloud)
-        extra = sum(len(c) for c in parts[1:])
-        dense = dataclasses.replace(
-            dense,
-            cloud=PointCloud.concatenate(parts),
-            stats={**dense.stats, "small_objects": small, "small_object_points": extra},
-        )
     with timings.stage("fg_label"):
         labels = label_by_masks(dense.cloud.points3D, rig, label_images, config.min_fg_votes)
         keep = labels > 0
@@ -392,106 +357,6 @@ def reconstruct_foreground(
     return ForegroundReconstruction(
         labels=split.labels, fg_sparse=fg_sparse, dense=dense, cloud=cloud, timings=timings
     )
-
-
-#: A small object must be at least this share of the tallest object's height along the rig's
-#: up direction: a whole person far away, not a piece of one (hd4 t = 215: a 1.1 m piece of a
-#: 1.6 m actor, whose full-resolution run took its precision at 2 % from .911 to .691).
-_WHOLE_OBJECT_SHARE = 0.75
-
-
-def small_objects(
-    hull: VisualHull, rig: Rig, dense_config: DenseConfig, config: SplitPipelineConfig
-) -> list[int]:
-    """The hull's objects to densify on their own at the views' resolution
-    (``fg_small_object_px``): those whose silhouette, at the depth maps' resolution, is under
-    that many pixels tall in the median of the cameras they project into (with at least 8
-    surface voxels in the image), and that are at least 3/4 as tall along the rig's up
-    direction as the tallest object (far, not cut short). None where the depth maps are at
-    the views' resolution already."""
-    limit = config.fg_small_object_px
-    if limit is None or hull.num_objects == 0:
-        return []
-    scales = [0.5 ** dense_config.level_for(cam.size) for cam in rig]
-    if max(scales) >= 1.0:
-        return []
-    centres = hull.origin + (hull.indices + 0.5) * hull.voxel_size
-    up = np.asarray(rig.up, np.float64)
-    up = up / max(float(np.linalg.norm(up)), 1e-12)
-    along = centres @ up
-    tall = np.zeros(hull.num_objects + 1)
-    for k in range(1, hull.num_objects + 1):
-        z = along[hull.labels == k]
-        tall[k] = float(z.max() - z.min()) if len(z) else 0.0
-    small = []
-    for k in range(1, hull.num_objects + 1):
-        if tall[k] < _WHOLE_OBJECT_SHARE * tall.max():
-            continue  # a part the hull cut off, not an object small because it is far
-        pts = centres[hull.surface & (hull.labels == k)]
-        heights = []
-        for cam, scale in zip(rig, scales, strict=True):
-            uv, depth = cam.project(pts)
-            seen = (depth > 0) & cam.in_image(uv)
-            if np.count_nonzero(seen) >= 8:
-                heights.append(float(uv[seen, 1].max() - uv[seen, 1].min()) * scale)
-        if heights and float(np.median(heights)) < limit:
-            small.append(k)
-    return small
-
-
-#: Pixels around an object's hull silhouette that its crop keeps (view pixels).
-_CROP_MARGIN_PX = 16
-
-
-def _object_crops(
-    hull: VisualHull, objects: Sequence[int], views: Sequence[View]
-) -> tuple[list[tuple[list[View], dict[int, DepthBounds]]], list[View]]:
-    """Per object of ``objects``, its crop of every masked view that it covers (the box of
-    its hull silhouette plus a margin; the mask there, within the silhouette grown by 4
-    pixels) with the hull's depth bounds at the crop's size, and the views without the
-    objects' pixels (the rest of the foreground, densified as before). An object seen by
-    fewer than two views keeps its pixels in the views."""
-    grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))
-    taken = [np.zeros(v.camera.size[::-1], bool) for v in views]
-    runs: list[tuple[list[View], dict[int, DepthBounds]]] = []
-    for k in objects:
-        crops: list[View] = []
-        ranges: dict[int, DepthBounds] = {}
-        boxes = []
-        for i, v in enumerate(views):
-            if v.mask is None:
-                continue
-            silhouette = hull_silhouette(hull, v.camera, object_id=k).view(np.uint8)
-            region: Mask = np.asarray(cv2.dilate(silhouette, grow), bool) & v.mask
-            if not region.any():
-                continue
-            ys, xs = np.nonzero(region)
-            m = _CROP_MARGIN_PX
-            x0, y0 = max(int(xs.min()) - m, 0), max(int(ys.min()) - m, 0)
-            x1 = min(int(xs.max()) + m + 1, v.camera.width)
-            y1 = min(int(ys.max()) + m + 1, v.camera.height)
-            cam = crop_camera(v.camera, x0, y0, x1 - x0, y1 - y0)
-            crops.append(
-                dataclasses.replace(
-                    v,
-                    camera=cam,
-                    image=np.ascontiguousarray(v.image[y0:y1, x0:x1]),
-                    mask=np.ascontiguousarray(region[y0:y1, x0:x1]),
-                )
-            )
-            dr = hull_depth_range(hull, cam)
-            ranges[v.camera_id] = (np.nan_to_num(dr.near, nan=0.0), np.nan_to_num(dr.far, nan=0.0))
-            boxes.append((i, region))
-        if len(crops) < 2:
-            continue
-        for i, region in boxes:
-            taken[i] |= region
-        runs.append((crops, ranges))
-    rest = [
-        v if v.mask is None else dataclasses.replace(v, mask=v.mask & ~t)
-        for v, t in zip(views, taken, strict=True)
-    ]
-    return runs, rest
 
 
 def bounding_hull(foreground: ForegroundResult, config: SplitPipelineConfig) -> VisualHull | None:
