@@ -251,6 +251,43 @@ def test_phantoms_of_two_objects_seen_by_three_cameras_are_removed() -> None:
         assert (hull.label_points(box_surface_points(lo, hi, 6)) == k).all()
 
 
+def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
+    # Four narrow (portrait-like) cameras 90 degrees apart. A box at the centre is seen by
+    # all; a second detection lies out of cameras 0 and 2's view, so only cameras 1 and 3,
+    # which face each other, see it: their cones meet along their whole shared line of
+    # sight, the volume explains pixels of its own (the old rule kept it), and no pair of
+    # cameras could place it in depth.
+    from edgerecon.geometry import look_at
+
+    cams = []
+    for i, a in enumerate(np.radians([0, 90, 180, 270])):
+        R, t = look_at((4 * np.cos(a), 4 * np.sin(a), 1.0), (0.0, 0.0, 0.8))
+        K = np.array([[400.0, 0, 89.5], [0, 400, 159.5], [0, 0, 1]])
+        cams.append(Camera(name=f"c{i}", width=180, height=320, K=K, R=R, t=t))
+    centre = (np.array([-0.25, -0.25, 0.0]), np.array([0.25, 0.25, 1.6]))
+    seen_by_two = (np.array([-0.2, 2.1, 0.4]), np.array([0.2, 2.5, 1.2]))
+    masks = []
+    for i, c in enumerate(cams):
+        m = box_silhouette(c, *centre)
+        if i in (1, 3):
+            m |= box_silhouette(c, *seen_by_two)
+        else:  # out of view of cameras 0 and 2
+            uv, _ = c.project(box_surface_points(*seen_by_two, 6))
+            assert not c.in_image(uv).any()
+        masks.append(m)
+    middle = (centre[0] + centre[1]) / 2
+    off = (seen_by_two[0] + seen_by_two[1]) / 2
+    cfg = HullConfig(voxel_size=0.04)
+    old = visual_hull(cams, masks, dataclasses.replace(cfg, phantom_pair_angle_deg=180.0))
+    assert old.num_objects == 2 and old.contains(off[None])[0]
+    hull = visual_hull(cams, masks, cfg)
+    assert hull.num_objects == 1
+    assert hull.contains(middle[None])[0] and not hull.contains(off[None])[0]
+    assert (hull.label_points(box_surface_points(*centre, 6)) == 1).all()
+    with pytest.raises(ValueError, match="phantom_pair_angle_deg"):
+        HullConfig(phantom_pair_angle_deg=0.0)
+
+
 def test_a_hole_in_one_camera_is_filled_from_the_others(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
     _, masks = box_hull
     holed = [m.copy() for m in masks]

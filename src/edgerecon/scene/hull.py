@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -85,6 +86,13 @@ class HullConfig:
     phantom_unique_fraction: float = 0.15
     """An object is real when at least this share of its projection is covered by no other
     object in at least two cameras (or in the only camera that sees it)."""
+    phantom_pair_angle_deg: float = 130.0
+    """With ``remove_phantoms``, an object whose cameras (those into whose mask at least a
+    tenth as many of its voxels project as into the best one's) all face each other more than this many degrees
+    apart, seen from the object, is a phantom whatever it covers: two cameras that look at
+    each other cannot place anything along their shared line of sight (their cones meet
+    along all of it), and no stereo pair can measure it either (the dense stage's sources
+    are at most ``DenseConfig.max_source_angle_deg`` apart). 180 = off."""
     max_missing: int = 0
     """A voxel survives when at most this many of the cameras that see it put it outside
     their silhouette (0 = exact intersection; 1 = robust to one bad mask)."""
@@ -119,6 +127,11 @@ class HullConfig:
             raise ValueError(
                 "HullConfig.phantom_unique_fraction must be in [0, 1], got "
                 f"{self.phantom_unique_fraction}"
+            )
+        if not 0.0 < self.phantom_pair_angle_deg <= 180.0:
+            raise ValueError(
+                "HullConfig.phantom_pair_angle_deg must be in (0, 180], got "
+                f"{self.phantom_pair_angle_deg}"
             )
         if self.max_missing < 0:
             raise ValueError(f"HullConfig.max_missing must be >= 0, got {self.max_missing}")
@@ -645,9 +658,17 @@ def visual_hull(
         status=status,
         timings=timings,
     )
-    if config.remove_phantoms and hull.num_objects > 1:
+    if config.remove_phantoms and (
+        hull.num_objects > 1 or (hull.num_objects and config.phantom_pair_angle_deg < 180.0)
+    ):
         with timings.stage("hull_phantoms"):
-            phantoms = phantom_objects(hull, cameras, masks, config.phantom_unique_fraction)
+            phantoms = phantom_objects(
+                hull,
+                cameras,
+                masks,
+                config.phantom_unique_fraction,
+                max_pair_angle_deg=config.phantom_pair_angle_deg,
+            )
             if phantoms:
                 logger.debug("visual hull: dropping phantom objects %s", phantoms)
                 hull = _without_objects(hull, phantoms)
@@ -687,6 +708,8 @@ def phantom_objects(
     cameras: Sequence[Camera],
     masks: Sequence[Mask | None],
     unique_fraction: float = 0.15,
+    *,
+    max_pair_angle_deg: float = 180.0,
 ) -> list[int]:
     """Ids of hull objects that explain no silhouette pixel of their own (phantoms).
 
@@ -698,19 +721,35 @@ def phantom_objects(
     are removed one at a time, smallest first, re-counting after each: in an ambiguous
     configuration (two objects seen by two cameras) real objects and phantoms look alike,
     and the larger candidates are kept.
+
+    First, an object seen by two or more cameras that all lie more than
+    ``max_pair_angle_deg`` apart as seen from it (opposite cameras) is a phantom whatever
+    it covers (``HullConfig.phantom_pair_angle_deg``): the cones of two cameras that face
+    each other meet along their whole shared line of sight, so such a volume is where two
+    unrelated detections (a ghost in each, or one object and another's ghost) line up, and
+    nothing could measure its depth. Without that rule a large opposite-camera phantom can
+    cover a real object's pixels in every camera and outlast it (smallest first). A camera
+    sees an object where at least a tenth of the object's voxels (the most any camera has)
+    project into its mask.
     """
     n = hull.num_objects
-    if n < 2:
+    if n < 1:
         return []
+    sizes = np.bincount(hull.labels, minlength=n + 1)[1:]
+    alive = np.ones(n, bool)
+    removed: list[int] = []
+    if max_pair_angle_deg < 180.0:
+        for k in _facing_objects(hull, cameras, masks, max_pair_angle_deg):
+            alive[k - 1] = False
+            removed.append(k)
+    if alive.sum() < 2:
+        return removed
     sils = []  # per camera with a mask: (n, H, W) object projections inside the mask
     for cam, m in zip(cameras, masks, strict=True):
         if m is None:
             continue
         stack = np.stack([hull_silhouette(hull, cam, object_id=k) for k in range(1, n + 1)])
         sils.append(stack & np.asarray(m, bool)[None])
-    sizes = np.bincount(hull.labels, minlength=n + 1)[1:]
-    alive = np.ones(n, bool)
-    removed: list[int] = []
     while alive.sum() > 1:
         own = np.zeros(n, np.int32)
         seen = np.zeros(n, np.int32)
@@ -727,6 +766,50 @@ def phantom_objects(
         alive[k] = False
         removed.append(k + 1)
     return removed
+
+
+def _facing_objects(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    max_pair_angle_deg: float,
+) -> list[int]:
+    """Ids of the hull objects seen by two or more cameras that all lie more than
+    ``max_pair_angle_deg`` apart as seen from the object's centroid (see
+    ``phantom_objects``). A camera sees an object where at least a tenth of the object's
+    voxels (the most any camera has) project into its mask."""
+    n = hull.num_objects
+    centers = hull.centers
+    counts = np.zeros((len(cameras), n), np.int64)
+    origins = np.zeros((len(cameras), 3))
+    for i, (cam, m) in enumerate(zip(cameras, masks, strict=True)):
+        origins[i] = cam.center
+        if m is None or not m.any():
+            continue
+        uv, depth = cam.project(centers)
+        inside = (depth > 0) & cam.in_image(uv)
+        px = np.rint(uv[inside]).astype(np.int64)
+        h, w = m.shape
+        px[:, 0] = np.clip(px[:, 0], 0, w - 1)
+        px[:, 1] = np.clip(px[:, 1], 0, h - 1)
+        hit = np.asarray(m, bool)[px[:, 1], px[:, 0]]
+        counts[i] = np.bincount(hull.labels[inside][hit] - 1, minlength=n)[:n]
+    sizes = np.maximum(np.bincount(hull.labels - 1, minlength=n)[:n], 1)
+    centroids = np.zeros((n, 3))
+    np.add.at(centroids, hull.labels - 1, centers)
+    centroids /= sizes[:, None]
+    cos_max = math.cos(math.radians(max_pair_angle_deg))
+    facing = []
+    for k in range(n):
+        sees = (counts[:, k] >= max(1.0, 0.1 * float(counts[:, k].max()))) & (counts[:, k] > 0)
+        if sees.sum() < 2:
+            continue
+        rays = centroids[k] - origins[sees]
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+        cos = (rays @ rays.T)[np.triu_indices(len(rays), 1)]
+        if (cos < cos_max).all():
+            facing.append(k + 1)
+    return facing
 
 
 def _objects(
