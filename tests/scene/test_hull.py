@@ -15,6 +15,7 @@ from edgerecon.scene.hull import (
     hull_cloud,
     hull_consistent_masks,
     hull_depth_range,
+    hull_explained_masks,
     hull_filled_masks,
     hull_rescued,
     hull_silhouette,
@@ -286,6 +287,25 @@ def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
     assert (hull.label_points(box_surface_points(*centre, 6)) == 1).all()
     with pytest.raises(ValueError, match="phantom_pair_angle_deg"):
         HullConfig(phantom_pair_angle_deg=0.0)
+
+
+def test_unexplained_pixels_leave_the_masks_only_where_allowed(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, masks = box_hull
+    ghost = np.zeros_like(masks[0])
+    ghost[5:25, 5:25] = True  # far from the box's silhouette
+    assert not (ghost & masks[0]).any()
+    with_ghost = [masks[0] | ghost, *masks[1:]]
+    everywhere = [np.ones_like(m) for m in masks]
+    out = hull_explained_masks(hull, rig.cameras, with_ghost, everywhere, grow_px=2)
+    assert not out[0][ghost].any()
+    for got, m in zip(out, masks, strict=True):
+        assert got is not None and (got & m).sum() >= 0.99 * m.sum()
+    # Pixels outside ``allowed`` (settled ones) stay, and so does a camera without a mask.
+    nowhere = [np.zeros_like(m) for m in masks]
+    kept = hull_explained_masks(hull, rig.cameras, with_ghost, nowhere, grow_px=2)
+    assert kept[0][ghost].all()
+    partial = hull_explained_masks(hull, rig.cameras, [None, *with_ghost[1:]], everywhere)
+    assert partial[0] is None
 
 
 def test_a_hole_in_one_camera_is_filled_from_the_others(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]

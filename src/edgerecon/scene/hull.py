@@ -1248,6 +1248,34 @@ def tolerant_hull(
     return _without_objects(tolerant, drop) if drop else tolerant
 
 
+def hull_explained_masks(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    allowed: Sequence[Mask | None],
+    grow_px: int = 4,
+) -> list[Mask | None]:
+    """``masks`` without the ``allowed`` pixels (e.g. the background models' unsettled ones)
+    that the hull does not explain: outside its silhouette in that camera grown by
+    ``grow_px`` pixels. A ghost that two facing cameras share survives the consistency test
+    (each camera's ray runs along the other's ghost, so neither contradicts the other), and
+    where the other cameras do not see that far it is contradicted by nobody; the hull's
+    objects, phantoms removed, do not hold it. A camera without a mask or ``allowed`` map
+    is left as it is; an empty hull explains nothing."""
+    _check_masks(list(cameras), masks)
+    out: list[Mask | None] = []
+    for cam, m, a in zip(cameras, masks, allowed, strict=True):
+        if m is None or a is None or not (m & a).any():
+            out.append(m)
+            continue
+        sil = hull_silhouette(hull, cam)
+        if grow_px > 0 and sil.any():
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
+            sil = cv2.dilate(sil.astype(np.uint8), k).astype(bool)
+        out.append(m & ~(a & ~sil))
+    return out
+
+
 def hull_filled_masks(
     hull: VisualHull,
     cameras: Sequence[Camera],
