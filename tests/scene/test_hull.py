@@ -12,6 +12,7 @@ from edgerecon.geometry import Camera, Rig
 from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.hull import (
     HullConfig,
+    _paired_shares,
     hull_cloud,
     hull_consistent_masks,
     hull_depth_range,
@@ -279,12 +280,23 @@ def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
     middle = (centre[0] + centre[1]) / 2
     off = (seen_by_two[0] + seen_by_two[1]) / 2
     cfg = HullConfig(voxel_size=0.04)
+    # Cameras 0 and 2 face each other too: their cones through the box meet along the x
+    # axis out of cameras 1 and 3's view. Without the rule the two long volumes each hold
+    # pixels of their own, and the box, covered by them in every camera and smaller, went.
     old = visual_hull(cams, masks, dataclasses.replace(cfg, phantom_pair_angle_deg=180.0))
     assert old.num_objects == 2 and old.contains(off[None])[0]
+    assert not old.contains(middle[None])[0]
     hull = visual_hull(cams, masks, cfg)
     assert hull.num_objects == 1
     assert hull.contains(middle[None])[0] and not hull.contains(off[None])[0]
     assert (hull.label_points(box_surface_points(*centre, 6)) == 1).all()
+    # What stereo pairs could measure of each object (the phantom ordering's key).
+    raw = visual_hull(cams, masks, dataclasses.replace(cfg, remove_phantoms=False))
+    shares = _paired_shares(raw, cams, masks, 130.0)
+    k_mid = int(raw.label_points(middle[None])[0])
+    assert raw.num_objects >= 3 and k_mid > 0
+    assert shares[k_mid - 1] > 0.8
+    assert (np.delete(shares, k_mid - 1) == 0.0).all()
     with pytest.raises(ValueError, match="phantom_pair_angle_deg"):
         HullConfig(phantom_pair_angle_deg=0.0)
 

@@ -718,9 +718,12 @@ def phantom_objects(
     projection is covered by the other objects' projections; a real object has pixels only it
     covers. An object is real when at least ``unique_fraction`` of its projection (inside the
     mask) is its own in two cameras (or in the only camera whose image it is in). Phantoms
-    are removed one at a time, smallest first, re-counting after each: in an ambiguous
-    configuration (two objects seen by two cameras) real objects and phantoms look alike,
-    and the larger candidates are kept.
+    are removed one at a time, re-counting after each: in an ambiguous configuration (two
+    objects seen by two cameras) real objects and phantoms look alike. With
+    ``max_pair_angle_deg`` < 180 the candidate that stereo pairs could measure least goes
+    first (the share of its voxels in the masks of two cameras that do not face each
+    other, in tenths), then the smallest: a phantom of facing cameras that a third camera
+    sees at its edge can be larger than the real object whose pixels it covers (hd4p).
 
     First, an object seen by two or more cameras that all lie more than
     ``max_pair_angle_deg`` apart as seen from it (opposite cameras) is a phantom whatever
@@ -744,6 +747,7 @@ def phantom_objects(
             removed.append(k)
     if alive.sum() < 2:
         return removed
+    shares: NDArray[np.float64] | None = None  # computed when two candidates compete
     sils = []  # per camera with a mask: (n, H, W) object projections inside the mask
     for cam, m in zip(cameras, masks, strict=True):
         if m is None:
@@ -762,7 +766,14 @@ def phantom_objects(
         phantom = alive & (own < np.minimum(2, seen))
         if not phantom.any():
             break
-        k = int(np.flatnonzero(phantom)[np.argmin(sizes[phantom])])
+        cand = np.flatnonzero(phantom)
+        if len(cand) > 1 and shares is None and max_pair_angle_deg < 180.0:
+            shares = _paired_shares(hull, cameras, masks, max_pair_angle_deg)
+        if shares is None:
+            k = int(cand[np.argmin(sizes[cand])])
+        else:
+            # The one that stereo pairs could measure least (tenths), then the smallest.
+            k = int(cand[np.lexsort((sizes[cand], np.round(shares[cand], 1)))[0]])
         alive[k] = False
         removed.append(k + 1)
     return removed
@@ -810,6 +821,45 @@ def _facing_objects(
         if (cos < cos_max).all():
             facing.append(k + 1)
     return facing
+
+
+def _paired_shares(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    max_pair_angle_deg: float,
+) -> NDArray[np.float64]:
+    """(K,) per hull object, the share of its voxels whose centres lie in the masks of two
+    cameras at most ``max_pair_angle_deg`` apart as seen from the object's centroid: the
+    part of it that a stereo pair could measure."""
+    n = hull.num_objects
+    centers = hull.centers
+    held = np.zeros((len(cameras), len(centers)), bool)
+    origins = np.array([c.center for c in cameras], np.float64).reshape(-1, 3)
+    for i, (cam, m) in enumerate(zip(cameras, masks, strict=True)):
+        if m is None or not m.any():
+            continue
+        uv, depth = cam.project(centers)
+        inside = (depth > 0) & cam.in_image(uv)
+        px = np.rint(uv[inside]).astype(np.int64)
+        h, w = m.shape
+        px[:, 0] = np.clip(px[:, 0], 0, w - 1)
+        px[:, 1] = np.clip(px[:, 1], 0, h - 1)
+        held[i, np.flatnonzero(inside)] = np.asarray(m, bool)[px[:, 1], px[:, 0]]
+    cos_max = math.cos(math.radians(max_pair_angle_deg))
+    shares = np.zeros(n)
+    for k in range(1, n + 1):
+        sel = hull.labels == k
+        rays = centers[sel].mean(axis=0) - origins
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+        close = (rays @ rays.T) >= cos_max
+        sub = held[:, sel]
+        paired = np.zeros(int(sel.sum()), bool)
+        for a, b in zip(*np.triu_indices(len(cameras), 1), strict=True):
+            if close[a, b]:
+                paired |= sub[a] & sub[b]
+        shares[k - 1] = float(paired.mean()) if len(paired) else 0.0
+    return shares
 
 
 def _objects(
