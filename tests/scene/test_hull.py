@@ -12,6 +12,7 @@ from edgerecon.geometry import Camera, Rig
 from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.hull import (
     HullConfig,
+    _pair_geometry,
     _paired_shares,
     hull_cloud,
     hull_consistent_masks,
@@ -292,7 +293,7 @@ def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
     assert (hull.label_points(box_surface_points(*centre, 6)) == 1).all()
     # What stereo pairs could measure of each object (the phantom ordering's key).
     raw = visual_hull(cams, masks, dataclasses.replace(cfg, remove_phantoms=False))
-    shares = _paired_shares(raw, cams, masks, 130.0)
+    shares = _paired_shares(raw, *_pair_geometry(raw, cams, masks, 130.0))
     k_mid = int(raw.label_points(middle[None])[0])
     assert raw.num_objects >= 3 and k_mid > 0
     assert shares[k_mid - 1] > 0.8

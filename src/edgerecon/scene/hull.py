@@ -741,8 +741,10 @@ def phantom_objects(
     sizes = np.bincount(hull.labels, minlength=n + 1)[1:]
     alive = np.ones(n, bool)
     removed: list[int] = []
+    geometry = None
     if max_pair_angle_deg < 180.0:
-        for k in _facing_objects(hull, cameras, masks, max_pair_angle_deg):
+        geometry = _pair_geometry(hull, cameras, masks, max_pair_angle_deg)
+        for k in _facing_objects(hull, *geometry):
             alive[k - 1] = False
             removed.append(k)
     if alive.sum() < 2:
@@ -767,8 +769,8 @@ def phantom_objects(
         if not phantom.any():
             break
         cand = np.flatnonzero(phantom)
-        if len(cand) > 1 and shares is None and max_pair_angle_deg < 180.0:
-            shares = _paired_shares(hull, cameras, masks, max_pair_angle_deg)
+        if len(cand) > 1 and shares is None and geometry is not None:
+            shares = _paired_shares(hull, *geometry)
         if shares is None:
             k = int(cand[np.argmin(sizes[cand])])
         else:
@@ -779,63 +781,18 @@ def phantom_objects(
     return removed
 
 
-def _facing_objects(
+def _pair_geometry(
     hull: VisualHull,
     cameras: Sequence[Camera],
     masks: Sequence[Mask | None],
     max_pair_angle_deg: float,
-) -> list[int]:
-    """Ids of the hull objects seen by two or more cameras that all lie more than
-    ``max_pair_angle_deg`` apart as seen from the object's centroid (see
-    ``phantom_objects``). A camera sees an object where at least a tenth of the object's
-    voxels (the most any camera has) project into its mask."""
-    n = hull.num_objects
-    centers = hull.centers
-    counts = np.zeros((len(cameras), n), np.int64)
-    origins = np.zeros((len(cameras), 3))
-    for i, (cam, m) in enumerate(zip(cameras, masks, strict=True)):
-        origins[i] = cam.center
-        if m is None or not m.any():
-            continue
-        uv, depth = cam.project(centers)
-        inside = (depth > 0) & cam.in_image(uv)
-        px = np.rint(uv[inside]).astype(np.int64)
-        h, w = m.shape
-        px[:, 0] = np.clip(px[:, 0], 0, w - 1)
-        px[:, 1] = np.clip(px[:, 1], 0, h - 1)
-        hit = np.asarray(m, bool)[px[:, 1], px[:, 0]]
-        counts[i] = np.bincount(hull.labels[inside][hit] - 1, minlength=n)[:n]
-    sizes = np.maximum(np.bincount(hull.labels - 1, minlength=n)[:n], 1)
-    centroids = np.zeros((n, 3))
-    np.add.at(centroids, hull.labels - 1, centers)
-    centroids /= sizes[:, None]
-    cos_max = math.cos(math.radians(max_pair_angle_deg))
-    facing = []
-    for k in range(n):
-        sees = (counts[:, k] >= max(1.0, 0.1 * float(counts[:, k].max()))) & (counts[:, k] > 0)
-        if sees.sum() < 2:
-            continue
-        rays = centroids[k] - origins[sees]
-        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-        cos = (rays @ rays.T)[np.triu_indices(len(rays), 1)]
-        if (cos < cos_max).all():
-            facing.append(k + 1)
-    return facing
-
-
-def _paired_shares(
-    hull: VisualHull,
-    cameras: Sequence[Camera],
-    masks: Sequence[Mask | None],
-    max_pair_angle_deg: float,
-) -> NDArray[np.float64]:
-    """(K,) per hull object, the share of its voxels whose centres lie in the masks of two
-    cameras at most ``max_pair_angle_deg`` apart as seen from the object's centroid: the
-    part of it that a stereo pair could measure."""
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """``held``: (C, V) whether each voxel centre projects into each camera's mask;
+    ``close``: (K, C, C) per hull object, the camera pairs at most ``max_pair_angle_deg``
+    apart as seen from its centroid (those that do not face each other)."""
     n = hull.num_objects
     centers = hull.centers
     held = np.zeros((len(cameras), len(centers)), bool)
-    origins = np.array([c.center for c in cameras], np.float64).reshape(-1, 3)
     for i, (cam, m) in enumerate(zip(cameras, masks, strict=True)):
         if m is None or not m.any():
             continue
@@ -846,17 +803,46 @@ def _paired_shares(
         px[:, 0] = np.clip(px[:, 0], 0, w - 1)
         px[:, 1] = np.clip(px[:, 1], 0, h - 1)
         held[i, np.flatnonzero(inside)] = np.asarray(m, bool)[px[:, 1], px[:, 0]]
-    cos_max = math.cos(math.radians(max_pair_angle_deg))
-    shares = np.zeros(n)
-    for k in range(1, n + 1):
-        sel = hull.labels == k
-        rays = centers[sel].mean(axis=0) - origins
-        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-        close = (rays @ rays.T) >= cos_max
-        sub = held[:, sel]
-        paired = np.zeros(int(sel.sum()), bool)
-        for a, b in zip(*np.triu_indices(len(cameras), 1), strict=True):
-            if close[a, b]:
+    sizes = np.maximum(np.bincount(hull.labels - 1, minlength=n)[:n], 1)
+    centroids = np.zeros((n, 3))
+    np.add.at(centroids, hull.labels - 1, centers)
+    centroids /= sizes[:, None]
+    origins = np.array([c.center for c in cameras], np.float64).reshape(-1, 3)
+    rays = centroids[:, None, :] - origins[None]  # (K, C, 3)
+    rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
+    close = np.einsum("kad,kbd->kab", rays, rays) >= math.cos(math.radians(max_pair_angle_deg))
+    return held, close
+
+
+def _facing_objects(
+    hull: VisualHull, held: NDArray[np.bool_], close: NDArray[np.bool_]
+) -> list[int]:
+    """Ids of the hull objects seen by two or more cameras that all face each other
+    (``_pair_geometry``; see ``phantom_objects``). A camera sees an object where at least a
+    tenth of the object's voxels (the most any camera has) project into its mask."""
+    facing = []
+    for k in range(1, hull.num_objects + 1):
+        counts = held[:, hull.labels == k].sum(axis=1)
+        sees = (counts > 0) & (counts >= 0.1 * counts.max())
+        pairs_ok = np.triu(close[k - 1][np.ix_(sees, sees)], 1)
+        if sees.sum() >= 2 and not pairs_ok.any():
+            facing.append(k)
+    return facing
+
+
+def _paired_shares(
+    hull: VisualHull, held: NDArray[np.bool_], close: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """(K,) per hull object, the share of its voxels whose centres lie in the masks of two
+    cameras that do not face each other (``_pair_geometry``): the part of it that a stereo
+    pair could measure."""
+    shares = np.zeros(hull.num_objects)
+    pairs = np.triu_indices(held.shape[0], 1)
+    for k in range(1, hull.num_objects + 1):
+        sub = held[:, hull.labels == k]
+        paired = np.zeros(sub.shape[1], bool)
+        for a, b in zip(*pairs, strict=True):
+            if close[k - 1, a, b]:
                 paired |= sub[a] & sub[b]
         shares[k - 1] = float(paired.mean()) if len(paired) else 0.0
     return shares
