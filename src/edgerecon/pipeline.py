@@ -194,6 +194,15 @@ class SplitPipelineConfig:
     -> .771. caliscope_charuco's board is unchanged (its webcams' noise, 0.25 grey levels,
     is far below its texture). docs/BENCHMARKS.md."""
 
+    fg_vertical_sweep: bool = True
+    """The foreground's coarse sweep also tests vertical planes turned about the up direction
+    (``DenseConfig.sweep_families`` "vertical", +-``vertical_sweep_deg``). People are
+    upright: on a rig whose cameras stand 90 degrees apart, the side of a body that faces one
+    camera is foreshortened several times in the next, and a window on a plane parallel to
+    the reference image matches it at the true depth no better than elsewhere
+    (``benchmarks/bench_depth_error.py``). Without an up direction (rolled cameras) there
+    are no such planes. docs/BENCHMARKS.md."""
+
     def __post_init__(self) -> None:
         if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
             raise ValueError("SplitPipelineConfig mask dilations must be >= 0")
@@ -385,6 +394,8 @@ def foreground_dense_config(
         over["window_radius"] = config.fg_window_radius
     if config.fg_noise_adaptive_ncc:
         over["noise_adaptive_ncc"] = True
+    if config.fg_vertical_sweep and "vertical" not in dense_config.sweep_families:
+        over["sweep_families"] = (*dense_config.sweep_families, "vertical")
     return dataclasses.replace(dense_config, **over)  # type: ignore[arg-type]
 
 

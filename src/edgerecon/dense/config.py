@@ -6,7 +6,7 @@ import math
 from dataclasses import dataclass
 
 #: Plane families the coarse sweep can test (see ``DenseConfig.sweep_families``).
-SWEEP_FAMILIES = ("fronto", "ground")
+SWEEP_FAMILIES = ("fronto", "ground", "vertical")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -59,9 +59,15 @@ class DenseConfig:
     0.15, against the best source alone (with 2 passes): arc7 P/R@1cm 0.951/0.650 ->
     0.963/0.654, the object preset's P/R at 0.1 % 0.892/0.865 -> 0.921/0.906;
     caliscope_charuco's board median at t=100 1.73 -> 1.44 mm (``docs/BENCHMARKS.md``)."""
-    sweep_families: tuple[str, ...] = SWEEP_FAMILIES
-    """Plane orientations of the coarse sweep: "fronto" (parallel to the reference image) and
-    "ground" (perpendicular to the scene's up direction: floors, tables, seats)."""
+    sweep_families: tuple[str, ...] = ("fronto", "ground")
+    """Plane orientations of the coarse sweep: "fronto" (parallel to the reference image),
+    "ground" (perpendicular to the scene's up direction: floors, tables, seats) and
+    "vertical" (planes that hold the up direction, turned by +-``vertical_sweep_deg`` about
+    it from the reference image's plane: the sides of people, walls and furniture that a
+    camera 90 degrees away sees foreshortened). The foreground adds "vertical"
+    (``SplitPipelineConfig.fg_vertical_sweep``)."""
+    vertical_sweep_deg: tuple[float, ...] = (20.0,)
+    """The turns of the "vertical" family: each angle gives two families (+ and -)."""
     plane_step_px: float = 1.0
     """Largest image motion in any source between consecutive sweep planes, in coarse pixels."""
     max_planes: int = 192
@@ -232,6 +238,12 @@ class DenseConfig:
             and len(set(self.sweep_families)) == len(self.sweep_families),
             "sweep_families",
             f"a non-empty tuple of distinct names from {SWEEP_FAMILIES}",
+        )
+        need(
+            len(self.vertical_sweep_deg) > 0
+            and all(0.0 < a < 80.0 for a in self.vertical_sweep_deg),
+            "vertical_sweep_deg",
+            "a non-empty tuple of angles in (0, 80) degrees",
         )
         need(0.0 < self.plane_step_px <= 16.0, "plane_step_px", "in (0, 16]")
         need(self.max_planes >= 4, "max_planes", ">= 4")

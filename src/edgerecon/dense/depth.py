@@ -13,7 +13,9 @@ For one reference view and a few source views:
    sub-plane precision. The "ground" family makes windows on floors match across wide
    baselines, where fronto-parallel windows are sheared beyond recognition (on a 5-camera
    ring 30 degrees apart, fronto alone gets 11 % of the floor within 1 % depth error at the
-   coarse level, fronto + ground 84 %).
+   coarse level, fronto + ground 84 %). The "vertical" families (planes that hold the up
+   direction, turned by +-``vertical_sweep_deg`` about it) do the same for upright surfaces
+   that a camera 90 degrees away sees foreshortened: the sides of people.
 2. **Refinement** at each finer octave: the inverse depth map is upsampled; whole-map
    propagation lets every pixel try its neighbours' depths (PatchMatch's propagation, for all
    pixels at once), then every pixel tests its own depth at +-``refine_radius`` steps (one
@@ -51,6 +53,9 @@ logger = logging.getLogger(__name__)
 
 #: Rays closer than this angle to a ground plane get no hypotheses from that family.
 _MIN_GRAZING_SIN = np.sin(np.radians(4.0))
+#: ... and rays closer than this angle to a vertical family's planes none from it.
+_MIN_VERTICAL_SIN = np.sin(np.radians(10.0))
+
 #: Sub-sampling of the inverse-depth axis when placing sweep planes.
 _FINE_SAMPLES = 2048
 #: Smallest crop side (pixels) worth a level of the pyramid.
@@ -275,6 +280,25 @@ def _families(
             usable = nray < -_MIN_GRAZING_SIN * norm
             if usable.mean() > 0.02:
                 out.append(_Family(name, n, nray, usable))
+        elif name == "vertical" and up is not None:
+            # Planes that hold the up direction, turned about it from the image plane.
+            u = cam.R @ up
+            u = u / np.linalg.norm(u)
+            front = np.array([0.0, 0.0, 1.0]) - u[2] * u
+            if np.linalg.norm(front) < 1e-6:
+                continue  # a camera looking straight up or down: no such planes
+            front /= np.linalg.norm(front)
+            side = np.cross(u, front)
+            norm = np.linalg.norm(rays, axis=2)
+            for deg in config.vertical_sweep_deg:
+                a = math.radians(deg)
+                for sign in (1.0, -1.0):
+                    n = front * math.cos(a) + sign * side * math.sin(a)
+                    nray = (rays @ n.astype(np.float32)).astype(np.float32)
+                    # Planes in front of the camera, not seen edge-on.
+                    usable = nray > _MIN_VERTICAL_SIN * norm
+                    if usable.mean() > 0.02:
+                        out.append(_Family(f"{name}{sign * deg:+g}", n, nray, usable))
     return out
 
 
