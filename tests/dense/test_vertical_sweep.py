@@ -75,13 +75,17 @@ def test_vertical_sweep_deg_validation(value):
 
 def test_the_foreground_sweeps_vertical_planes_unless_told_not_to():
     base = DenseConfig()
-    assert "vertical" not in base.sweep_families
-    assert "vertical" in foreground_dense_config(base, SplitPipelineConfig()).sweep_families
+    assert base.sweep_families == ("fronto", "ground")
+    # Upright planes in the place of floor-parallel ones (the foreground is never floor).
+    on = foreground_dense_config(base, SplitPipelineConfig())
+    assert on.sweep_families == ("fronto", "vertical")
     off = foreground_dense_config(base, SplitPipelineConfig(fg_vertical_sweep=False))
     assert off.sweep_families == base.sweep_families
-    # Already there: not twice.
-    with_v = DenseConfig(sweep_families=("fronto", "vertical"))
+    # Already there: not twice; a ground-only configuration keeps a fronto family.
+    with_v = DenseConfig(sweep_families=("vertical", "fronto"))
     assert foreground_dense_config(with_v).sweep_families == ("fronto", "vertical")
+    ground = DenseConfig(sweep_families=("ground",))
+    assert foreground_dense_config(ground).sweep_families == ("fronto", "vertical")
 
 
 def test_an_upright_wall_seen_at_45_degrees_is_measured_more_precisely():

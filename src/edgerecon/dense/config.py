@@ -64,8 +64,8 @@ class DenseConfig:
     "ground" (perpendicular to the scene's up direction: floors, tables, seats) and
     "vertical" (planes that hold the up direction, turned by +-``vertical_sweep_deg`` about
     it from the reference image's plane: the sides of people, walls and furniture that a
-    camera 90 degrees away sees foreshortened). The foreground adds "vertical"
-    (``SplitPipelineConfig.fg_vertical_sweep``)."""
+    camera 90 degrees away sees foreshortened). The foreground sweeps "fronto" and
+    "vertical" (``SplitPipelineConfig.fg_vertical_sweep``)."""
     vertical_sweep_deg: tuple[float, ...] = (20.0,)
     """The turns of the "vertical" family: each angle gives two families (+ and -)."""
     plane_step_px: float = 1.0
