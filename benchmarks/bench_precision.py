@@ -60,6 +60,7 @@ VARIANTS: dict[str, dict[str, object]] = {
     "px2": {"consistency_px": 2.0},
     "px2topk2": {"consistency_px": 2.0, "ncc_top_k": 2},
     "noise": {"noise_adaptive_ncc": True},
+    "vertical": {"sweep_families": ("fronto", "ground", "vertical")},
     "strict": {
         "consistent_view_share": 0.5,
         "max_conflict_share": 0.3,
