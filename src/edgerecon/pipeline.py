@@ -204,7 +204,7 @@ class SplitPipelineConfig:
     ("ground") family, which the foreground, never floor, does not need (the same F for
     12 % less dense time). Golden foreground, 20 online tasks, moving actors, F at 0.5 / 1 /
     2 %: hd4 .450 / .704 / .909 -> .474 / .737 / .923, hd4p .428 / .678 / .892 -> .473 /
-    .733 / .918; caliscope_charuco's board in hand (t = 100 / 104) within 2 mm of the
+    .732 / .917; caliscope_charuco's board in hand (t = 100 / 104) within 2 mm of the
     corners' plane .645 / .743 -> .710 / .742, for about 0.1 s more dense time per task at
     r = 1 there. docs/BENCHMARKS.md."""
 
