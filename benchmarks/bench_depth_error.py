@@ -57,16 +57,14 @@ OFFSETS = np.linspace(-0.06, 0.06, 121)
 
 def truth_at(view_camera: Camera, rig_camera: Camera, truth: NDArray[Any]) -> NDArray[Any]:
     """``truth`` (an image of the rig camera's frames) at every pixel of a depth map made
-    for ``view_camera`` (undistorted, rescaled), nearest, through the rig camera's
-    distortion."""
-    w, h = view_camera.size
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    points = view_camera.backproject(np.stack([u.ravel(), v.ravel()], 1), np.ones(w * h))
-    uv, _ = rig_camera.project(points)
-    H, W = truth.shape[:2]
-    x = np.rint(uv[:, 0]).clip(0, W - 1).astype(np.int64).reshape(h, w)
-    y = np.rint(uv[:, 1]).clip(0, H - 1).astype(np.int64).reshape(h, w)
-    return truth[y, x]
+    for ``view_camera`` (the rig camera undistorted and rescaled), nearest, through the
+    rig camera's distortion (``Camera.undistort_maps``, as the views are made)."""
+    scale = view_camera.width / rig_camera.width
+    target = rig_camera.scaled(scale).undistorted()
+    if target.size != view_camera.size or not np.allclose(target.K, view_camera.K, atol=1e-6):
+        raise SystemExit(f"{rig_camera.name}: the depth map's camera is not a rescaled view")
+    mx, my = rig_camera.undistort_maps(scale)
+    return np.asarray(cv2.remap(truth, mx, my, cv2.INTER_NEAREST))
 
 
 def error_row(
@@ -136,11 +134,12 @@ def static_rows(
     return rows
 
 
-def _ncc(a: NDArray[np.float32], b: NDArray[np.float32]) -> float:
+def _ncc_rows(a: NDArray[np.floating[Any]], b: NDArray[np.floating[Any]]) -> NDArray[np.float64]:
+    """NCC of the window ``a`` (N,) with each row of ``b`` (O, N); -1 where a row is flat."""
     a = a - a.mean()
-    b = b - b.mean()
-    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
-    return float((a * b).sum() / den) if den > 1e-6 else -1.0
+    b = b - b.mean(axis=1, keepdims=True)
+    den = np.sqrt((a * a).sum() * (b * b).sum(axis=1))
+    return np.where(den > 1e-6, (b @ a) / np.maximum(den, 1e-6), -1.0)
 
 
 def match_rows(
@@ -220,7 +219,7 @@ def match_rows(
                     borderValue=-1.0,
                 )[:, 0].reshape(len(z), len(U))
                 ok = (zz.reshape(len(z), len(U)) > 0).all(axis=1) & (b >= 0).all(axis=1)
-                scores = np.array([_ncc(a, b[k]) if ok[k] else -1.0 for k in range(len(z))])
+                scores = np.where(ok, _ncc_rows(a.astype(np.float64), b.astype(np.float64)), -1.0)
                 mid = len(OFFSETS) // 2
                 if scores[mid] <= -1.0:
                     continue

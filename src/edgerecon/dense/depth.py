@@ -268,6 +268,7 @@ def _families(
 ) -> list[_Family]:
     out = []
     h, w = rays.shape[:2]
+    norm = np.linalg.norm(rays, axis=2)
     for name in config.sweep_families:
         if name == "fronto":
             n = np.array([0.0, 0.0, 1.0])
@@ -275,7 +276,6 @@ def _families(
         elif name == "ground" and up is not None:
             n = cam.R @ up
             nray = (rays @ n.astype(np.float32)).astype(np.float32)
-            norm = np.linalg.norm(rays, axis=2)
             # Below-camera horizontal planes only (floors, tables): n . X < 0 there.
             usable = nray < -_MIN_GRAZING_SIN * norm
             if usable.mean() > 0.02:
@@ -289,7 +289,6 @@ def _families(
                 continue  # a camera looking straight up or down: no such planes
             front /= np.linalg.norm(front)
             side = np.cross(u, front)
-            norm = np.linalg.norm(rays, axis=2)
             for deg in config.vertical_sweep_deg:
                 a = math.radians(deg)
                 for sign in (1.0, -1.0):
