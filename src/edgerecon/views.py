@@ -33,6 +33,10 @@ class View:
     scale: float = 1.0
     """The task's image scale r: the image is r x the camera's frames (the dense stage picks
     its resolution level from the frames' size, ``DenseConfig.level_for``)."""
+    source_size: tuple[int, int] | None = None
+    """(w, h) of the camera's frames; None = the image size divided by ``scale``, rounded
+    (``prepare_views`` sets it: at r = 0.955 a 1280-wide frame gives a 1222-wide view,
+    and 1222 / 0.955 rounds to 1279, which would move the dense stage's level)."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.scale <= 1.0:
@@ -57,6 +61,8 @@ class View:
     @property
     def frame_size(self) -> tuple[int, int]:
         """(w, h) of the camera's frames (the view's size at r = 1)."""
+        if self.source_size is not None:
+            return self.source_size
         return (round(self.camera.width / self.scale), round(self.camera.height / self.scale))
 
 
@@ -161,6 +167,7 @@ def prepare_views(
                 image=cam.prepare_image(image, scale),
                 mask=mask,
                 scale=scale,
+                source_size=cam.size,
             )
         )
     return views

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
-from edgerecon.types import DataError
-from edgerecon.views import View
+from edgerecon.geometry.camera import Rig
+from edgerecon.types import DataError, FrameSet
+from edgerecon.views import View, prepare_views
 from tests.conftest import ring_rig
 from tests.dense.scene import box_scene, render
 
@@ -204,3 +205,16 @@ def test_resolution_level_follows_the_frames_not_the_task_scale() -> None:
     assert working_camera(view, cfg).size == (80, 45)
     with pytest.raises(ValueError, match="scale"):
         View(camera_id=0, camera=small, image=image, scale=0.0)
+
+
+@pytest.mark.parametrize("scale", [0.955066, 0.855066, 0.802734, 0.720668, 0.3])
+def test_prepared_views_know_their_frames_whatever_the_rounding(scale: float) -> None:
+    # A 1280x720 camera at r = 0.955066 gives a 1222-wide view; 1222 / r rounds to 1279,
+    # under twice the 640 px floor: the depth maps went to full resolution (level 0), four
+    # times the pixels (caliscope_charuco's online tasks: 67k foreground points and 3 s
+    # instead of 20k and 1 s at r = 0.96).
+    rig = Rig(cameras=tuple(dataclasses.replace(c, width=1280, height=720) for c in RIG[:3]))
+    frames = FrameSet(time_index=0, images=(np.zeros((720, 1280, 3), np.uint8),) * 3)
+    for view in prepare_views(frames, rig, scale):
+        assert view.frame_size == (1280, 720)
+        assert working_camera(view, DenseConfig()).size == view.camera.scaled(0.5).size
