@@ -51,6 +51,15 @@ class View:
             )
         if self.camera.has_distortion:
             raise ValueError(f"view {self.camera.name!r}: view cameras must be undistorted")
+        if self.source_size is not None and (
+            max(1, round(self.source_size[0] * self.scale)),
+            max(1, round(self.source_size[1] * self.scale)),
+        ) != (w, h):
+            # Camera.scaled's rounding: the frames' size at the view's scale is the image's.
+            raise ValueError(
+                f"view {self.camera.name!r}: source_size {self.source_size} at scale "
+                f"{self.scale} is not the image's {w}x{h}"
+            )
         if self.mask is not None and self.mask.shape != (h, w):
             raise ValueError(f"view {self.camera.name!r}: mask shape {self.mask.shape} != {(h, w)}")
 

@@ -218,3 +218,5 @@ def test_prepared_views_know_their_frames_whatever_the_rounding(scale: float) ->
     for view in prepare_views(frames, rig, scale):
         assert view.frame_size == (1280, 720)
         assert working_camera(view, DenseConfig()).size == view.camera.scaled(0.5).size
+    with pytest.raises(ValueError, match="source_size"):
+        dataclasses.replace(view, source_size=(1920, 1080))
