@@ -21,6 +21,8 @@ from edgerecon.scene.hull import (
     hull_filled_masks,
     hull_rescued,
     hull_silhouette,
+    phantom_explained_masks,
+    phantom_silhouette,
     rig_region,
     visual_hull,
 )
@@ -254,12 +256,10 @@ def test_phantoms_of_two_objects_seen_by_three_cameras_are_removed() -> None:
         assert (hull.label_points(box_surface_points(lo, hi, 6)) == k).all()
 
 
-def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
-    # Four narrow (portrait-like) cameras 90 degrees apart. A box at the centre is seen by
-    # all; a second detection lies out of cameras 0 and 2's view, so only cameras 1 and 3,
-    # which face each other, see it: their cones meet along their whole shared line of
-    # sight, the volume explains pixels of its own (the old rule kept it), and no pair of
-    # cameras could place it in depth.
+def _facing_scene():  # type: ignore[no-untyped-def]
+    """Four narrow (portrait-like) cameras 90 degrees apart. A box at the centre is seen by
+    all; a second detection lies out of cameras 0 and 2's view, so only cameras 1 and 3,
+    which face each other, see it (a ghost they share)."""
     from edgerecon.geometry import look_at
 
     cams = []
@@ -278,6 +278,14 @@ def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
             uv, _ = c.project(box_surface_points(*seen_by_two, 6))
             assert not c.in_image(uv).any()
         masks.append(m)
+    return cams, masks, centre, seen_by_two
+
+
+def test_an_object_only_two_facing_cameras_see_is_a_phantom() -> None:
+    # Cameras 1 and 3's cones through the second detection meet along their whole shared
+    # line of sight, the volume explains pixels of its own (the old rule kept it), and no
+    # pair of cameras could place it in depth.
+    cams, masks, centre, seen_by_two = _facing_scene()
     middle = (centre[0] + centre[1]) / 2
     off = (seen_by_two[0] + seen_by_two[1]) / 2
     cfg = HullConfig(voxel_size=0.04)
@@ -319,6 +327,55 @@ def test_unexplained_pixels_leave_the_masks_only_where_allowed(rig: Rig, box_hul
     assert kept[0][ghost].all()
     partial = hull_explained_masks(hull, rig.cameras, [None, *with_ghost[1:]], everywhere)
     assert partial[0] is None
+
+
+def test_pixels_only_a_phantom_explains_leave_the_masks(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    cams, masks, centre, seen_by_two = _facing_scene()
+    hull = visual_hull(cams, masks, HullConfig(voxel_size=0.04))
+    assert hull.num_objects == 1 and len(hull.phantom_surface) > 0
+    # What survives the consistency test (no other camera contradicts a pixel): camera 1's
+    # ghost along camera 3's line of sight (camera 3 sees the detection behind the box).
+    consistent = hull_consistent_masks(hull, cams, masks)
+    masks = [m & c for m, c in zip(masks, consistent, strict=True)]
+    bodies = [box_silhouette(c, *centre) for c in cams]
+    ghosts = [
+        m & box_silhouette(c, *seen_by_two) & ~b
+        for m, c, b in zip(masks, cams, bodies, strict=True)
+    ]
+    assert ghosts[1].sum() > 50 and not ghosts[3].any()
+    # The models saw the background under the box (its pixels are settled), not under the
+    # ghost.
+    unsettled = [~b for b in bodies]
+    out = phantom_explained_masks(hull, cams, masks, unsettled, grow_px=2)
+    for i, (got, m, g, body) in enumerate(zip(out, masks, ghosts, bodies, strict=True)):
+        assert got is not None
+        assert (got & body).sum() >= 0.99 * (m & body).sum()  # the real object stays
+        if i != 1:
+            assert (got == m).all()
+            continue
+        # The ghost's pixels that the phantom explains are gone (the rest of it lies where
+        # only camera 1 sees, which no hull holds either way); nothing else is.
+        near = cv2.dilate(hull_silhouette(hull, cams[i]).astype(np.uint8), np.ones((5, 5)))
+        explained = g & phantom_silhouette(hull, cams[i]) & ~near.astype(bool)
+        assert explained.sum() > 0.3 * g.sum()
+        assert not got[explained].any()
+        assert not (m & ~got & ~g).any()
+    # Settled pixels stay; a camera without a mask stays without one.
+    nowhere = [np.zeros_like(m) for m in masks]
+    kept = phantom_explained_masks(hull, cams, masks, nowhere, grow_px=2)
+    assert all((k == m).all() for k, m in zip(kept, masks, strict=True))
+    partial = phantom_explained_masks(hull, cams, [None, *masks[1:]], unsettled, grow_px=2)
+    assert partial[0] is None and partial[1] is not None and (partial[1] == out[1]).all()
+    # The first second of a stream: no mask pixel is settled yet, and an actor the models
+    # learned, which only facing cameras still detect, looks like a phantom. Nothing goes.
+    everywhere = [np.ones_like(m) for m in masks]
+    first = phantom_explained_masks(hull, cams, masks, everywhere, grow_px=2)
+    assert all((f == m).all() for f, m in zip(first, masks, strict=True))
+    # A hull without phantoms (one box, every camera) explains its masks as they are.
+    single, box_masks = box_hull
+    assert len(single.phantom_surface) == 0
+    same = phantom_explained_masks(single, rig.cameras, box_masks, [~m for m in box_masks])
+    assert all((a == b).all() for a, b in zip(same, box_masks, strict=True))
 
 
 def test_a_hole_in_one_camera_is_filled_from_the_others(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]

@@ -50,6 +50,7 @@ from edgerecon.scene.hull import (
     hull_explained_masks,
     hull_filled_masks,
     hull_rescued,
+    phantom_explained_masks,
     silhouette_distances,
     tolerant_hull,
     visual_hull,
@@ -101,6 +102,18 @@ class ForegroundConfig:
     0.695 -> 0.761; about 0.065 s per task; docs/BENCHMARKS.md)."""
     photo: PhotoCheckConfig = field(default_factory=PhotoCheckConfig)
     """Parameters of that check."""
+    phantom_explained_px: int | None = 4
+    """Last but one of the hull steps when set: drop the mask pixels, among the models'
+    unsettled ones, that only a phantom explains (inside the silhouette of the objects the
+    hull dropped as phantoms, outside its own silhouette grown by this many working pixels;
+    ``hull.phantom_explained_masks``; not while fewer than ``photo.min_reference_px`` mask
+    pixels are settled): ghosts two facing cameras share, whose cones meet in the phantom.
+    Moving-actor IoU (`bench_scene.py --online`, 20 tasks 0:240:12): hd4p 0.767 -> 0.790,
+    hd4 0.814 -> 0.814; 62:240:9: hd4p 0.787 -> 0.810; hd6 (0:100:5) 0.833 -> 0.836, hd8
+    unchanged; caliscope_charuco 0-0.6 % of a camera's mask pixels over 27 tasks (an arm's
+    ghost on the floor), utrecht4cam none; about 10-14 ms per task on hd4p
+    (docs/BENCHMARKS.md). The dense foreground does not change: those pixels have no hull
+    depth interval. None = off."""
     hull_explained_px: int | None = None
     """Last of the hull steps when set: drop the mask pixels, among the models' unsettled
     ones, that the final hull does not explain (outside its silhouette grown by this many
@@ -143,6 +156,11 @@ class ForegroundConfig:
         for name in ("update_interval_s", "bootstrap_span_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ForegroundConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.phantom_explained_px is not None and self.phantom_explained_px < 0:
+            raise ValueError(
+                "ForegroundConfig.phantom_explained_px must be >= 0 or None, got "
+                f"{self.phantom_explained_px}"
+            )
         if self.hull_explained_px is not None and self.hull_explained_px < 0:
             raise ValueError(
                 "ForegroundConfig.hull_explained_px must be >= 0 or None, got "
@@ -481,6 +499,16 @@ class RigForeground:
                         unsettled,
                         cfg.photo,
                         labels=labels,
+                    )
+            if cfg.phantom_explained_px is not None:
+                with timings.stage("phantom_explained"):
+                    masks = phantom_explained_masks(
+                        hull,
+                        list(cams),
+                        masks,
+                        unsettled,
+                        cfg.phantom_explained_px,
+                        min_settled_px=cfg.photo.min_reference_px,
                     )
             if cfg.hull_explained_px is not None:
                 with timings.stage("hull_explained"):

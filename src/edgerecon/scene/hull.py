@@ -182,6 +182,9 @@ class VisualHull:
     stopped at ``max_voxels``)."""
     timings: StageTimings = field(default_factory=StageTimings)
     """Seconds per step."""
+    phantom_surface: NDArray[np.int64] = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    """(P, 3) grid indices of the surface voxels of the objects dropped as phantoms
+    (``phantom_objects``; ``phantom_explained_masks``)."""
 
     @property
     def num_voxels(self) -> int:
@@ -671,7 +674,10 @@ def visual_hull(
             )
             if phantoms:
                 logger.debug("visual hull: dropping phantom objects %s", phantoms)
-                hull = _without_objects(hull, phantoms)
+                dropped = np.isin(hull.labels, phantoms) & hull.surface
+                hull = dataclasses.replace(
+                    _without_objects(hull, phantoms), phantom_surface=hull.indices[dropped]
+                )
     return hull
 
 
@@ -1076,13 +1082,36 @@ def hull_depth_range(
 def hull_silhouette(hull: VisualHull, camera: Camera, *, object_id: int | None = None) -> Mask:
     """(H, W) projection of the hull (or of one object) into ``camera`` (each surface voxel
     splatted as a disc of its projected radius)."""
-    h, w = camera.height, camera.width
-    out = np.zeros((h, w), np.uint8)
     if hull.num_voxels == 0:
-        return out.astype(bool)
+        return np.zeros((camera.height, camera.width), bool)
     sel = hull.surface if object_id is None else hull.surface & (hull.labels == object_id)
-    pts = hull.origin + (hull.indices[sel] + 0.5) * hull.voxel_size
-    uv, depth = camera.project(pts)
+    return _splat_voxels(hull.origin + (hull.indices[sel] + 0.5) * hull.voxel_size, hull, camera)
+
+
+def phantom_silhouette(
+    hull: VisualHull, camera: Camera, *, box: tuple[int, int, int, int] | None = None
+) -> Mask:
+    """(H, W) projection of the objects the hull dropped as phantoms into ``camera``; with
+    ``box`` = (x0, y0, x1, y1), drawn only within it (the rest is False)."""
+    centers = hull.origin + (hull.phantom_surface + 0.5) * hull.voxel_size
+    return _splat_voxels(centers, hull, camera, box)
+
+
+def _splat_voxels(
+    centers: Points3D,
+    hull: VisualHull,
+    camera: Camera,
+    box: tuple[int, int, int, int] | None = None,
+) -> Mask:
+    """Voxels of ``hull``'s size centred at ``centers`` splatted into ``camera`` as discs
+    (only within ``box`` = (x0, y0, x1, y1) when given: a phantom reaching towards a camera
+    covers much of its image with discs of many radii)."""
+    h, w = camera.height, camera.width
+    bx0, by0, bx1, by1 = (0, 0, w, h) if box is None else box
+    out = np.zeros((h, w), np.uint8)
+    if len(centers) == 0:
+        return out.astype(bool)
+    uv, depth = camera.project(centers)
     # (Voxels near the camera's plane project to huge or non-finite pixels: never drawn.)
     ok = (depth > 0) & np.all(np.abs(uv) < 1e9, axis=1)
     if not ok.any():
@@ -1095,14 +1124,14 @@ def hull_silhouette(hull: VisualHull, camera: Camera, *, object_id: int | None =
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
     for r in np.unique(r_int):
-        sel = (r_int == r) & (u >= -r) & (u < w + r) & (v >= -r) & (v < h + r)
+        sel = (r_int == r) & (u >= bx0 - r) & (u < bx1 + r) & (v >= by0 - r) & (v < by1 + r)
         if not sel.any():
             continue
         us, vs = u[sel], v[sel]
         # Only the box around these splats (+ r) is dilated: an object covers a few percent
         # of the image, and phantom removal splats every object into every camera.
-        x0, y0 = max(int(us.min()) - r, 0), max(int(vs.min()) - r, 0)
-        x1, y1 = min(int(us.max()) + r + 1, w), min(int(vs.max()) + r + 1, h)
+        x0, y0 = max(int(us.min()) - r, bx0), max(int(vs.min()) - r, by0)
+        x1, y1 = min(int(us.max()) + r + 1, bx1), min(int(vs.max()) + r + 1, by1)
         layer = np.zeros((y1 - y0 + 2 * r, x1 - x0 + 2 * r), np.uint8)
         ok = (us >= x0 - r) & (us < x1 + r) & (vs >= y0 - r) & (vs < y1 + r)
         layer[vs[ok] - y0 + r, us[ok] - x0 + r] = 1
@@ -1309,6 +1338,56 @@ def hull_explained_masks(
             k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
             sil = cv2.dilate(sil.astype(np.uint8), k).astype(bool)
         out.append(m & ~(a & ~sil))
+    return out
+
+
+def phantom_explained_masks(
+    hull: VisualHull,
+    cameras: Sequence[Camera],
+    masks: Sequence[Mask | None],
+    allowed: Sequence[Mask | None],
+    grow_px: int = 4,
+    *,
+    min_settled_px: int = 500,
+) -> list[Mask | None]:
+    """``masks`` without the ``allowed`` pixels (e.g. the background models' unsettled ones)
+    that only a phantom explains: inside the silhouette of the objects the hull dropped as
+    phantoms (``VisualHull.phantom_surface``) and outside its own silhouette grown by
+    ``grow_px`` pixels. Ghosts that two facing cameras share carve a phantom where their
+    cones meet; removing the phantom leaves their pixels in the masks, explained by nothing
+    real. Unlike ``hull_explained_masks`` it leaves alone the parts of a real object that
+    the hull does not hold (a close person's head that two cameras' masks miss).
+
+    Nothing changes when the masks hold fewer than ``min_settled_px`` pixels outside
+    ``allowed`` in all (the first second of a stream without an empty clip: every actor
+    stands where the models learned, and one that only the two cameras facing each other
+    along its path still detect is a phantom to the hull), nor for a hull without
+    phantoms."""
+    _check_masks(list(cameras), masks)
+    if len(hull.phantom_surface) == 0:
+        return list(masks)
+    settled = sum(
+        int(np.count_nonzero(m & ~a))
+        for m, a in zip(masks, allowed, strict=True)
+        if m is not None and a is not None
+    )
+    if settled < min_settled_px:
+        return list(masks)
+    out: list[Mask | None] = []
+    for cam, m, a in zip(cameras, masks, allowed, strict=True):
+        if m is None or a is None or not (m & a).any():
+            out.append(m)
+            continue
+        sil = hull_silhouette(hull, cam)
+        if grow_px > 0 and sil.any():
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
+            sil = cv2.dilate(sil.astype(np.uint8), k).astype(bool)
+        unexplained = m & a & ~sil
+        if unexplained.any():
+            x, y, bw, bh = cv2.boundingRect(unexplained.view(np.uint8))
+            phantom = phantom_silhouette(hull, cam, box=(x, y, x + bw, y + bh))
+            m = m & ~(unexplained & phantom)
+        out.append(m)
     return out
 
 
