@@ -109,7 +109,7 @@ class ForegroundConfig:
     ``hull.phantom_explained_masks``; not while fewer than ``photo.min_reference_px`` mask
     pixels are settled): ghosts two facing cameras share, whose cones meet in the phantom.
     Moving-actor IoU (`bench_scene.py --online`, 20 tasks 0:240:12): hd4p 0.767 -> 0.790,
-    hd4 0.814 -> 0.814; 62:240:9: hd4p 0.787 -> 0.810; hd6 (0:100:5) 0.833 -> 0.836, hd8
+    hd4 0.814 -> 0.815; 62:240:9: hd4p 0.787 -> 0.810; hd6 (0:100:5) 0.833 -> 0.836, hd8
     unchanged; caliscope_charuco 0-0.6 % of a camera's mask pixels over 27 tasks (an arm's
     ghost on the floor), utrecht4cam none; about 10-14 ms per task on hd4p
     (docs/BENCHMARKS.md). The dense foreground does not change: those pixels have no hull
