@@ -124,6 +124,24 @@ def test_hull_scope_skips_sfm_with_the_same_foreground(tiny, tiny_dataset):
         sparse_scope="hull",
     )
     assert no_hull.sparse.num_points > 0 and "sfm" in no_hull.timings.to_dict()
+    # A background that hides nothing (the room's walls, far behind the actors) carves the
+    # depth search's hull again to the same foreground; switched off, no second hull.
+    far = fg.hull.centers.mean(axis=0) + np.array(
+        [[dx, dy, 0.0] for dx in (-40, 40) for dy in (-40, 40)]
+    )
+    walls = PointCloud(points3D=far)
+    again = reconstruct_task(frames, ds.rig, fg, background=walls, sparse_scope="hull")
+    assert "fg_occluded_hull" in again.timings.to_dict()
+    np.testing.assert_array_equal(again.foreground.cloud.points3D, hull.foreground.cloud.points3D)
+    off = reconstruct_task(
+        frames,
+        ds.rig,
+        fg,
+        background=walls,
+        split_config=SplitPipelineConfig(fg_hull_occluders=False),
+        sparse_scope="hull",
+    )
+    assert "fg_occluded_hull" not in off.timings.to_dict()
 
 
 def test_split_pipeline_with_empty_foreground(tiny):
@@ -193,3 +211,50 @@ def test_foreground_dense_settings():
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SplitPipelineConfig(**bad)
+
+
+def test_the_depth_search_hull_knows_what_the_background_hides():
+    # Four cameras around an actor (a box); a crate of the static scene (background to the
+    # models) stands between camera 0 and the actor's lower half, so camera 0's mask lacks
+    # that half and the masks' hull loses it. With the background's depth as occluders the
+    # hull that bounds the depth search keeps it.
+    import dataclasses
+
+    from edgerecon.geometry import Camera, look_at
+    from edgerecon.pipeline import occluded_hull
+    from edgerecon.scene.foreground import ForegroundResult
+    from edgerecon.scene.hull import HullConfig, visual_hull
+    from edgerecon.types import StageTimings
+    from tests.scene._scenes import box_silhouette, box_surface_points
+
+    cams = []
+    for i, a in enumerate(np.radians([0, 90, 180, 270])):
+        R, t = look_at((4 * np.cos(a), 4 * np.sin(a), 1.2), (0.0, 0.0, 0.8))
+        K = np.array([[300.0, 0, 159.5], [0, 300, 119.5], [0, 0, 1]])
+        cams.append(Camera(name=f"c{i}", width=320, height=240, K=K, R=R, t=t))
+    actor = (np.array([-0.25, -0.25, 0.0]), np.array([0.25, 0.25, 1.7]))
+    crate = (np.array([1.9, -0.6, 0.0]), np.array([2.3, 0.6, 0.9]))  # before camera 0
+    hidden = np.array([[0.0, 0.0, 0.3]])  # the actor's lower half, behind the crate in cam 0
+    masks = [box_silhouette(c, *actor) for c in cams]
+    masks[0] = masks[0] & ~box_silhouette(cams[0], *crate)
+    config = HullConfig(voxel_size=0.04, max_missing=0)
+    hull = visual_hull(cams, masks, config)
+    assert hull.contains(np.array([[0.0, 0.0, 1.5]]))[0] and not hull.contains(hidden)[0]
+    fg = ForegroundResult(
+        time_index=0,
+        masks=tuple(masks),
+        model_masks=tuple(masks),
+        objects=(None,) * 4,
+        hull=hull,
+        timings=StageTimings(),
+        cameras=tuple(cams),
+        hull_config=config,
+    )
+    background = PointCloud(points3D=box_surface_points(*crate, 60))
+    carved = occluded_hull(fg, background)
+    assert carved is not None and carved.contains(hidden)[0]
+    assert carved.contains(np.array([[0.0, 0.0, 1.5]]))[0]
+    assert not carved.contains(np.array([[0.0, 0.0, 1.9]]))[0]  # above the actor: carved
+    # Nothing to hide behind, or no hull: nothing to carve again.
+    assert occluded_hull(fg, PointCloud.empty()) is None
+    assert occluded_hull(dataclasses.replace(fg, hull=None), background) is None

@@ -220,6 +220,9 @@ class ForegroundResult:
     """The rig's cameras at the masks' working resolution (distortion kept)."""
     segmentations: tuple[Segmentation | None, ...] = field(default=(), repr=False)
     """The background models' per-camera classifications (reused by ``update``)."""
+    hull_config: HullConfig | None = None
+    """The visual hull's parameters (``ForegroundConfig.hull``), for a caller that carves
+    it again (``pipeline.occluded_hull``)."""
 
     def slim(self) -> ForegroundResult:
         """The same result without the per-camera classifications (and their working
@@ -537,6 +540,7 @@ class RigForeground:
             timings=timings,
             cameras=cams,
             segmentations=segs,
+            hull_config=cfg.hull,
         )
 
     def update(
