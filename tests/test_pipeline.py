@@ -124,23 +124,24 @@ def test_hull_scope_skips_sfm_with_the_same_foreground(tiny, tiny_dataset):
         sparse_scope="hull",
     )
     assert no_hull.sparse.num_points > 0 and "sfm" in no_hull.timings.to_dict()
-    # A background that hides nothing (the room's walls, far behind the actors) carves the
-    # depth search's hull again to the same foreground; switched off, no second hull.
+    # With the option, a background that hides nothing (the room's walls, far behind the
+    # actors) carves the depth search's hull again to the same foreground; off (the
+    # default), no second hull.
     far = fg.hull.centers.mean(axis=0) + np.array(
         [[dx, dy, 0.0] for dx in (-40, 40) for dy in (-40, 40)]
     )
     walls = PointCloud(points3D=far)
-    again = reconstruct_task(frames, ds.rig, fg, background=walls, sparse_scope="hull")
-    assert "fg_occluded_hull" in again.timings.to_dict()
-    np.testing.assert_array_equal(again.foreground.cloud.points3D, hull.foreground.cloud.points3D)
-    off = reconstruct_task(
+    again = reconstruct_task(
         frames,
         ds.rig,
         fg,
         background=walls,
-        split_config=SplitPipelineConfig(fg_hull_occluders=False),
+        split_config=SplitPipelineConfig(fg_hull_occluders=True),
         sparse_scope="hull",
     )
+    assert "fg_occluded_hull" in again.timings.to_dict()
+    np.testing.assert_array_equal(again.foreground.cloud.points3D, hull.foreground.cloud.points3D)
+    off = reconstruct_task(frames, ds.rig, fg, background=walls, sparse_scope="hull")
     assert "fg_occluded_hull" not in off.timings.to_dict()
 
 

@@ -209,7 +209,7 @@ class SplitPipelineConfig:
     corners' plane .645 / .743 -> .710 / .742, for about 0.1 s more dense time per task at
     r = 1 there. docs/BENCHMARKS.md."""
 
-    fg_hull_occluders: bool = True
+    fg_hull_occluders: bool = False
     """With a background cloud (the online system's latest, ``reconstruct_task``'s
     ``background``), the visual hull that bounds the foreground's depth search is carved
     again from the background models' masks with each camera's occluders, the background's
@@ -221,7 +221,10 @@ class SplitPipelineConfig:
     scene, 8 tasks), moving F at 2 %: .888 -> .903 (t = 224 .802 -> .868, t = 170 .921 ->
     .937); online at 40 % (20 tasks) hd4 .923 -> .926, hd4p .917 -> .923. The second hull
     costs 30-120 ms per task (caliscope_charuco 80 ms, 111 tasks: online/original 0.371,
-    0.358-0.380 without; docs/BENCHMARKS.md)."""
+    0.358-0.380 without; docs/BENCHMARKS.md). Off by default: the foreground then depends on
+    which background the front-end holds when a task runs, which the back-end's timing
+    decides, so a resumed run (or a second run) no longer gives the same foreground to the
+    point (``tests/runtime/test_state.py``)."""
 
     def __post_init__(self) -> None:
         if self.fg_mask_dilation_px < 0 or self.bg_mask_dilation_px < 0:
