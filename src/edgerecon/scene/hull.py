@@ -1313,6 +1313,15 @@ def tolerant_hull(
     return _without_objects(tolerant, drop) if drop else tolerant
 
 
+def _grown_silhouette(hull: VisualHull, camera: Camera, grow_px: int) -> Mask:
+    """The hull's silhouette in ``camera`` grown by ``grow_px`` pixels (a disc)."""
+    sil = hull_silhouette(hull, camera)
+    if grow_px > 0 and sil.any():
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
+        sil = cv2.dilate(sil.astype(np.uint8), k).astype(bool)
+    return sil
+
+
 def hull_explained_masks(
     hull: VisualHull,
     cameras: Sequence[Camera],
@@ -1333,11 +1342,7 @@ def hull_explained_masks(
         if m is None or a is None or not (m & a).any():
             out.append(m)
             continue
-        sil = hull_silhouette(hull, cam)
-        if grow_px > 0 and sil.any():
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
-            sil = cv2.dilate(sil.astype(np.uint8), k).astype(bool)
-        out.append(m & ~(a & ~sil))
+        out.append(m & ~(a & ~_grown_silhouette(hull, cam, grow_px)))
     return out
 
 
@@ -1378,11 +1383,7 @@ def phantom_explained_masks(
         if m is None or a is None or not (m & a).any():
             out.append(m)
             continue
-        sil = hull_silhouette(hull, cam)
-        if grow_px > 0 and sil.any():
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
-            sil = cv2.dilate(sil.astype(np.uint8), k).astype(bool)
-        unexplained = m & a & ~sil
+        unexplained = m & a & ~_grown_silhouette(hull, cam, grow_px)
         if unexplained.any():
             x, y, bw, bh = cv2.boundingRect(unexplained.view(np.uint8))
             phantom = phantom_silhouette(hull, cam, box=(x, y, x + bw, y + bh))
