@@ -25,8 +25,8 @@ from edgerecon import progress
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.scene.foreground import ForegroundResult
-from edgerecon.scene.hull import HullConfig, VisualHull, depth_map, hull_depth_range, visual_hull
+from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult
+from edgerecon.scene.hull import VisualHull, depth_map, hull_depth_range, visual_hull
 from edgerecon.scene.merge import compose, merge_radius, overridden
 from edgerecon.scene.split import SplitConfig, split_sparse
 from edgerecon.sparse import SparseConfig, SparseReconstruction, reconstruct_sparse
@@ -411,7 +411,7 @@ def occluded_hull(foreground: ForegroundResult, background: PointCloud) -> Visua
         _occluder_cache[:] = [(points, cams, maps)]
     else:
         maps = hit[2]
-    config = foreground.hull_config or HullConfig(max_missing=0)
+    config = foreground.hull_config or ForegroundConfig().hull
     return visual_hull(cams, list(foreground.model_masks), config, occluders=maps)
 
 
