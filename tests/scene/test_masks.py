@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.masks import (
     MaskConfig,
+    _guided_filter,
     clean_mask,
     fill_holes,
+    guided_mask,
     remove_small_blobs,
     resize_mask_smooth,
 )
@@ -71,3 +74,50 @@ def test_mask_config_validation() -> None:
         MaskConfig(open_radius_px=-1)
     with pytest.raises(ValueError, match="min_blob_fraction"):
         MaskConfig(min_blob_fraction=2.0)
+
+
+def _actor_scene() -> tuple[np.ndarray, np.ndarray]:
+    """A red actor (a rectangle and an arm) before a textured green-grey background."""
+    rng = np.random.default_rng(3)
+    noise = cv2.GaussianBlur(rng.random((120, 160)).astype(np.float32), (0, 0), 2.0)
+    bg = np.stack([60 + 80 * noise, 110 + 60 * noise, 70 + 40 * noise], axis=2)
+    actor = np.zeros((120, 160), bool)
+    actor[30:100, 60:90] = True
+    actor[40:46, 90:120] = True  # an arm
+    img = bg.copy()
+    img[actor] = (40, 50, 190)
+    return np.clip(img, 0, 255).astype(np.uint8), actor
+
+
+def test_guided_mask_moves_a_halo_and_a_coarse_outline_to_the_colour_edge() -> None:
+    img, actor = _actor_scene()
+    # What a model gives beside a still actor: a 3-pixel halo of background on one side,
+    # a missing strip on the other, and the blocky outline of a 4x coarser resolution.
+    coarse = cv2.resize(actor.astype(np.uint8), (40, 30), interpolation=cv2.INTER_AREA)
+    mask = cv2.resize(coarse, (160, 120), interpolation=cv2.INTER_NEAREST).astype(bool)
+    mask[28:102, 57:60] = True
+    mask[30:100, 87:90] = False
+    refined = guided_mask(mask, img, radius_px=8)
+    before, after = mask_iou(mask, actor), mask_iou(refined, actor)
+    assert before < 0.85
+    assert after > 0.97
+    # The same result as the filter of the whole image (only the mask's box is filtered).
+    q, plain = _guided_filter(img.astype(np.float32) / 255, mask.astype(np.float32), 8, 1e-3)
+    whole = mask.copy()
+    whole[mask & (q < 0.5) & (plain - q > 1e-3)] = False
+    whole[~mask & (q > 0.5) & (q - plain > 1e-3)] = True
+    np.testing.assert_array_equal(refined, whole)
+
+
+def test_guided_mask_leaves_what_colours_cannot_tell() -> None:
+    img, actor = _actor_scene()
+    flat = np.full_like(img, 90)
+    mask = actor.copy()
+    mask[28:102, 57:60] = True
+    # Flat colour: nothing pushes a pixel, so the filter's blur changes nothing.
+    np.testing.assert_array_equal(guided_mask(mask, flat, radius_px=8), mask)
+    # A push below min_push changes nothing either; an empty mask stays empty.
+    assert np.count_nonzero(guided_mask(mask, img, 8, min_push=0.49) != mask) == 0
+    assert not guided_mask(np.zeros_like(mask), img, 8).any()
+    with pytest.raises(ValueError):
+        guided_mask(mask, img[:, :100], 8)

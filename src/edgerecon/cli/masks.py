@@ -144,13 +144,22 @@ def run(args: argparse.Namespace) -> int:
         )
         _write_png(out / f"{cam.name}_overlay.png", overlay(image, result, i))
         model_mask = result.model_masks[i]
+        checked = result.checked_masks[i] if result.checked_masks else mask
+        if checked is None:
+            checked = mask
         entry: dict[str, Any] = {
             "camera": cam.name,
             "available": True,
             "area_px": int(mask.sum()),
             "area_fraction": float(mask.mean()),
-            "removed_by_hull_px": int((model_mask & ~mask).sum()) if model_mask is not None else 0,
-            "filled_by_hull_px": int((mask & ~model_mask).sum()) if model_mask is not None else 0,
+            "removed_by_hull_px": (
+                int((model_mask & ~checked).sum()) if model_mask is not None else 0
+            ),
+            "filled_by_hull_px": int((checked & ~model_mask).sum())
+            if model_mask is not None
+            else 0,
+            "removed_by_refine_px": int((checked & ~mask).sum()),
+            "added_by_refine_px": int((mask & ~checked).sum()),
             "num_objects": seg.num_objects,
             "objects": [o.to_dict() for o in seg.objects],
         }
@@ -191,14 +200,22 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(summary)
         return 0
-    columns = ["camera", "area px", "area %", "objects", "hull-removed px", "hull-filled px"]
+    columns = [
+        "camera",
+        "area px",
+        "area %",
+        "objects",
+        "hull-removed px",
+        "hull-filled px",
+        "refined -/+ px",
+    ]
     if ious is not None:
         columns.append("IoU vs GT")
     rows = []
     for c in cameras:
         if not c["available"]:
             rows.append(
-                [c["camera"], "-", "-", "-", "-", "-"] + (["-"] if ious is not None else [])
+                [c["camera"], "-", "-", "-", "-", "-", "-"] + (["-"] if ious is not None else [])
             )
             continue
         row = [
@@ -208,6 +225,7 @@ def run(args: argparse.Namespace) -> int:
             c["num_objects"],
             c["removed_by_hull_px"],
             c["filled_by_hull_px"],
+            f"{c['removed_by_refine_px']} / {c['added_by_refine_px']}",
         ]
         if ious is not None:
             row.append(c.get("iou_vs_ground_truth"))
