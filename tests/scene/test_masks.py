@@ -16,6 +16,7 @@ from edgerecon.scene.masks import (
     remove_small_blobs,
     resize_mask_smooth,
 )
+from edgerecon.scene.objects import find_objects
 from tests.scene._scenes import square_mask
 
 
@@ -96,8 +97,8 @@ def test_guided_mask_moves_a_halo_and_a_coarse_outline_to_the_colour_edge() -> N
     coarse = cv2.resize(actor.astype(np.uint8), (40, 30), interpolation=cv2.INTER_AREA)
     mask = cv2.resize(coarse, (160, 120), interpolation=cv2.INTER_NEAREST).astype(bool)
     mask[28:102, 57:60] = True
-    mask[30:100, 87:90] = False
-    refined = guided_mask(mask, img, radius_px=8)
+    mask[48:100, 87:90] = False
+    refined = guided_mask(mask, img, radius_px=8, groups=lambda m: find_objects(m).labels)
     before, after = mask_iou(mask, actor), mask_iou(refined, actor)
     assert before < 0.85
     assert after > 0.97
@@ -107,6 +108,26 @@ def test_guided_mask_moves_a_halo_and_a_coarse_outline_to_the_colour_edge() -> N
     whole[mask & (q < 0.5) & (plain - q > 1e-3)] = False
     whole[~mask & (q > 0.5) & (q - plain > 1e-3)] = True
     np.testing.assert_array_equal(refined, whole)
+    # One component: nothing to glue, the objects are not asked for.
+    np.testing.assert_array_equal(guided_mask(mask, img, radius_px=8), refined)
+
+
+def test_guided_mask_does_not_glue_two_objects() -> None:
+    img, actor = _actor_scene()
+    # Two actors in the same red, side by side; the masks hold them 6 pixels apart (two
+    # objects to find_objects), with the red between them.
+    img[30:100, 90:96] = (40, 50, 190)
+    second = np.zeros_like(actor)
+    second[30:100, 96:126] = True
+    img[second] = (40, 50, 190)
+    first = np.zeros_like(actor)
+    first[30:100, 60:90] = True
+    mask = first | second
+    groups = find_objects(mask).labels
+    assert groups.max() == 2
+    refined = guided_mask(mask, img, radius_px=8, groups=lambda m: find_objects(m).labels)
+    assert not refined[30:100, 90:96].any()
+    assert find_objects(refined).num_objects == 2
 
 
 def test_guided_mask_leaves_what_colours_cannot_tell() -> None:

@@ -132,9 +132,10 @@ class ForegroundConfig:
     refine_px + 1`` working pixels): the halo of background that a model holds beside a
     still actor (its pixels were within ``background.update_guard_px`` of the actor, so they
     never learned the floor), which two facing cameras share and nothing else removes, and
-    the outline of the working resolution. Moving-actor IoU (``bench_scene.py --online``, 20
-    tasks 0:240:12): hd4 0.815 -> 0.87, hd4p 0.790 -> 0.85 (docs/BENCHMARKS.md); about 2-7
-    ms per camera. None = off."""
+    the outline of the working resolution. Added pixels never glue two objects
+    (``find_objects``) into one. Moving-actor IoU (``bench_scene.py --online``, 20 tasks
+    0:240:12): hd4 0.815 -> 0.871, hd4p 0.790 -> 0.847 (docs/BENCHMARKS.md); about 2-7 ms
+    per camera. None = off."""
     refine_eps: float = 1e-3
     """The filter's ridge (squared colour, channels in 0..1): colour differences well below
     its square root (8 grey levels) do not move an outline."""
@@ -565,7 +566,12 @@ class RigForeground:
                     m
                     if m is None or sg is None or sg.image is None
                     else guided_mask(
-                        m, sg.image, cfg.refine_px, cfg.refine_eps, cfg.refine_min_push
+                        m,
+                        sg.image,
+                        cfg.refine_px,
+                        cfg.refine_eps,
+                        cfg.refine_min_push,
+                        groups=lambda mask: find_objects(mask, cfg.objects).labels,
                     )
                     for m, sg in zip(masks, segs, strict=True)
                 ]

@@ -8,6 +8,7 @@ its working resolution).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -133,6 +134,8 @@ def guided_mask(
     radius_px: int,
     eps: float = 1e-3,
     min_push: float = 0.0,
+    *,
+    groups: Callable[[Mask], NDArray[np.integer]] | None = None,
 ) -> Mask:
     """``mask`` with its outline moved to where the colours of ``image`` (BGR, same size,
     uint8 or float in grey levels) change: the colour guided filter (He, Sun and Tang, "Guided
@@ -146,8 +149,10 @@ def guided_mask(
     A pixel changes only where the colours push it: its filtered value crosses 0.5 and moves
     more than ``min_push`` away from what the filter gives without colour (the mask blurred
     twice by the window): in flat colour, where the filter only blurs the mask, nothing
-    changes. Only the box around the mask
-    grown by three radii is filtered (the same result as the whole image)."""
+    changes. Added pixels never join two components of ``mask`` (``_bridges``), or with
+    ``groups`` (the object labels of a mask, e.g. ``find_objects``'s, asked only when added
+    pixels join components) two of its objects. Only the box around the mask grown by three
+    radii is filtered (the same result as the whole image)."""
     m = np.asarray(mask, bool)
     if m.ndim != 2:
         raise ValueError(f"guided_mask expects a (H, W) mask, got shape {m.shape}")
@@ -164,12 +169,61 @@ def guided_mask(
     p = m[y0:y1, x0:x1].astype(np.float32)
     guide = img[y0:y1, x0:x1].astype(np.float32) * np.float32(1.0 / 255.0)
     q, plain = _guided_filter(guide, p, r, float(eps))
-    out = m.copy()
-    roi = out[y0:y1, x0:x1]
+    inside = p > 0
     push = np.float32(max(min_push, _ROUNDING))
-    roi[roi & (q < 0.5) & (plain - q > push)] = False
-    roi[~roi & (q > 0.5) & (q - plain > push)] = True
+    kept = inside & ~((q < 0.5) & (plain - q > push))
+    added = ~inside & (q > 0.5) & (q - plain > push)
+    if added.any():
+
+        def crop_groups() -> NDArray[np.integer] | None:
+            return None if groups is None else np.asarray(groups(m))[y0:y1, x0:x1]
+
+        added &= ~_bridges(inside, kept | added, added, crop_groups)
+    out = m.copy()
+    out[y0:y1, x0:x1] = kept | added
     return out
+
+
+def _bridges(
+    before: Mask,
+    after: Mask,
+    added: Mask,
+    groups: Callable[[], NDArray[np.integer] | None],
+) -> Mask:
+    """The ``added`` pixels of the components of ``after`` that join two or more components
+    of ``before`` (of its ``groups()``, when that gives labels: components of one object
+    may join): a refinement moves outlines, it does not glue two actors that touch in the
+    image into one object (hd4, t = 228: the two walking actors, actor 2's object IoU 0.44
+    -> 0.14 without this)."""
+    n_before, cc_before = cv2.connectedComponents(
+        before.view(np.uint8), connectivity=8, ltype=cv2.CV_32S
+    )
+    lab_before = np.asarray(cc_before, np.int32)
+    if n_before <= 2:
+        return np.zeros_like(added)
+    _, cc_after = cv2.connectedComponents(after.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    lab_after = np.asarray(cc_after, np.int32)
+    both = before & after
+    glued = _joining(lab_after[both], lab_before[both], n_before)
+    if len(glued):
+        labels = groups()
+        if labels is not None:
+            # Judge the objects, not the components; unlabelled pixels (noise the objects
+            # dropped) join nothing.
+            grouped = both & (labels > 0)
+            glued = _joining(lab_after[grouped], labels[grouped], int(labels.max()) + 1)
+    if not len(glued):
+        return np.zeros_like(added)
+    return added & np.isin(lab_after, glued)
+
+
+def _joining(
+    outer: NDArray[np.integer], inner: NDArray[np.integer], n_inner: int
+) -> NDArray[np.int64]:
+    """The labels of ``outer`` whose pixels carry two or more labels of ``inner``."""
+    pairs = np.unique(outer.astype(np.int64) * n_inner + inner.astype(np.int64))
+    comp, count = np.unique(pairs // n_inner, return_counts=True)
+    return np.asarray(comp[count >= 2], np.int64)
 
 
 #: Pushes below this are the box filters' float rounding, not colour.
