@@ -135,7 +135,7 @@ class ForegroundConfig:
     the outline of the working resolution. Added pixels never glue two objects
     (``find_objects``) into one. Moving-actor IoU (``bench_scene.py --online``, 20 tasks
     0:240:12): hd4 0.815 -> 0.871, hd4p 0.790 -> 0.847 (docs/BENCHMARKS.md); about 2-7 ms
-    per camera. None = off."""
+    per camera. None or 0 = off."""
     refine_eps: float = 1e-3
     """The filter's ridge (squared colour, channels in 0..1): colour differences well below
     its square root (8 grey levels) do not move an outline."""
