@@ -202,3 +202,33 @@ def test_hull_rescue_only_gives_back_the_models_own_pixels(scene) -> None:  # ty
             assert not (m_a & ~m_b & ~model).any()
         assert a.hull is not None and b.hull is not None
         assert a.hull.contains(b.hull.centers).all()
+
+
+def test_refined_pixels_that_bring_two_objects_together_are_dropped() -> None:
+    """Pixels the outline refinement added that make two objects of the masks before it one
+    object (closer than the objects' fragment gap, without touching) leave the masks."""
+    from edgerecon.scene.foreground import _CheckedObjects, _unglued
+    from edgerecon.scene.objects import ObjectConfig, find_objects
+
+    before = np.zeros((120, 160), bool)
+    before[30:100, 40:70] = True
+    before[30:100, 82:112] = True  # 12 px apart: two objects (the gap is 3 px here)
+    cfg = ObjectConfig()
+    assert find_objects(before, cfg).num_objects == 2
+    after = before.copy()
+    after[30:100, 70:80] = True  # grown toward the other, 2 px apart: one object
+    after[20:30, 40:70] = True  # and grown elsewhere, away from the other
+    assert find_objects(after, cfg).num_objects == 1
+    base = _CheckedObjects([before, None], cfg)
+    masks, found = _unglued([after, None], [find_objects(after, cfg), None], base, cfg)
+    assert masks[1] is None and found[1] is None
+    out, seg = masks[0], found[0]
+    assert out is not None and seg is not None
+    assert seg.num_objects == 2
+    # Every pixel the merged object gained goes; the masks before are kept whole.
+    np.testing.assert_array_equal(out, before)
+    # A refinement that glues nothing keeps its pixels.
+    apart = before.copy()
+    apart[20:30, 40:70] = True
+    masks, found = _unglued([apart, None], [find_objects(apart, cfg), None], base, cfg)
+    np.testing.assert_array_equal(masks[0], apart)

@@ -24,6 +24,7 @@ __all__ = [
     "disk",
     "fill_holes",
     "guided_mask",
+    "labels_joining",
     "remove_small_blobs",
     "resize_mask",
     "resize_mask_smooth",
@@ -204,23 +205,25 @@ def _bridges(
     _, cc_after = cv2.connectedComponents(after.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     lab_after = np.asarray(cc_after, np.int32)
     both = before & after
-    glued = _joining(lab_after[both], lab_before[both], n_before)
+    glued = labels_joining(lab_after[both], lab_before[both])
     if len(glued):
         labels = groups()
         if labels is not None:
             # Judge the objects, not the components; unlabelled pixels (noise the objects
             # dropped) join nothing.
             grouped = both & (labels > 0)
-            glued = _joining(lab_after[grouped], labels[grouped], int(labels.max()) + 1)
+            glued = labels_joining(lab_after[grouped], labels[grouped])
     if not len(glued):
         return np.zeros_like(added)
     return added & np.isin(lab_after, glued)
 
 
-def _joining(
-    outer: NDArray[np.integer], inner: NDArray[np.integer], n_inner: int
-) -> NDArray[np.int64]:
-    """The labels of ``outer`` whose pixels carry two or more labels of ``inner``."""
+def labels_joining(outer: NDArray[np.integer], inner: NDArray[np.integer]) -> NDArray[np.int64]:
+    """The labels of ``outer`` whose pixels carry two or more labels of ``inner`` (the same
+    pixels of two label images, non-negative)."""
+    if len(inner) == 0:
+        return np.zeros(0, np.int64)
+    n_inner = int(inner.max()) + 1
     pairs = np.unique(outer.astype(np.int64) * n_inner + inner.astype(np.int64))
     comp, count = np.unique(pairs // n_inner, return_counts=True)
     return np.asarray(comp[count >= 2], np.int64)
