@@ -140,6 +140,10 @@ class ForegroundConfig:
     """How many times the refinement runs, each on the last one's masks (the filter's own
     outline moves further toward the colour edge: hd4 / hd4p, 10 tasks, pooled moving IoU
     0.869 / 0.837 with one, 0.881 / 0.850 with two, 0.886 / 0.855 with three)."""
+    refine_subsample: int = 2
+    """The filter's coefficients are fitted on the working frame reduced by this factor
+    (the fast guided filter; hd4 / hd4p, 10 tasks, pooled moving IoU 0.8806 / 0.8496 with
+    1, 0.8800 / 0.8492 with 2, at half the cost)."""
     refine_eps: float = 1e-3
     """The filter's ridge (squared colour, channels in 0..1): colour differences well below
     its square root (8 grey levels) do not move an outline."""
@@ -190,6 +194,10 @@ class ForegroundConfig:
         if self.refine_px is not None and self.refine_px < 0:
             raise ValueError(
                 f"ForegroundConfig.refine_px must be >= 0 or None, got {self.refine_px}"
+            )
+        if self.refine_subsample < 1:
+            raise ValueError(
+                f"ForegroundConfig.refine_subsample must be >= 1, got {self.refine_subsample}"
             )
         if self.refine_passes < 1:
             raise ValueError(
@@ -613,6 +621,7 @@ class RigForeground:
                 cfg.refine_eps,
                 cfg.refine_min_push,
                 groups=base.of(c),
+                subsample=cfg.refine_subsample,
             )
             for c, (m, sg) in enumerate(zip(masks, segs, strict=True))
         ]
