@@ -134,8 +134,8 @@ class ForegroundConfig:
     never learned the floor), which two facing cameras share and nothing else removes, and
     the outline of the working resolution. Added pixels never make two objects of the
     masks before it (``find_objects``) one. Moving-actor IoU (``bench_scene.py --online``,
-    20 tasks 0:240:12, ``refine_passes`` 2): hd4 0.815 -> 0.880, hd4p 0.790 -> 0.857
-    (docs/BENCHMARKS.md); about 2-7 ms per camera and pass. None or 0 = off."""
+    20 tasks 0:240:12, two passes, ``refine_subsample`` 2): hd4 0.815 -> 0.879, hd4p 0.790
+    -> 0.856 (docs/BENCHMARKS.md); a few ms per camera and pass. None or 0 = off."""
     refine_passes: int = 2
     """How many times the refinement runs, each on the last one's masks (the filter's own
     outline moves further toward the colour edge: hd4 / hd4p, 10 tasks, pooled moving IoU
