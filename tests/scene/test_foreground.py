@@ -232,3 +232,18 @@ def test_refined_pixels_that_bring_two_objects_together_are_dropped() -> None:
     apart[20:30, 40:70] = True
     masks, found = _unglued([apart, None], [find_objects(apart, cfg), None], base, cfg)
     np.testing.assert_array_equal(masks[0], apart)
+
+
+@pytest.mark.parametrize(
+    "field",
+    [
+        {"refine_px": -1},
+        {"refine_passes": 0},
+        {"refine_subsample": 0},
+        {"refine_eps": 0.0},
+        {"refine_min_push": 0.5},
+    ],
+)
+def test_refinement_settings_are_checked(field: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match=next(iter(field))):
+        ForegroundConfig(**field)  # type: ignore[arg-type]

@@ -18,6 +18,7 @@ teaches them one frame (see :mod:`edgerecon.scene.stream` for which frames of a 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -181,41 +182,19 @@ class ForegroundConfig:
         for name in ("update_interval_s", "bootstrap_span_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ForegroundConfig.{name} must be > 0, got {getattr(self, name)}")
-        if self.phantom_explained_px is not None and self.phantom_explained_px < 0:
-            raise ValueError(
-                "ForegroundConfig.phantom_explained_px must be >= 0 or None, got "
-                f"{self.phantom_explained_px}"
-            )
-        if self.hull_explained_px is not None and self.hull_explained_px < 0:
-            raise ValueError(
-                "ForegroundConfig.hull_explained_px must be >= 0 or None, got "
-                f"{self.hull_explained_px}"
-            )
-        if self.refine_px is not None and self.refine_px < 0:
-            raise ValueError(
-                f"ForegroundConfig.refine_px must be >= 0 or None, got {self.refine_px}"
-            )
-        if self.refine_subsample < 1:
-            raise ValueError(
-                f"ForegroundConfig.refine_subsample must be >= 1, got {self.refine_subsample}"
-            )
-        if self.refine_passes < 1:
-            raise ValueError(
-                f"ForegroundConfig.refine_passes must be >= 1, got {self.refine_passes}"
-            )
+        for name in ("phantom_explained_px", "hull_explained_px", "refine_px"):
+            value = getattr(self, name)
+            if value is not None and value < 0:
+                raise ValueError(f"ForegroundConfig.{name} must be >= 0 or None, got {value}")
+        for name in ("refine_subsample", "refine_passes", "hull_fill_close_px", "bootstrap_frames"):
+            value = getattr(self, name)
+            if value < 1:
+                raise ValueError(f"ForegroundConfig.{name} must be >= 1, got {value}")
         if not self.refine_eps > 0:
             raise ValueError(f"ForegroundConfig.refine_eps must be > 0, got {self.refine_eps}")
         if not 0.0 <= self.refine_min_push < 0.5:
             raise ValueError(
                 f"ForegroundConfig.refine_min_push must be in [0, 0.5), got {self.refine_min_push}"
-            )
-        if self.hull_fill_close_px < 1:
-            raise ValueError(
-                f"ForegroundConfig.hull_fill_close_px must be >= 1, got {self.hull_fill_close_px}"
-            )
-        if self.bootstrap_frames < 1:
-            raise ValueError(
-                f"ForegroundConfig.bootstrap_frames must be >= 1, got {self.bootstrap_frames}"
             )
         for name, cls in (
             ("background", BackgroundConfig),
@@ -661,14 +640,10 @@ class _CheckedObjects:
         self.config = config
         self._labels: dict[int, NDArray[np.int32]] = {}
 
-    def of(self, camera: int) -> Callable[[Mask], NDArray[np.int32]]:
+    def of(self, camera: int) -> Callable[[], NDArray[np.int32]]:
         """``guided_mask``'s ``groups`` for ``camera``: the objects before the first pass,
         whatever mask the pass starts from."""
-
-        def groups(_mask: Mask) -> NDArray[np.int32]:
-            return self.labels(camera)
-
-        return groups
+        return functools.partial(self.labels, camera)
 
     def labels(self, camera: int) -> NDArray[np.int32]:
         if camera not in self._labels:

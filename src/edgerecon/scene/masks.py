@@ -136,7 +136,7 @@ def guided_mask(
     eps: float = 1e-3,
     min_push: float = 0.0,
     *,
-    groups: Callable[[Mask], NDArray[np.integer]] | None = None,
+    groups: Callable[[], NDArray[np.integer]] | None = None,
     subsample: int = 1,
 ) -> Mask:
     """``mask`` with its outline moved to where the colours of ``image`` (BGR, same size,
@@ -152,8 +152,8 @@ def guided_mask(
     more than ``min_push`` away from what the filter gives without colour (the mask blurred
     twice by the window): in flat colour, where the filter only blurs the mask, nothing
     changes. Added pixels never join two components of ``mask`` (``_bridges``), or with
-    ``groups`` (the object labels of a mask, e.g. ``find_objects``'s, asked only when added
-    pixels join components) two of its objects. Only the box around the mask grown by three
+    ``groups`` (a label image of ``mask``'s size, e.g. ``find_objects``'s labels, asked only
+    when added pixels join components) two of its labels. Only the box around the mask grown by three
     radii is filtered (the same result as the whole image). ``subsample`` > 1: the fast
     guided filter (He and Sun, 2015): the linear coefficients are fitted on the images
     reduced by that factor and applied, upsampled, to the full-size guide."""
@@ -182,7 +182,7 @@ def guided_mask(
     if added.any():
 
         def crop_groups() -> NDArray[np.integer] | None:
-            return None if groups is None else np.asarray(groups(m))[y0:y1, x0:x1]
+            return None if groups is None else np.asarray(groups())[y0:y1, x0:x1]
 
         added &= ~_bridges(inside, kept | added, added, crop_groups)
     out = m.copy()
