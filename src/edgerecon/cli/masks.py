@@ -4,8 +4,11 @@ inspection.
 The background models are the ones the online system has at time T (one definition for
 every command: :mod:`edgerecon.scene.stream`). Segments frame T and writes per camera
 ``<cam>_mask.png`` (0/255, upsampled from the working resolution to the frame's),
-``<cam>_overlay.png`` (the frame with the foreground tinted, foreground removed by the hull
-consistency in red, foreground the hull fill added in yellow, object ROIs boxed) and ``masks.json``; with ``--hull-ply`` also the coloured visual-hull surface (``hull.ply``).
+``<cam>_overlay.png`` (the frame with the objects tinted, the background model's foreground
+that the later steps removed in red and the foreground they added in yellow: the hull
+consistency and fill, the ghost checks, the outline refinement; object ROIs boxed; the
+table and ``masks.json`` count the hull's and the refinement's pixels apart) and
+``masks.json``; with ``--hull-ply`` also the coloured visual-hull surface (``hull.ply``).
 Synthetic datasets with ground truth also get the mask IoU per camera.
 """
 
@@ -55,8 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def overlay(image: Image, result: ForegroundResult, camera_id: int) -> Image:
-    """The frame with its objects tinted, hull-rejected foreground in red, hull-filled
-    foreground in yellow, ROIs boxed."""
+    """The frame with its objects tinted, the model's foreground the later steps removed in
+    red, the foreground they added in yellow (hull steps, ghost checks, outline refinement),
+    ROIs boxed."""
     out = image.copy()
     seg = result.objects[camera_id]
     model = result.model_masks[camera_id]
