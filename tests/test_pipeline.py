@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from edgerecon.config import ReconstructionConfig
+from edgerecon.dense import DenseConfig
 from edgerecon.io.dataset import open_dataset
-from edgerecon.pipeline import SplitPipelineConfig, reconstruct, reconstruct_task
+from edgerecon.pipeline import (
+    SplitPipelineConfig,
+    fine_scale_limit,
+    reconstruct,
+    reconstruct_task,
+    task_configs,
+)
 from edgerecon.quality import evaluate_clouds
 from edgerecon.scene.foreground import RigForeground
 from edgerecon.synth import GroundTruth
 from edgerecon.types import BACKGROUND_LABEL, DataError, FrameSet, PointCloud
-from tests.conftest import shared_data
+from tests.conftest import ring_rig, shared_data
 
 
 @pytest.fixture(scope="module")
@@ -259,3 +268,28 @@ def test_the_depth_search_hull_knows_what_the_background_hides():
     # Nothing to hide behind, or no hull: nothing to carve again.
     assert occluded_hull(fg, PointCloud.empty()) is None
     assert occluded_hull(dataclasses.replace(fg, hull=None), background) is None
+
+
+def test_task_configs_above_one_make_the_foreground_finer():
+    """r > 1 (the controller's ``r_fine``): on a 1920x1080 rig, whose golden foreground
+    densifies at half resolution, r = 1.5 is views at 0.75 densified at level 0; rigs
+    densified at level 0 (640x480), or at different levels, have nothing above 1."""
+    hd = ring_rig(4, width=1920, height_px=1080, focal_px=1400.0)
+    dense = DenseConfig()
+    assert fine_scale_limit(hd, dense) == 2.0
+    rc, split = task_configs(0.6, hd, camera_ids=[0, 1, 2], dense_config=dense)
+    assert (rc.scale, rc.camera_ids, split.fg_resolution_level) == (0.6, (0, 1, 2), None)
+    rc, split = task_configs(1.5, hd, dense_config=dense)
+    assert (rc.scale, split.fg_resolution_level) == (0.75, 0)
+    rc, split = task_configs(2.0, hd, dense_config=dense)
+    assert (rc.scale, split.fg_resolution_level) == (1.0, 0)
+    with pytest.raises(ValueError, match="task scale"):
+        task_configs(2.5, hd, dense_config=dense)
+    vga = ring_rig(4)
+    assert fine_scale_limit(vga, dense) == 1.0
+    with pytest.raises(ValueError, match="task scale"):
+        task_configs(1.2, vga, dense_config=dense)
+    other = dataclasses.replace(vga.cameras[3], name="vga")
+    mixed = type(hd)(cameras=(*hd.cameras[:3], other), unit="m")
+    assert fine_scale_limit(mixed, dense) == 1.0
+    assert fine_scale_limit(hd, dense, SplitPipelineConfig(fg_resolution_level=0)) == 1.0

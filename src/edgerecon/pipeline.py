@@ -448,6 +448,54 @@ def foreground_dense_config(
     return dataclasses.replace(dense_config, **over)  # type: ignore[arg-type]
 
 
+def fine_scale_limit(
+    rig: Rig, dense_config: DenseConfig, config: SplitPipelineConfig | None = None
+) -> float:
+    """The largest image scale r of a task (``task_configs``): 2^L when the golden
+    configuration densifies the foreground of every camera at the same level L >= 1 (half
+    resolution from 1280 px up, ``DenseConfig.level_for``), so that r up to 2^L can make its
+    depth maps finer; 1.0 otherwise (level 0, or cameras at different levels)."""
+    config = config or SplitPipelineConfig()
+    if config.fg_resolution_level is not None:
+        levels = {config.fg_resolution_level}
+    else:
+        levels = {dense_config.level_for((c.width, c.height)) for c in rig.cameras}
+    if len(levels) != 1:
+        return 1.0
+    return float(2 ** levels.pop())
+
+
+def task_configs(
+    scale: float,
+    rig: Rig,
+    *,
+    camera_ids: Sequence[int] | None = None,
+    sparse_config: SparseConfig | None = None,
+    dense_config: DenseConfig | None = None,
+    split_config: SplitPipelineConfig | None = None,
+) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
+    """What a task of image scale ``scale`` runs with (``reconstruct_task``'s ``config`` and
+    ``split_config``). Up to 1, the paper's r: views at that scale. Above 1 (up to
+    ``fine_scale_limit``), finer than the golden configuration: the foreground's depth maps
+    at r / 2^L of the frames instead of 1 / 2^L, as views at that scale densified at level 0
+    (r = 1 and r just above it cost the same; r = 2^L densifies the frames' own pixels)."""
+    dense_config = dense_config or DenseConfig()
+    split_config = split_config or SplitPipelineConfig()
+    ids = None if camera_ids is None else tuple(camera_ids)
+    limit = fine_scale_limit(rig, dense_config, split_config)
+    if not (0.0 < scale <= limit and np.isfinite(scale)):
+        raise ValueError(f"task scale must be in (0, {limit:g}] on this rig, got {scale!r}")
+    kw: dict[str, Any] = {"camera_ids": ids, "dense_config": dense_config}
+    if sparse_config is not None:
+        kw["sparse_config"] = sparse_config
+    if scale <= 1.0:
+        return ReconstructionConfig(scale=scale, **kw), split_config
+    return (
+        ReconstructionConfig(scale=min(1.0, scale / limit), **kw),
+        dataclasses.replace(split_config, fg_resolution_level=0),
+    )
+
+
 def reconstruct_background(
     views: Sequence[View],
     rig: Rig,

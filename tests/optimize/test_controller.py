@@ -4,6 +4,7 @@ persistence."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -118,6 +119,76 @@ def test_golden_feasible_ends_after_one_step():
     assert ctrl.chosen is not None and ctrl.chosen.quality == 1.0
     nxt = ctrl.next_config()
     assert (nxt.phase, nxt.scale, nxt.num_cameras) == ("adjust", 1.0, 7)
+
+
+def test_spare_time_after_a_feasible_golden_task_goes_to_finer_configurations():
+    """r_fine: the golden configuration (r = 1, 7 cameras) takes half the deadline; the
+    search ends at once and the adjustment climbs above 1 with every camera until the time
+    reaches the target, then holds there; the search itself never goes above r_max."""
+    sim = SimulatorConfig(num_cameras=7, time_noise=0.0, quality_noise=0.0)
+    model = PipelineModel(sim)
+    deadline = 2.0 * model.time_s(1.0, 7)
+    cfg = ControllerConfig(deadline_s=deadline, r_fine=2.0, adjust_target=0.95)
+    ctrl = BisectionController(cfg, LOWEST, 7)
+    rows = []
+    for i in range(40):
+        c = ctrl.next_config()
+        t = model.time_s(c.scale, c.num_cameras, i)
+        rows.append((c.phase, c.scale, c.num_cameras, t))
+        ctrl.observe(t, 1.0)
+    assert rows[0][:3] == ("golden", 1.0, 7)
+    assert all(r[0] == "adjust" and r[2] == 7 and 1.0 <= r[1] <= 2.0 for r in rows[1:])
+    # The climb overshoots by under 15 % (the window's average lags), and from the 15th task
+    # the time is within 5 % of the target (0.95 x the deadline).
+    assert max(r[1] for r in rows) > 1.4
+    assert max(r[3] for r in rows) < 1.15 * deadline
+    settled = [r[3] for r in rows[15:]]
+    assert all(abs(t / (0.95 * deadline) - 1) < 0.05 for t in settled)
+    # Without r_fine (the paper's range) r stays at r_max with the time at half the deadline.
+    plain = BisectionController(ControllerConfig(deadline_s=deadline), LOWEST, 7)
+    for i in range(20):
+        c = plain.next_config()
+        assert c.scale == 1.0
+        plain.observe(model.time_s(c.scale, c.num_cameras, i), 1.0)
+
+
+def test_finer_configurations_only_with_every_camera_and_back_down_under_load():
+    """Fewer than every camera: r stays within r_max (a larger N' is the better use of spare
+    time, the search's business); a workload that grows while r is above 1 brings r back
+    down with steps that grow with r, and a jump re-searches within [r_min, r_max]."""
+    sim = SimulatorConfig(num_cameras=7, time_noise=0.0, quality_noise=0.0)
+    model = PipelineModel(sim)
+    deadline = 2.0 * model.time_s(1.0, 7)
+    cfg = ControllerConfig(deadline_s=deadline, r_fine=2.0, research_drift=0.0)
+    # A deadline the golden configuration misses, quality from r alone (fewer cameras at a
+    # larger r win): r > 1 only ever comes with every camera.
+    flat = PipelineModel(dataclasses.replace(sim, quality_camera_exponent=0.0))
+    tight = BisectionController(
+        ControllerConfig(deadline_s=0.7 * flat.time_s(1.0, 7), r_fine=2.0), LOWEST, 7
+    )
+    runs = []
+    for i in range(60):
+        c = tight.next_config()
+        runs.append((c.scale, c.num_cameras))
+        tight.observe(flat.time_s(c.scale, c.num_cameras, i), flat.quality(c.scale, c.num_cameras))
+    assert any(n < 7 for _, n in runs[-10:])
+    assert all(r <= 1.0 for r, n in runs if n < 7)
+    ctrl = BisectionController(cfg, LOWEST, 7)
+    for i in range(15):
+        c = ctrl.next_config()
+        ctrl.observe(model.time_s(c.scale, c.num_cameras, i), 1.0)
+    high = ctrl.next_config().scale
+    assert high > 1.3
+    seen = []
+    for i in range(15):
+        c = ctrl.next_config()
+        seen.append((c.phase, c.scale))
+        ctrl.observe(3.0 * model.time_s(c.scale, c.num_cameras, i), 1.0)
+    assert seen[1][1] <= high - 0.1 * high + 1e-9  # the first step down is r-relative
+    assert any(p == "search" for p, _ in seen)
+    assert all(r <= 1.0 for p, r in seen if p != "adjust")
+    with pytest.raises(ValueError, match="r_fine"):
+        ControllerConfig(deadline_s=1.0, r_fine=0.9)
 
 
 def test_a_noisy_golden_task_is_measured_once_more():

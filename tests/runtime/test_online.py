@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from edgerecon.dense import DenseConfig
 from edgerecon.io.dataset import open_dataset
 from edgerecon.runtime import FrameRange, SessionOptions, run_online
 from edgerecon.viewer.rundir import RunFolder
@@ -57,6 +58,30 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     # Every output is readable by others (0644), like metrics.jsonl always was.
     for path in [tmp_path / "summary.json", tmp_path / "state.json", *tmp_path.rglob("*.ply")]:
         assert path.stat().st_mode & 0o777 == 0o644, path
+
+
+def test_spare_time_makes_the_foreground_finer_than_the_golden_task(tiny, tmp_path):
+    """A deadline far above the golden task on a rig whose golden foreground densifies at
+    half resolution (here forced with ``min_resolution_px=0``): after the golden task r
+    climbs above 1 with every camera, the foreground's depth maps get finer (more points),
+    and with ``fine_foreground`` off r stays at 1."""
+    ds, scene = tiny
+    dense = DenseConfig(min_resolution_px=0)
+    opts = SessionOptions(frames=FrameRange(start=0, stop=6))
+    _, metrics = run_online(ds, runtime_config(dense=dense), opts, tmp_path / "fine", scene=scene)
+    assert all(m.status == "ok" for m in metrics)
+    assert metrics[0].phase == "golden" and metrics[0].scale == 1.0
+    fine = [m for m in metrics if m.scale > 1.0]
+    assert fine and all(m.num_cameras == len(ds.rig) and m.scale <= 2.0 for m in fine)
+    assert max(m.num_fg_points for m in fine) > 1.5 * metrics[0].num_fg_points
+    _, plain = run_online(
+        ds,
+        runtime_config(dense=dense, fine_foreground=False),
+        SessionOptions(frames=FrameRange(start=0, stop=4)),
+        tmp_path / "plain",
+        scene=scene,
+    )
+    assert [m.scale for m in plain] == [1.0] * 4
 
 
 def test_sfm_of_the_foreground_or_of_the_whole_scene(tiny, tmp_path):

@@ -88,6 +88,13 @@ class ControllerConfig:
     (= ``adjust_step``: the paper's fixed steps). Under timing noise alone the step stays
     ``adjust_step``; after the workload jumps (a second actor walks in) r follows within a few
     tasks instead of tens."""
+    r_fine: float | None = None
+    """Above ``r_max``, up to this, only the minor adjustment goes, and only with every
+    available camera: when the golden configuration leaves part of the deadline unused, r
+    climbs on into configurations finer than the golden one (the caller says what r > 1
+    means; the online system: the foreground's depth maps at r / 2^L of the frames, where
+    the golden configuration densifies at level L, ``pipeline.task_configs``). The search
+    (Algorithm 1) and the golden task stay in [r_min, r_max]. None (= r_max): off."""
     adjust_window: int = 5
     """Tasks in the running average of the minor adjustment (0 = every task since the
     adjustment began, as in the paper; a short window oscillates less, see OPTIMIZER.md)."""
@@ -139,6 +146,10 @@ class ControllerConfig:
             raise ValueError(f"r_min ({self.r_min}) must be < r_max ({self.r_max})")
         if self.r_max > 1.0:
             raise ValueError(f"r_max must be <= 1 (full resolution), got {self.r_max}")
+        if self.r_fine is not None and not (
+            math.isfinite(self.r_fine) and self.r_fine >= self.r_max
+        ):
+            raise ValueError(f"r_fine ({self.r_fine}) must be None or >= r_max ({self.r_max})")
         if self.tau >= self.r_max - self.r_min:
             raise ValueError(
                 f"tau ({self.tau}) must be smaller than r_max - r_min ({self.r_max - self.r_min})"
@@ -165,7 +176,8 @@ class TaskConfig:
     """What the next task runs with."""
 
     scale: float
-    """Image scale r in [r_min, r_max]."""
+    """Image scale r in [r_min, r_max] (up to ``r_fine`` in the adjustment with every
+    available camera)."""
     camera_ids: tuple[int, ...]
     """Rig camera ids pi(N'), ascending."""
     num_cameras: int
@@ -236,8 +248,9 @@ class _State:
 
 class BisectionController:
     """Algorithm 1 with pruning rules, minor adjustment and re-search triggers (see module
-    docstring). Configurations it returns always satisfy r in [r_min, r_max] and
-    min_cameras <= N' <= number of available cameras."""
+    docstring). Configurations it returns always satisfy r in [r_min, r_max] (up to r_fine
+    in the adjustment with every available camera) and min_cameras <= N' <= number of
+    available cameras."""
 
     def __init__(
         self,
@@ -420,10 +433,18 @@ class BisectionController:
             )
         return ids
 
+    def _r_ceiling(self, n: int) -> float:
+        """The largest r with N' = ``n`` outside the search: ``r_fine`` with every available
+        camera, else ``r_max``."""
+        c = self.config
+        if c.r_fine is None or n < self.num_available:
+            return c.r_max
+        return c.r_fine
+
     def _task(self, r: float, n: int, phase: Phase) -> TaskConfig:
         c = self.config
-        r = min(max(r, c.r_min), c.r_max)
         n = min(max(n, c.min_cameras), self.num_available)
+        r = min(max(r, c.r_min), self._r_ceiling(n) if phase == "adjust" else c.r_max)
         ids = self.camera_ids(n)
         return TaskConfig(scale=round(r, 6), camera_ids=ids, num_cameras=n, phase=phase)
 
@@ -621,16 +642,18 @@ class BisectionController:
         elif avg > dl and t > dl:
             want = -1
         r_old = s.r_star
+        ceiling = self._r_ceiling(s.n_star)
         step = c.adjust_step
         if want and c.adjust_max_step > c.adjust_step and avg > 0:
             # T ~ a + b r^2: r sqrt(dl / avg) would be right if a were 0 (with a > 0 it
-            # undershoots, never overshoots).
+            # undershoots, never overshoots). Above r = 1 the steps grow with r (the same
+            # relative change).
             proportional = abs(r_old * (math.sqrt(dl / avg) - 1.0))
-            step = min(max(step, proportional), c.adjust_max_step)
-        s.r_star = min(max(r_old + want * step, c.r_min), c.r_max)
+            step = min(max(step, proportional), c.adjust_max_step * max(1.0, r_old))
+        s.r_star = min(max(r_old + want * step, c.r_min), ceiling)
         s.r_star = round(s.r_star, 6)
         at_min = r_old <= c.r_min + _EPS
-        at_max = r_old >= c.r_max - _EPS
+        at_max = r_old >= ceiling - _EPS
         # At r_min the count goes on while the window's average misses: a task that meets
         # the deadline by chance (its time swings with the load) does not reset it, or a
         # floor that misses on average could wait for a search with fewer cameras for ever

@@ -40,6 +40,12 @@ class RuntimeConfig:
     """After the search the controller steers the average task time to this share of the
     deadline (the paper: 1.0; measured there on the simulator: half the tasks miss; 0.95
     keeps the average within the deadline under timing noise, see docs/OPTIMIZER.md)."""
+    fine_foreground: bool = True
+    """When the golden configuration leaves part of the deadline unused, the minor
+    adjustment raises r above 1 (every camera): the foreground's depth maps finer than the
+    golden configuration's, up to the frames' own pixels (``ControllerConfig.r_fine``,
+    ``pipeline.task_configs``; rigs whose golden foreground densifies at level 0, under
+    1280 px, have nothing finer). False: r stops at 1, as in the paper."""
     golden_timeout_s: float | None = None
     """How long the front-end waits, after publishing a task's cloud, for the back-end's
     golden reference of the online estimate; None = the deadline, at least 2 s."""

@@ -34,11 +34,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
+from edgerecon.config import MIN_CAMERAS
 from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
-from edgerecon.pipeline import TaskCancelled, num_objects, reconstruct_task
+from edgerecon.pipeline import TaskCancelled, num_objects, reconstruct_task, task_configs
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
@@ -382,19 +382,22 @@ class FrontEnd:
             job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
             return fg
 
+        task_config, split_config = task_configs(
+            plan.scale,
+            self.rig,
+            camera_ids=plan.camera_ids,
+            sparse_config=self.config.sparse,
+            dense_config=self.config.dense,
+            split_config=self.config.split,
+        )
         result = reconstruct_task(
             frames,
             self.rig,
             foreground,
-            ReconstructionConfig(
-                scale=plan.scale,
-                camera_ids=plan.camera_ids,
-                sparse_config=self.config.sparse,
-                dense_config=self.config.dense,
-            ),
+            task_config,
             background=background,
             bg_version=bg_version.counter,
-            split_config=self.config.split,
+            split_config=split_config,
             sparse_scope=self._sparse_scope(plan.phase, want_golden),
             cancel=guard.cancel,
         )

@@ -110,6 +110,9 @@ class TaskMetrics:
     """"ok", or "failed" (the task was skipped; see ``error``)."""
     phase: str = ""
     scale: float = 0.0
+    """Image scale r of the task; above 1 (``RuntimeConfig.fine_foreground``): the golden
+    camera set with the foreground's depth maps finer than the golden task's
+    (``pipeline.task_configs``)."""
     num_cameras: int = 0
     camera_ids: list[int] = field(default_factory=list)
     critical_path_s: float = 0.0

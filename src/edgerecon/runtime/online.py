@@ -24,6 +24,7 @@ from typing import Any
 
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
+from edgerecon.pipeline import fine_scale_limit
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.engine import (
     EmbeddedEngine,
@@ -67,8 +68,13 @@ def make_controller(
             )
             ctrl.set_deadline(config.deadline_s)
         return ctrl
+    fine = (
+        fine_scale_limit(dataset.rig, config.dense, config.split)
+        if config.fine_foreground
+        else None
+    )
     cc = controller_config or ControllerConfig(
-        deadline_s=config.deadline_s, adjust_target=config.adjust_target
+        deadline_s=config.deadline_s, adjust_target=config.adjust_target, r_fine=fine
     )
     return BisectionController(cc, None, n)
 
