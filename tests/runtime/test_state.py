@@ -4,12 +4,15 @@ references, and the output folder (lock, overwrite, torn lines)."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
 
 import numpy as np
 import pytest
 
+from edgerecon.cli._config import online_configs
+from edgerecon.dense import DenseConfig
 from edgerecon.io.ply import read_ply
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
 from edgerecon.runtime import FrameRange, SessionOptions, run_online
@@ -220,6 +223,28 @@ def _state(ds, frames=(0, 4, 1)):
         tasks_done=2,
         frontend=FrontEndState(controller={"format": "edgerecon-fixed"}),
     )
+
+
+def test_the_controller_goes_finer_than_golden_only_as_far_as_the_rig_allows(tiny):
+    """``make_controller``: r_fine is the rig's limit (2 where the golden foreground
+    densifies at level 1), a given one capped at it, none with ``fine_foreground`` off or on
+    a rig densified at level 0; ``run``'s controller takes the runtime's adjust_target unless
+    its [controller] table sets one."""
+    ds = tiny[0]
+    level1 = runtime_config(dense=DenseConfig(min_resolution_px=0))
+    assert make_controller(ds, level1).config.r_fine == 2.0
+    given = ControllerConfig(deadline_s=20.0, r_fine=5.0)
+    assert make_controller(ds, level1, controller_config=given).config.r_fine == 2.0
+    given = ControllerConfig(deadline_s=20.0, r_fine=1.5)
+    assert make_controller(ds, level1, controller_config=given).config.r_fine == 1.5
+    off = runtime_config(dense=DenseConfig(min_resolution_px=0), fine_foreground=False)
+    assert make_controller(ds, off).config.r_fine is None
+    assert make_controller(ds, runtime_config()).config.r_fine is None  # 320x240: level 0
+    args = argparse.Namespace(deadline=2.0)
+    runtime, controller = online_configs(args, {})
+    assert controller.adjust_target == runtime.adjust_target == 0.95
+    _, controller = online_configs(args, {"controller": {"adjust_target": 0.9}})
+    assert controller.adjust_target == 0.9
 
 
 def test_resume_refuses_another_dataset_or_frame_range(tiny, tiny_dataset, tmp_path):

@@ -101,11 +101,15 @@ def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, 
         if hasattr(args, dest) and (given(args, dest) or dest not in rt):
             over[dest] = getattr(args, dest)
     runtime = build(RuntimeConfig, rt, where="runtime", overrides=over)
+    # The runtime's adjust_target unless the [controller] table sets its own.
+    ctrl_over: dict[str, Any] = {"deadline_s": runtime.deadline_s}
+    if "adjust_target" not in section(cfg, "controller"):
+        ctrl_over["adjust_target"] = runtime.adjust_target
     controller = build(
         ControllerConfig,
         section(cfg, "controller"),
         where="controller",
-        overrides={"deadline_s": runtime.deadline_s},
+        overrides=ctrl_over,
         exclude={"deadline_s"},
     )
     return runtime, controller

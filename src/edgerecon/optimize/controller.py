@@ -94,7 +94,9 @@ class ControllerConfig:
     climbs on into configurations finer than the golden one (the caller says what r > 1
     means; the online system: the foreground's depth maps at r / 2^L of the frames, where
     the golden configuration densifies at level L, ``pipeline.task_configs``). The search
-    (Algorithm 1) and the golden task stay in [r_min, r_max]. None (= r_max): off."""
+    (Algorithm 1) and the golden task stay in [r_min, r_max]. None (= r_max): off here;
+    the online system (``runtime.online.make_controller``) then takes the rig's limit, and
+    caps a given value at it, unless ``RuntimeConfig.fine_foreground`` is False."""
     adjust_window: int = 5
     """Tasks in the running average of the minor adjustment (0 = every task since the
     adjustment began, as in the paper; a short window oscillates less, see OPTIMIZER.md)."""

@@ -17,6 +17,7 @@ uninterrupted run would.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -52,7 +53,9 @@ def make_controller(
 ) -> BisectionController | FixedController:
     """The optimizer (Algorithm 1) or, with ``fixed=(scale, camera_ids)``, one configuration
     for every task (None camera ids = all). A saved controller takes ``config``'s deadline
-    (a changed one restarts its search)."""
+    (a changed one restarts its search). The controller's ``r_fine`` is the rig's
+    (``pipeline.fine_scale_limit``; a given one capped at it), None with
+    ``config.fine_foreground`` off."""
     n = len(dataset.rig)
     if fixed is not None:
         scale, ids = fixed
@@ -68,14 +71,16 @@ def make_controller(
             )
             ctrl.set_deadline(config.deadline_s)
         return ctrl
-    fine = (
-        fine_scale_limit(dataset.rig, config.dense, config.split)
-        if config.fine_foreground
-        else None
-    )
     cc = controller_config or ControllerConfig(
-        deadline_s=config.deadline_s, adjust_target=config.adjust_target, r_fine=fine
+        deadline_s=config.deadline_s, adjust_target=config.adjust_target
     )
+    # Above r_max: as far as the rig's foreground can get finer (``pipeline.task_configs``),
+    # at most a given r_fine, nothing with fine_foreground off.
+    limit = fine_scale_limit(dataset.rig, config.dense, config.split)
+    fine = limit if cc.r_fine is None else min(cc.r_fine, limit)
+    fine_or_none = fine if config.fine_foreground and fine > cc.r_max else None
+    if fine_or_none != cc.r_fine:
+        cc = dataclasses.replace(cc, r_fine=fine_or_none)
     return BisectionController(cc, None, n)
 
 

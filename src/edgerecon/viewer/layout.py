@@ -55,7 +55,7 @@ def task_panel(
         ("time index", str(m.time_index)),
         ("state", state),
         ("phase", m.phase or "-"),
-        ("r (image scale)", f"{m.scale:.2f}"),
+        ("r (image scale)", f"{m.scale:.2f}" + (" (finer than golden)" if m.scale > 1 else "")),
         ("N' (cameras)", f"{m.num_cameras}{of}: {names}"),
         ("latency", f"{m.critical_path_s:.2f} s / deadline {m.deadline_s:.2f} s ({met})"),
         ("F online", f(m.online_fscore)),
