@@ -125,6 +125,30 @@ def test_depth_range_brackets_the_box_surface(rig: Rig, box_hull) -> None:  # ty
     assert (near_map[v, u] == near).all() and (far_map[v, u] == far).all()
 
 
+def test_depth_range_with_wide_discs_covers_the_exact_one(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    """A view 12x finer than the masks: the voxels' discs are wider than the exact radius and
+    are drawn on a coarser grid. The ranges hold the exact ones (every exact pixel, nearer
+    or equal near, farther or equal far) and add at most a thin rim."""
+    import edgerecon.scene.hull as hull_module
+
+    hull, _ = box_hull
+    cam = rig[0].scaled(12.0)
+    fast = hull_depth_range(hull, cam)
+    exact_limit = hull_module._EXACT_RADIUS_PX
+    try:
+        hull_module._EXACT_RADIUS_PX = 10**6  # every disc exact
+        exact = hull_depth_range(hull, cam)
+    finally:
+        hull_module._EXACT_RADIUS_PX = exact_limit
+    radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * cam.focal_px / np.nanmax(exact.far)
+    assert radius > exact_limit  # the coarse path ran
+    e, f = exact.mask, fast.mask
+    assert f[e].all()
+    assert (fast.near[e] <= exact.near[e] + 1e-6).all()
+    assert (fast.far[e] >= exact.far[e] - 1e-6).all()
+    assert (f & ~e).sum() < 0.1 * e.sum()
+
+
 def test_hull_silhouette_matches_the_masks(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
     hull, masks = box_hull
     for cam, m in zip(rig, masks, strict=True):
