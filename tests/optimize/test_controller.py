@@ -453,6 +453,25 @@ def test_a_workload_that_outgrows_the_fastest_configuration_is_reported_once(cap
     assert "the fastest one (r=0.30, N'=3)" in said[0].getMessage()
 
 
+def test_a_deadline_above_the_finest_configuration_is_reported_once(caplog):
+    """The golden configuration takes half the deadline and nothing finer exists (no
+    r_fine): said once, not every task; with r_fine the climb uses the time instead."""
+    sim = SimulatorConfig(num_cameras=5, time_noise=0.0, quality_noise=0.0)
+    model = PipelineModel(sim)
+    deadline = 2.0 * model.time_s(1.0, 5)
+    for r_fine, said in ((None, 1), (4.0, 0)):
+        caplog.clear()
+        ctrl = BisectionController(ControllerConfig(deadline_s=deadline, r_fine=r_fine), LOWEST, 5)
+        with caplog.at_level("WARNING", logger="edgerecon.optimize.controller"):
+            for i in range(40):
+                c = ctrl.next_config()
+                ctrl.observe(model.time_s(c.scale, c.num_cameras, i), 1.0)
+        lines = [r.message for r in caplog.records if "above the finest" in r.message]
+        assert len(lines) == said, (r_fine, lines)
+        if said:
+            assert "50 % of it stays unused" in lines[0]
+
+
 def test_a_floor_that_misses_on_average_searches_fewer_cameras_despite_a_lucky_task():
     # The search settles on the fastest scale with 4 cameras; then the tasks at r_min take
     # 1.25x the deadline, one in four meets it by chance. The saturation trigger counts the

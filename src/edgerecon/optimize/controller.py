@@ -224,6 +224,8 @@ class _State:
     feasible: bool = True
     infeasible_reported: bool = False
     """The user was told once that no configuration meets the deadline."""
+    slack_reported: bool = False
+    """The user was told once that the finest configuration leaves the deadline unused."""
     r_star: float = 1.0
     n_star: int = 0
     r_searched: float = 1.0
@@ -681,6 +683,24 @@ class BisectionController:
                 len(s.adjust_times) if c.adjust_window else s.adjust_count,
             )
             s.infeasible_reported = True
+        if (
+            s.saturation_high >= c.research_window
+            and s.n_star >= self.num_available
+            and not s.slack_reported
+        ):
+            # Nothing finer to run: the deadline is above the slowest configuration. Said
+            # once per run, as an infeasible one.
+            logger.warning(
+                "the deadline of %.3fs is above the finest configuration (r=%.2f with all %d "
+                "cameras averaged %.3fs over the last %d tasks): %.0f %% of it stays unused",
+                c.deadline_s,
+                s.r_star,
+                s.n_star,
+                avg,
+                len(s.adjust_times) if c.adjust_window else s.adjust_count,
+                100.0 * (1.0 - avg / c.deadline_s),
+            )
+            s.slack_reported = True
         reason = self._research_reason()
         if reason is not None:
             self._begin_search(golden=False, reason=reason)
