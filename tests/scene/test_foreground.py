@@ -150,6 +150,28 @@ def test_reduced_frames_give_the_same_masks(scene, segmented) -> None:  # type: 
         np.testing.assert_array_equal(sa.mean, sb.mean)
 
 
+def test_threads_give_the_same_masks(scene, segmented) -> None:  # type: ignore[no-untyped-def]
+    """The per-camera steps (background subtraction, photo check, refinement, objects) on two
+    threads or one after the other: the same masks, hull and objects."""
+    sc, _, frames = scene
+    fg, _ = segmented
+    one = RigForeground.from_states(
+        sc.rig, fg.states(), dataclasses.replace(fg.config, num_threads=1)
+    )
+    two = RigForeground.from_states(
+        sc.rig, fg.states(), dataclasses.replace(fg.config, num_threads=2)
+    )
+    for f in frames[2:5]:
+        fs = FrameSet(time_index=f.time_index, images=f.images)
+        a, b = one.segment(fs), two.segment(fs)
+        assert "photo_check" in a.timings.to_dict()
+        for ma, mb in zip(a.masks, b.masks, strict=True):
+            np.testing.assert_array_equal(ma, mb)
+        for oa, ob in zip(a.objects, b.objects, strict=True):
+            assert oa is not None and ob is not None
+            np.testing.assert_array_equal(oa.labels, ob.labels)
+
+
 def test_hull_fill_adds_only_unsettled_pixels_inside_the_masks_outline(scene) -> None:  # type: ignore[no-untyped-def]
     """Models learned from the stream (the actors walk through the learning frames): the
     fill adds foreground only where the learning frames disagreed, never removes any, and
@@ -242,6 +264,7 @@ def test_refined_pixels_that_bring_two_objects_together_are_dropped() -> None:
         {"refine_subsample": 0},
         {"refine_eps": 0.0},
         {"refine_min_push": 0.5},
+        {"num_threads": 0},
     ],
 )
 def test_refinement_settings_are_checked(field: dict[str, float]) -> None:

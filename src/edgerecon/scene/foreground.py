@@ -58,6 +58,7 @@ from edgerecon.scene.hull import (
 )
 from edgerecon.scene.masks import guided_mask, labels_joining
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
+from edgerecon.scene.parallel import per_camera
 from edgerecon.types import (
     DataError,
     DepthMap,
@@ -151,6 +152,10 @@ class ForegroundConfig:
     refine_min_push: float = 0.0
     """A pixel changes only where the colours move its filtered value more than this away
     from what the filter gives without colour (0: any push across 0.5)."""
+    num_threads: int = 2
+    """Cameras whose per-camera steps (background subtraction, outline refinement, objects)
+    run at once, on threads (OpenCV and NumPy release the interpreter lock); 1 = one after
+    the other."""
     static_check: bool = False
     """Drop the mask pixels that show the static scene as other cameras see it uncovered
     (``ghosts.static_consistent_masks``): ghosts where an actor stood while a model learned
@@ -186,7 +191,13 @@ class ForegroundConfig:
             value = getattr(self, name)
             if value is not None and value < 0:
                 raise ValueError(f"ForegroundConfig.{name} must be >= 0 or None, got {value}")
-        for name in ("refine_subsample", "refine_passes", "hull_fill_close_px", "bootstrap_frames"):
+        for name in (
+            "refine_subsample",
+            "refine_passes",
+            "hull_fill_close_px",
+            "bootstrap_frames",
+            "num_threads",
+        ):
             value = getattr(self, name)
             if value < 1:
                 raise ValueError(f"ForegroundConfig.{name} must be >= 1, got {value}")
@@ -431,8 +442,11 @@ class RigForeground:
         starts from, and what ``update`` reuses)."""
         self._check(frames)
         return tuple(
-            None if im is None else model.segment(im)
-            for model, im in zip(self.models, frames.images, strict=True)
+            per_camera(
+                lambda pair: None if pair[1] is None else pair[0].segment(pair[1]),
+                list(zip(self.models, frames.images, strict=True)),
+                self.config.num_threads,
+            )
         )
 
     def segment(self, frames: FrameSet) -> ForegroundResult:
@@ -527,6 +541,7 @@ class RigForeground:
                         unsettled,
                         cfg.photo,
                         labels=labels,
+                        num_threads=cfg.num_threads,
                     )
             if cfg.phantom_explained_px is not None:
                 with timings.stage("phantom_explained"):
@@ -562,7 +577,11 @@ class RigForeground:
                 for _ in range(cfg.refine_passes):
                     masks = self._refined(masks, segs, base)
         with timings.stage("objects"):
-            found = [None if m is None else find_objects(m, cfg.objects) for m in masks]
+            found = per_camera(
+                lambda m: None if m is None else find_objects(m, cfg.objects),
+                list(masks),
+                cfg.num_threads,
+            )
             if refine:
                 masks, found = _unglued(masks, found, base, cfg.objects)
             objects = tuple(found)
@@ -590,10 +609,12 @@ class RigForeground:
         cfg = self.config
         assert cfg.refine_px is not None
         refine_px = cfg.refine_px
-        return [
-            m
-            if m is None or sg is None or sg.image is None
-            else guided_mask(
+
+        def one(c: int) -> Mask | None:
+            m, sg = masks[c], segs[c]
+            if m is None or sg is None or sg.image is None:
+                return m
+            return guided_mask(
                 m,
                 sg.image,
                 refine_px,
@@ -602,8 +623,8 @@ class RigForeground:
                 groups=base.of(c),
                 subsample=cfg.refine_subsample,
             )
-            for c, (m, sg) in enumerate(zip(masks, segs, strict=True))
-        ]
+
+        return per_camera(one, list(range(len(masks))), cfg.num_threads)
 
     def update(
         self,

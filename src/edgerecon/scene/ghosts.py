@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
 from edgerecon.scene.masks import disk
+from edgerecon.scene.parallel import per_camera
 from edgerecon.types import DataError, DepthMap, Mask, Points3D
 
 
@@ -207,9 +208,11 @@ def photo_consistent_masks(
     config: PhotoCheckConfig | None = None,
     *,
     labels: NDArray[np.integer] | None = None,
+    num_threads: int = 1,
 ) -> tuple[list[Mask | None], list[int]]:
     """The masks without their candidate pixels that no point of the hull explains, and per
-    camera how many pixels were removed (see the module docstring).
+    camera how many pixels were removed (see the module docstring). The cameras' work runs
+    on ``num_threads`` threads (the same masks).
 
     ``points`` (N, 3) are samples of the hull and ``sizes`` (N,) their spacing (or one
     number for all). A point is compared between two cameras when it lies in both images
@@ -250,18 +253,20 @@ def photo_consistent_masks(
         return out, removed
     # What does not change between passes: where each point lands and its colour there.
     k = config.blur_px
-    seen: list[_Seen | None] = []
-    for cam, mask, im in zip(cameras, out, images, strict=True):
+
+    def sees(c: int) -> _Seen | None:
+        cam, mask, im = cameras[c], out[c], images[c]
         if mask is None or im is None:
-            seen.append(None)
-            continue
+            return None
         colour = np.asarray(cv2.blur(np.asarray(im, np.float32), (k, k)), np.float32)
         uv, depth, u, v, inside = _nearest_pixels(cam, pts)
         contrast = _local_contrast(im, config.texture_px)[v, u] if config.texture_px else None
         # Channel-first: the per-point tests are sums over three rows, not reductions over a
         # trailing axis of 3 (10x faster).
         colours = np.ascontiguousarray(colour[v, u].T)
-        seen.append(_Seen(uv, depth, u, v, inside, colours, contrast))
+        return _Seen(uv, depth, u, v, inside, colours, contrast)
+
+    seen = per_camera(sees, list(range(n)), num_threads)
     limit: float | None = None
     keep = np.ones(len(pts), bool)
     previous = out
@@ -280,12 +285,17 @@ def photo_consistent_masks(
                 break
         previous = list(out)
         out, gone, limit = _photo_pass(
-            seen, keep, size, labels, cameras, out, candidates, config, limit, carved
+            seen, keep, size, labels, cameras, out, candidates, config, limit, carved, num_threads
         )
         removed = [a + b for a, b in zip(removed, gone, strict=True)]
         if limit is None or not any(gone):
             break
     return out, removed
+
+
+#: One camera's pass of the photo check: best colour distance per pixel, the pixels judged,
+#: those with a point of the same tint and (later passes) those judged again.
+_Judgement = tuple[NDArray[np.float32] | None, Mask | None, Mask | None, Mask | None]
 
 
 def _photo_pass(
@@ -299,6 +309,7 @@ def _photo_pass(
     config: PhotoCheckConfig,
     limit: float | None,
     carved: NDArray[np.bool_] | None = None,
+    num_threads: int = 1,
 ) -> tuple[list[Mask | None], list[int], float | None]:
     """One pass of ``photo_consistent_masks`` over the ``keep`` points: the masks, the
     pixels removed per camera and the colour limit (None: too few pixels to set it,
@@ -306,7 +317,9 @@ def _photo_pass(
     take the first one's ``limit`` and judge again only the candidates still in the masks
     that a carved point covered (the others' points did not change); the colour ratios are
     estimated again from the points left (the carved ones skewed them: hd4, 20 tasks,
-    moving IoU 0.811 with the first pass's ratios, 0.815 with new ones)."""
+    moving IoU 0.811 with the first pass's ratios, 0.815 with new ones). The cameras run on
+    ``num_threads`` threads; the ratios of every pair come first, each from the lower
+    camera's side, so that the masks do not depend on the threads' order."""
     ratios: dict[tuple[int, int], NDArray[np.float32] | None] = {}
     n = len(cameras)
     out = list(masks)
@@ -328,10 +341,21 @@ def _photo_pass(
     judged: list[Mask | None] = [None] * n
     tint: list[Mask | None] = [None] * n  # a point in the same tint (another exposure)
     opened: list[Mask | None] = [None] * n  # later passes: the pixels judged again
-    for c, cam in enumerate(cameras):
+    if config.calibrate:
+        for c in range(n):
+            for o in range(c + 1, n):
+                here, there = views[c], views[o]
+                if here is not None and there is not None:
+                    ratio = _colour_ratio(here, there, config)
+                    ratios[c, o] = ratio
+                    ratios[o, c] = None if ratio is None else 1.0 / ratio
+
+    def judge(c: int) -> _Judgement:
+        cam = cameras[c]
         here, mask, cand = views[c], out[c], candidates[c]
         if here is None or mask is None or not mask.any():
-            continue
+            return None, None, None, None
+        opened_c: Mask | None = None
         (idx,) = np.nonzero(here.inside)
         radius = config.footprint * size[idx] * cam.focal_px / np.maximum(here.at.depth[idx], 1e-9)
         if not first and len(idx):
@@ -341,19 +365,19 @@ def _photo_pass(
             assert sc is not None and carved is not None
             (gone_idx,) = np.nonzero(sc.inside & carved)
             if cand is None or len(gone_idx) == 0:
-                continue
+                return None, None, None, None
             gone_r = config.footprint * size[gone_idx] * cam.focal_px
             gone_r = gone_r / np.maximum(sc.depth[gone_idx], 1e-9)
             open_ = mask & np.asarray(cand, bool) & _splat(mask.shape, sc.uv[gone_idx], gone_r)
             if not open_.any():
-                continue
-            opened[c] = open_
+                return None, None, None, None
+            opened_c = open_
             reach = int(np.clip(np.ceil(radius.max()), 0, _MAX_FOOTPRINT_PX))
             near = cv2.dilate(open_.view(np.uint8), disk(reach)).view(bool)
             on = near[sc.v[idx], sc.u[idx]]
             idx, radius = idx[on], radius[on]
         if len(idx) == 0:
-            continue
+            return None, None, None, opened_c
         mine = here.at.colour[:, idx]
         vouch = np.zeros(len(idx), bool)
         dist = np.full(len(idx), np.inf, np.float32)
@@ -367,10 +391,6 @@ def _photo_pass(
             colour = there.at.colour[:, idx]
             if config.calibrate:
                 # The ratio comes from every point both cameras hold.
-                if (c, o) not in ratios:
-                    ratio = _colour_ratio(here, there, config)
-                    ratios[c, o] = ratio
-                    ratios[o, c] = None if ratio is None else 1.0 / ratio
                 ratio = ratios[c, o]
                 if ratio is not None:
                     colour = colour * ratio[:, None]
@@ -387,11 +407,17 @@ def _photo_pass(
             vouch |= there.alone[idx]
             np.minimum(dist, np.where(both, d, np.inf), out=dist)
         if not vouch.any():
-            continue
+            return None, None, None, opened_c
         uv = here.at.uv[idx]
-        best[c] = _splat_min(mask.shape, uv, radius, dist)
-        tint[c] = _splat(mask.shape, uv[tinted], radius[tinted])
-        judged[c] = _splat(mask.shape, uv[vouch], radius[vouch]) & mask
+        return (
+            _splat_min(mask.shape, uv, radius, dist),
+            _splat(mask.shape, uv[vouch], radius[vouch]) & mask,
+            _splat(mask.shape, uv[tinted], radius[tinted]),
+            opened_c,
+        )
+
+    for c, judgement in enumerate(per_camera(judge, list(range(n)), num_threads)):
+        best[c], judged[c], tint[c], opened[c] = judgement
     if limit is None:
         limit = _limit(best, judged, candidates, config)
         if limit is None:
