@@ -40,6 +40,7 @@ CameraMappingLike = (
 
 _EPS = 1e-9
 _R_HISTORY = 500  # adjusted r values kept for the drift trigger
+_FINE_CLIMB = 0.25  # above r_max, r grows by at most this share per task
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -648,7 +649,12 @@ class BisectionController:
         r_old = s.r_star
         ceiling = self._r_ceiling(s.n_star)
         step = c.adjust_step
-        if want and c.adjust_max_step > c.adjust_step and avg > 0:
+        if want > 0 and r_old >= c.r_max - _EPS and ceiling > c.r_max and t > 0:
+            # Climbing above r_max into the time the golden configuration leaves: from the
+            # last task's time (measured at r_old; the window's mean lags behind a climb and
+            # would overshoot), r sqrt(dl / t), at most a quarter more per task.
+            step = min(max(step, r_old * (math.sqrt(dl / t) - 1.0)), _FINE_CLIMB * r_old)
+        elif want and c.adjust_max_step > c.adjust_step and avg > 0:
             # T ~ a + b r^2: r sqrt(dl / avg) would be right if a were 0 (with a > 0 it
             # undershoots, never overshoots). Above r = 1 the steps grow with r (the same
             # relative change).
