@@ -45,6 +45,14 @@ def test_figures_plot_the_runs_numbers(tmp_path):
     assert rows["tasks / failed / degraded"].startswith("6 / 1 / ")
 
 
+def test_configurations_finer_than_golden_fit_the_scale_axis(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=2)
+    append_task(run, task_metrics(2, scale=1.6), None)
+    ax_r, _ = figure("configuration", load_runs([run])).axes
+    assert np.allclose(ax_r.lines[0].get_ydata(), [1.0, 0.9, 1.6])
+    assert ax_r.get_ylim()[1] >= 1.6 and "finer than golden" in ax_r.get_ylabel()
+
+
 def test_several_runs_share_a_figure_labelled_by_deadline(tmp_path):
     a = write_run(tmp_path / "a", num_tasks=3)
     b = tmp_path / "b"

@@ -154,8 +154,15 @@ def plot_configuration(ax_r: Axes, ax_n: Axes, runs: Sequence[RunData]) -> None:
         x = [m.task for m in ok]
         ax_r.step(x, [m.scale for m in ok], where="mid", color=color, label=run.label)
         ax_n.step(x, [m.num_cameras for m in ok], where="mid", color=color)
-    ax_r.set_ylabel("image scale r")
-    ax_r.set_ylim(0, 1.05)
+    scales = [m.scale for run in runs for m in run.ok]
+    top = max([1.0, *scales])
+    if top > 1.0:
+        # Above 1: the golden camera set with a finer foreground than the golden task's.
+        ax_r.axhline(1.0, color="0.6", linewidth=0.8, linestyle=":")
+        ax_r.set_ylabel("image scale r (> 1: finer than golden)")
+    else:
+        ax_r.set_ylabel("image scale r")
+    ax_r.set_ylim(0, top + 0.05)
     ax_n.set_ylabel("cameras N'")
     ax_n.set_xlabel("task")
     from matplotlib.ticker import MaxNLocator
