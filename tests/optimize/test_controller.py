@@ -191,6 +191,28 @@ def test_finer_configurations_only_with_every_camera_and_back_down_under_load():
         ControllerConfig(deadline_s=1.0, r_fine=0.9)
 
 
+def test_above_r_max_r_follows_the_workload_without_re_searching():
+    """The golden configuration leaves time; the workload then falls by 40 % and comes back:
+    above r_max, r follows it (down to r_max at the most) with no re-search (a search could
+    only start from r_max with every camera)."""
+    sim = SimulatorConfig(
+        num_cameras=5, time_noise=0.05, quality_noise=0.0, load_steps=((40, 0.6), (80, 1.0))
+    )
+    model = PipelineModel(sim)
+    deadline = 1.6 * model.time_s(1.0, 5)
+    ctrl = BisectionController(ControllerConfig(deadline_s=deadline, r_fine=2.0), LOWEST, 5)
+    rng = np.random.default_rng(1)
+    scales = []
+    for i in range(120):
+        c = ctrl.next_config()
+        scales.append(c.scale)
+        t, q = model.sample(c.scale, c.num_cameras, i, rng)
+        ctrl.observe(t, 1.0 if c.phase == "golden" else q)
+    assert ctrl.num_searches == 1, ctrl.events
+    assert np.mean(scales[60:80]) > np.mean(scales[20:40]) + 0.1 > 1.1
+    assert all(s >= 1.0 for s in scales[1:])
+
+
 def test_a_noisy_golden_task_is_measured_once_more():
     # The run's first task shares the machine with the back-end's first work: a golden task
     # within baseline_confirm x the deadline is measured again before the search starts.

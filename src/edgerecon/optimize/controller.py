@@ -730,7 +730,10 @@ class BisectionController:
             # and before the recent 2w; a sustained change moves the recent mean away from it
             reference = float(np.mean(hist[2 * w : -2 * w]))
             recent = float(np.mean(hist[-2 * w :]))
-            if abs(recent - reference) >= c.research_drift - _EPS:
+            # Above r_max (every camera, finer than golden) r follows the workload: no search
+            # can do better than what it would start from, r_max with every camera.
+            finer = min(reference, recent) >= c.r_max - _EPS
+            if abs(recent - reference) >= c.research_drift - _EPS and not finer:
                 return "drift"
         if c.research_saturation:
             if s.saturation_low >= c.research_window and s.n_star > c.min_cameras and s.feasible:
