@@ -430,7 +430,8 @@ def foreground_dense_config(
     (foreground is never floor, and a plane fitted to the tops of the actors' heads would cut
     away everything below them)."""
     config = config or SplitPipelineConfig()
-    over: dict[str, object] = {"ground_completion": False}
+    # Never floor; and a cost that falls with r (no exhaustive sweep of small images).
+    over: dict[str, object] = {"ground_completion": False, "sweep_small_exhaustive": False}
     if config.fg_refine_median_px is not None:
         over["refine_median_px"] = config.fg_refine_median_px
     if config.fg_refine_median_rel is not None:

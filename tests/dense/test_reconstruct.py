@@ -220,3 +220,27 @@ def test_prepared_views_know_their_frames_whatever_the_rounding(scale: float) ->
         assert working_camera(view, DenseConfig()).size == view.camera.scaled(0.5).size
     with pytest.raises(ValueError, match="source_size"):
         dataclasses.replace(view, source_size=(1920, 1080))
+
+
+def test_small_images_are_swept_exhaustively_except_for_the_foreground():
+    """A 192x108 working image (its first octave under the sweep's 120 px): whole scenes sweep
+    it at its own size (``sweep_small_exhaustive``), the foreground at a level resized to
+    120 px, so that its cost falls with the image scale."""
+    from edgerecon.dense.depth import build_pyramid
+    from edgerecon.pipeline import foreground_dense_config
+
+    cam = ring_rig(3, width=192, height_px=108, focal_px=150.0).cameras[0]
+    grey = np.random.default_rng(0).uniform(0, 255, (108, 192)).astype(np.float32)
+    whole = build_pyramid(0, cam, grey, 3, 120)
+    assert [c.width for c in whole.cameras] == [192]
+    fg = foreground_dense_config(DenseConfig())
+    assert not fg.sweep_small_exhaustive and DenseConfig().sweep_small_exhaustive
+    small = build_pyramid(0, cam, grey, 3, 120, small_exhaustive=False)
+    assert [c.width for c in small.cameras] == [192, 120]
+    assert small.greys[1].shape == (small.cameras[1].height, 120)
+    # Larger images: the same pyramid either way (320 px: octave 160, then nothing).
+    big = ring_rig(3, width=320, height_px=180, focal_px=250.0).cameras[0]
+    g2 = np.zeros((180, 320), np.float32)
+    a = build_pyramid(0, big, g2, 3, 120)
+    b = build_pyramid(0, big, g2, 3, 120, small_exhaustive=False)
+    assert [c.width for c in a.cameras] == [c.width for c in b.cameras] == [320, 160]

@@ -33,6 +33,14 @@ class DenseConfig:
     side where the next octave would be smaller and the previous one (not the working image
     itself) is over 1.5x larger (1920x1080 at level 1: the octave 120x68; 1536x864: 120x68
     instead of the octave 192x108, which made r = 0.8 slower than r = 1)."""
+    sweep_small_exhaustive: bool = True
+    """Working images under twice ``sweep_min_side_px`` (whose first octave would be smaller
+    than it) are swept at their own resolution, exhaustively, instead of at a level resized
+    to ``sweep_min_side_px``: better depths for whole scenes at small scales (demo scene at
+    r = 0.6: golden F 0.514 against 0.467), but such a sweep costs more than the resized
+    level of a larger image (caliscope_charuco's foreground at r = 0.3, 192x108 depth maps:
+    0.33 s against 0.26 s at r = 0.4). The foreground turns it off
+    (``pipeline.foreground_dense_config``): its cost must fall with r for the controller."""
     max_source_views: int = 4
     """At most this many source views are matched against each reference view, chosen
     together for the share of the reference's surfaces they cover (see ``min_source_gain``)."""

@@ -126,13 +126,20 @@ def ncc_threshold(
 
 
 def build_pyramid(
-    camera_id: int, camera: Camera, grey: F32, levels: int, top_side: int | None = None
+    camera_id: int,
+    camera: Camera,
+    grey: F32,
+    levels: int,
+    top_side: int | None = None,
+    *,
+    small_exhaustive: bool = True,
 ) -> ViewPyramid:
     """Pyramid of up to ``levels`` levels below the working image ``grey`` of ``camera``:
     octaves, and with ``top_side`` a last level whose longer side is ``top_side`` pixels
-    where the next octave would be smaller and the previous one is at least an octave below
-    the working image and 1.5x larger than ``top_side`` (the plane sweep runs there: its cost
-    then follows the image scale instead of jumping fourfold between two octaves)."""
+    where the next octave would be smaller and the previous one is 1.5x larger than
+    ``top_side`` and, with ``small_exhaustive``, at least an octave below the working image
+    (the plane sweep runs there: its cost then follows the image scale instead of jumping
+    fourfold between two octaves)."""
     cams = [camera]
     greys = [grey]
     side = max(camera.width, camera.height)
@@ -140,7 +147,9 @@ def build_pyramid(
         scale = 0.5**level
         last = False
         if top_side is not None and side * scale < top_side:
-            if level == 1 or side * scale * 2 <= top_side * _TOP_LEVEL_MIN_RATIO:
+            if (small_exhaustive and level == 1) or side * scale * 2 <= (
+                top_side * _TOP_LEVEL_MIN_RATIO
+            ):
                 # The previous level is (nearly) the size asked for already, or it is the
                 # working image itself: small images are swept exhaustively there, which
                 # beat a coarser sweep + refinement (demo scene at r = 0.6: golden F 0.514

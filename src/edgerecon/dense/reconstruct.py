@@ -294,6 +294,7 @@ def reconstruct_dense(
                 to_grey(colors[i]),
                 config.coarse_levels,
                 config.sweep_min_side_px,
+                small_exhaustive=config.sweep_small_exhaustive,
             )
             for i in sorted(needed)
         }
