@@ -56,7 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
-from edgerecon.scene.masks import disk
+from edgerecon.scene.masks import disk, min_discs
 from edgerecon.scene.parallel import per_camera
 from edgerecon.types import DataError, DepthMap, Mask, Points3D
 
@@ -580,16 +580,7 @@ def _splat_min(
     vals = np.minimum(np.asarray(values, np.float32), np.float32(_BIG))
     for rr in np.unique(r):
         sel = r == rr
-        us, vs = u[sel], v[sel]
-        x0, y0 = max(int(us.min()) - rr, 0), max(int(vs.min()) - rr, 0)
-        x1, y1 = min(int(us.max()) + rr + 1, w), min(int(vs.max()) + rr + 1, h)
-        layer = np.full((y1 - y0) * (x1 - x0), _BIG, np.float32)
-        np.minimum.at(layer, (vs - y0) * (x1 - x0) + (us - x0), vals[sel])
-        layer2 = layer.reshape(y1 - y0, x1 - x0)
-        if rr > 0:
-            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(rr) + 1,) * 2)
-            layer2 = np.asarray(cv2.erode(layer2, disc, borderValue=_BIG), np.float32)
-        np.minimum(out[y0:y1, x0:x1], layer2, out=out[y0:y1, x0:x1])
+        min_discs(out, u[sel], v[sel], vals[sel], int(rr))
     out[out >= _BIG] = np.inf
     return out
 

@@ -35,7 +35,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from edgerecon.geometry.camera import Camera
-from edgerecon.scene.masks import fill_holes
+from edgerecon.scene.masks import fill_holes, min_discs
 from edgerecon.types import (
     BACKGROUND_LABEL,
     INFERRED,
@@ -1061,40 +1061,18 @@ def hull_depth_range(
     v = np.clip(np.rint(uv[:, 1]).astype(np.intp), 0, h - 1)
     z = depth.astype(np.float32)
     zn = np.full((h, w), np.inf, np.float32)
-    zf = np.full((h, w), -np.inf, np.float32)
+    zf = np.full((h, w), np.inf, np.float32)  # minus the far depth
     classes = np.searchsorted(_RADIUS_CLASSES, radius)
     for c in np.unique(classes):
         sel = classes == c
         r = int(_RADIUS_CLASSES[min(c, len(_RADIUS_CLASSES) - 1)])
-        # Only within the box of this class's discs (the actors cover a small part of the
-        # image: at a view's full resolution the whole-image filters took seconds).
-        us, vs, zs = u[sel], v[sel], z[sel]
-        x0, y0 = max(int(us.min()) - r, 0), max(int(vs.min()) - r, 0)
-        x1, y1 = min(int(us.max()) + r + 1, w), min(int(vs.max()) + r + 1, h)
-        bw, bh = x1 - x0, y1 - y0
         # Discs wider than _EXACT_RADIUS_PX (voxels near a camera, or a view much finer than
-        # the masks the hull was carved from) are drawn on a grid k times coarser and
-        # spread back: a filter's cost grows with its disc's area (one camera's 48-px discs
-        # took 1.5 s at 1824x1026). A fine pixel within r of a centre lies within
-        # r / k + 1 cells of the centre's cell, so the coarse discs cover the exact ones: the
-        # intervals only widen a little at the outline.
-        k = 1 if r <= _EXACT_RADIUS_PX else -(-r // _EXACT_RADIUS_PX)
-        rk = r if k == 1 else -(-r // k) + 1
-        cw, ch = -(-bw // k), -(-bh // k)
-        key = ((vs - y0) // k) * cw + (us - x0) // k
-        ln = np.full(ch * cw, np.inf, np.float32)
-        lf = np.full(ch * cw, -np.inf, np.float32)
-        np.minimum.at(ln, key, zs)
-        np.maximum.at(lf, key, zs)
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * rk + 1, 2 * rk + 1))
-        en = np.asarray(cv2.erode(ln.reshape(ch, cw), disc), np.float32)
-        ef = np.asarray(cv2.dilate(lf.reshape(ch, cw), disc), np.float32)
-        if k > 1:
-            en = np.repeat(np.repeat(en, k, axis=0), k, axis=1)[:bh, :bw]
-            ef = np.repeat(np.repeat(ef, k, axis=0), k, axis=1)[:bh, :bw]
-        box_n, box_f = zn[y0:y1, x0:x1], zf[y0:y1, x0:x1]
-        np.minimum(box_n, en, out=box_n)
-        np.maximum(box_f, ef, out=box_f)
+        # the masks the hull was carved from) on a coarser grid that covers them: the
+        # intervals only widen a little at the outline (one camera's 48-px discs took 1.5 s
+        # at 1824x1026 as exact whole-image filters).
+        min_discs(zn, u[sel], v[sel], z[sel], r, coarse_above=_EXACT_RADIUS_PX)
+        min_discs(zf, u[sel], v[sel], -z[sel], r, coarse_above=_EXACT_RADIUS_PX)
+    zf = -zf
     # (OpenCV's filters turn infinities into +-FLT_MAX.)
     valid = (zn < 1e30) & (zf > -1e30)
     near[valid] = zn[valid] - margin

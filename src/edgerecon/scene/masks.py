@@ -75,6 +75,41 @@ def disk(radius: int) -> NDArray[np.uint8]:
     )
 
 
+def min_discs(
+    out: NDArray[np.float32],
+    u: NDArray[np.intp],
+    v: NDArray[np.intp],
+    values: NDArray[np.float32],
+    radius: int,
+    coarse_above: int | None = None,
+) -> None:
+    """``out`` (H, W) lowered in place to the smallest of ``values`` over the discs of
+    ``radius`` around the pixels (u, v) (inside the image), working only within the discs'
+    box. With ``coarse_above``, discs wider than that are drawn on a grid k = ceil(radius /
+    coarse_above) times coarser and spread back: a fine pixel within ``radius`` of a centre
+    lies within radius / k + 1 cells of the centre's cell, so the coarse discs cover the
+    exact ones (a filter's cost grows with its disc's area)."""
+    if len(u) == 0:
+        return
+    h, w = out.shape[:2]
+    r = int(radius)
+    x0, y0 = max(int(u.min()) - r, 0), max(int(v.min()) - r, 0)
+    x1, y1 = min(int(u.max()) + r + 1, w), min(int(v.max()) + r + 1, h)
+    bw, bh = x1 - x0, y1 - y0
+    k = 1 if coarse_above is None or r <= coarse_above else -(-r // coarse_above)
+    rk = r if k == 1 else -(-r // k) + 1
+    cw, ch = -(-bw // k), -(-bh // k)
+    layer = np.full(ch * cw, np.inf, np.float32)
+    np.minimum.at(layer, ((v - y0) // k) * cw + (u - x0) // k, np.asarray(values, np.float32))
+    spread = layer.reshape(ch, cw)
+    if rk > 0:
+        spread = np.asarray(cv2.erode(spread, disk(rk)), np.float32)
+    if k > 1:
+        spread = np.repeat(np.repeat(spread, k, axis=0), k, axis=1)[:bh, :bw]
+    box = out[y0:y1, x0:x1]
+    np.minimum(box, spread, out=box)
+
+
 def remove_small_blobs(mask: Mask, min_area_px: int) -> Mask:
     """Drop 8-connected foreground regions with fewer than ``min_area_px`` pixels."""
     mask = np.asarray(mask, dtype=bool)
