@@ -159,7 +159,7 @@ def plot_configuration(ax_r: Axes, ax_n: Axes, runs: Sequence[RunData]) -> None:
     if top > 1.0:
         # Above 1: the golden camera set with a finer foreground than the golden task's.
         ax_r.axhline(1.0, color="0.6", linewidth=0.8, linestyle=":")
-        ax_r.set_ylabel("image scale r (> 1: finer than golden)")
+        ax_r.set_ylabel("r (> 1: finer than golden)")
     else:
         ax_r.set_ylabel("image scale r")
     ax_r.set_ylim(0, top + 0.05)
