@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from edgerecon.dense import kernels
@@ -309,3 +310,34 @@ def test_local_search_base_is_the_median_away_from_depth_edges():
     assert np.all(np.abs(base[:, 18:22] - clean[:, 18:22]) < 0.02 * clean[:, 18:22])
     # Kernel 0: the map itself (no copy).
     assert _median_base(noisy, 0, 0.05) is noisy
+
+
+def test_windows_inside_the_active_pixels_score_as_with_every_pixel_active():
+    """A row whose active span starts beyond the window radius, next to rows active further
+    left: the running sums of that row must start from its own windows (they subtracted a
+    column they never added, which gave NCCs far outside [-1, 1] along the whole row)."""
+    ref, src = _images()
+    h, w = ref.shape
+    mean, var, count = kernels.window_stats(ref, R0)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    a = np.zeros((1, 3, h, w), np.float32)
+    a[0, 0], a[0, 1], a[0, 2] = u + 0.3, v - 0.2, 1.0
+    active = np.ones((h, w), bool)
+    active[:12, :15] = False  # rows 0-11 start at x = 15, rows below at x = 0
+    args = (ref, mean, var, count, src[None].copy(), np.array([[w, h]], np.int64))
+
+    def scores(act: np.ndarray) -> np.ndarray:
+        out = np.empty((h, w), np.float32)
+        kernels.evaluate(
+            *args, np.ones((1, h, w), bool), act, a, np.zeros((1, 3), np.float32),
+            np.ones((h, w), np.float32), np.zeros((h, w), np.float32),
+            np.full((h, w), np.inf, np.float32), R0, 1, np.inf, out, 0, h,
+        )  # fmt: skip
+        return out
+
+    full, masked = scores(np.ones((h, w), bool)), scores(active)
+    inside = cv2.erode(active.astype(np.uint8), np.ones((2 * R0 + 1,) * 2, np.uint8)) > 0
+    inside &= full > -1
+    assert inside[8:12, 20:40].all()  # the rows whose windows reach the rows active further left
+    assert np.allclose(masked[inside], full[inside], atol=1e-4)
+    assert np.abs(masked[masked > -1]).max() <= 1.0 + 1e-4

@@ -255,7 +255,7 @@ def _scores(
             s1 = 0.0
             s2 = 0.0
             s3 = 0.0
-            for x in range(max(x0 - r, 0), min(x0 + r, w)):
+            for x in range(max(x0 - r - 1, 0), min(x0 + r, w)):
                 s0 += acc[s, 0, x]
                 s1 += acc[s, 1, x]
                 s2 += acc[s, 2, x]
