@@ -6,6 +6,7 @@ synthetic 7-camera 1920x1080 arc (written once to ``--synthetic-dir``, with grou
     python benchmarks/bench_dense.py --datasets utrecht4cam --scales 1 0.5 --repeat 3
     python benchmarks/bench_dense.py --datasets arc7 --scales 1 --masks 0.1 --json dense.json
     python benchmarks/bench_dense.py --datasets arc7 --render out/   # PNG views of the clouds
+    python benchmarks/bench_dense.py --datasets arc7 --scales 1 --devices cpu cuda  # GPU path
 
 Each row runs the golden pipeline of one task: sparse (``reconstruct_sparse``, its depth
 ranges feed the sweep) then dense (``reconstruct_dense``); "total s" is both. Times are the
@@ -17,7 +18,10 @@ Quality: synthetic -> precision / recall / F-score at 2 cm against the ground-tr
 seen by >= 2 cameras; utrecht4cam -> median |z| (mm) of the points within 100 mm of the
 floor (z = 0) and the number of floor points; temple -> share of points inside the published
 bounding box. ``--masks F`` adds rows where every view is masked to a disc covering the share
-F of the image around the scene's centre (the foreground pipeline's case).
+F of the image around the scene's centre (the foreground pipeline's case). ``--devices cpu
+cuda`` runs every row with the NCC scoring on the CPU kernels and on the GPU
+(``DenseConfig.device``; the cuda rows need a CUDA GPU) and adds each GPU row's F-score against
+its CPU row's cloud at 1 mm ("vs cpu").
 """
 
 from __future__ import annotations
@@ -166,6 +170,7 @@ def bench(
     stages = [r[3].timings.seconds for r in runs]
     row: dict[str, Any] = {
         "dataset": name,
+        "device": config.device,
         "scale": scale,
         "cameras": ",".join(map(str, cameras)),
         "size": f"{views[0].camera.width}x{views[0].camera.height}",
@@ -179,10 +184,11 @@ def bench(
         "sparse_points": runs[-1][4],
         "points": len(rec.cloud),
         "work_M": round(rec.stats["work"] / 1e6, 1),
+        "scoring": rec.stats.get("scoring"),
         **quality(name, rec, ref),
     }
     print(
-        f"{name:28s} r={scale:<4} cams={row['cameras']:14s} mask={mask_share} "
+        f"{name:28s} {row['scoring']} r={scale:<4} cams={row['cameras']:14s} mask={mask_share} "
         f"total={row['total_seconds']:6.2f}s dense={row['dense_seconds']:6.2f}s "
         f"cpu={row['dense_cpu_seconds']:6.2f}s pts={row['points']:7d} {_quality_text(row)} "
         f"{row['stages']}",
@@ -247,6 +253,11 @@ def _quality_text(r: dict[str, Any]) -> str:
     return ""
 
 
+def _unit_mm(name: str) -> float:
+    """Rig units per millimetre (utrecht4cam is in mm, the temple and the synthetic rigs in m)."""
+    return 1.0 if name == "utrecht4cam" else 1e-3
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -260,6 +271,10 @@ def main() -> None:
     parser.add_argument("--synthetic-dir", type=Path, default=Path("/tmp/edgerecon-bench"))
     parser.add_argument("--render", type=Path, help="write PNG renderings of the clouds here")
     parser.add_argument("--json", metavar="FILE", help="also write the rows as JSON")
+    parser.add_argument(
+        "--devices", nargs="+", default=["cpu"], choices=["cpu", "cuda", "auto"],
+        help="where the NCC scoring runs (DenseConfig.device), one row each",
+    )  # fmt: skip
     args = parser.parse_args()
     config = DenseConfig(num_threads=args.threads)
     rows = []
@@ -275,35 +290,44 @@ def main() -> None:
         if name == "middlebury_templeSparseRing":
             grid = [g for g in grid if g[0] == args.scales[0]]
         for scale, subset, share in grid:
-            row, rec = bench(
-                name,
-                rig,
-                frames,
-                ref,
-                scale,
-                subset,
-                config,
-                args.repeat,
-                not args.no_sparse,
-                share,
-            )
-            rows.append(row)
-            if args.render is not None:
-                args.render.mkdir(parents=True, exist_ok=True)
-                tag = f"{name}_r{scale}_c{len(subset)}" + (f"_m{share}" if share else "")
-                cv2.imwrite(str(args.render / f"{tag}.png"), render_cloud(rec.cloud, rig))
+            first: DenseReconstruction | None = None
+            for device in args.devices:
+                row, rec = bench(
+                    name,
+                    rig,
+                    frames,
+                    ref,
+                    scale,
+                    subset,
+                    dataclasses.replace(config, device=device),
+                    args.repeat,
+                    not args.no_sparse,
+                    share,
+                )
+                if first is None:
+                    first = rec
+                elif len(first.cloud) and len(rec.cloud):
+                    vs = evaluate_clouds(rec.cloud, first.cloud, [_unit_mm(name)])[0]
+                    row["fscore_vs_first_device_1mm"] = round(vs.fscore, 4)
+                rows.append(row)
+                if args.render is not None:
+                    args.render.mkdir(parents=True, exist_ok=True)
+                    tag = f"{name}_r{scale}_c{len(subset)}" + (f"_m{share}" if share else "")
+                    tag += f"_{device}" if len(args.devices) > 1 else ""
+                    cv2.imwrite(str(args.render / f"{tag}.png"), render_cloud(rec.cloud, rig))
     _print_table(
         f"dense reconstruction ({args.threads} threads, {os.cpu_count()} CPUs, "
         f"load {os.getloadavg()[0]:.1f})",
-        ["dataset", "r", "cameras", "size", "mask", "total s", "dense s", "CPU s", "depth s",
-         "consist. s", "ground s", "fusion s", "sparse pts", "points", "quality"],
+        ["dataset", "scoring", "r", "cameras", "size", "mask", "total s", "dense s", "CPU s",
+         "depth s", "consist. s", "ground s", "fusion s", "sparse pts", "points", "quality",
+         "vs cpu"],
         [
             [
-                r["dataset"], r["scale"], r["cameras"], r["size"], r["mask_share"],
+                r["dataset"], r["scoring"], r["scale"], r["cameras"], r["size"], r["mask_share"],
                 r["total_seconds"], r["dense_seconds"], r["dense_cpu_seconds"],
                 r["stages"].get("depth"), r["stages"].get("consistency"),
                 r["stages"].get("ground"), r["stages"].get("fusion"), r["sparse_points"],
-                r["points"], _quality_text(r),
+                r["points"], _quality_text(r), r.get("fscore_vs_first_device_1mm"),
             ]
             for r in rows
         ],

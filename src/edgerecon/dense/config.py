@@ -188,6 +188,12 @@ class DenseConfig:
     """Masks are grown by this many working pixels before cropping (window support)."""
     num_threads: int = 2
     """Reference views processed in parallel (OpenCV releases the GIL)."""
+    device: str = "auto"
+    """Where the depth maps' NCC scoring (the plane sweep and the refinement's hypothesis
+    scores, most of the dense stage's time) runs: "cpu" (the compiled CPU kernels), "cuda"
+    (a CUDA GPU through numba.cuda; an error without one) or "auto" (the GPU where numba
+    finds one, else the CPU). The rest of the stage stays on the CPU; the GPU's scores
+    agree with the CPU's to float rounding (``edgerecon.dense.gpu``)."""
 
     # ------------------------------------------------- precision filters (dense.filters)
     consistent_view_share: float = 0.0
@@ -287,6 +293,7 @@ class DenseConfig:
         need(self.min_sparse_points >= 1, "min_sparse_points", ">= 1")
         need(self.roi_margin_px >= 0, "roi_margin_px", ">= 0")
         need(self.num_threads >= 1, "num_threads", ">= 1")
+        need(self.device in ("cpu", "cuda", "auto"), "device", '"cpu", "cuda" or "auto"')
         need(0.0 <= self.consistent_view_share <= 1.0, "consistent_view_share", "in [0, 1]")
         need(0.0 <= self.max_conflict_share <= 1.0, "max_conflict_share", "in [0, 1]")
         need(-1.0 <= self.min_weak_ncc < 1.0, "min_weak_ncc", "in [-1, 1)")

@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.dense import kernels
+from edgerecon.dense import gpu, kernels
 from edgerecon.dense.config import DenseConfig
 from edgerecon.dense.cost import F32, as_f32
 from edgerecon.dense.threads import RowBands
@@ -456,17 +456,14 @@ def _run_rows(bands: RowBands | None, kernel: Callable[[int, int], None], height
 
 def _sweep(
     cam: Camera,
-    stats: _RefStats,
+    scorer: _Scorer,
     pairs: Sequence[_Pair],
     near: F32,
     far: F32,
     up: NDArray[np.float64] | None,
     config: DenseConfig,
-    src_ok: NDArray[np.bool_],
-    bands: RowBands | None = None,
 ) -> tuple[F32, F32, int, int]:
-    """Plane sweep over all families: (inverse depth, score, work, number of planes).
-    ``src_ok`` (S, h, w): where each source may score (``_epipolar_texture_ok``)."""
+    """Plane sweep over all families: (inverse depth, score, work, number of planes)."""
     h, w = cam.height, cam.width
     rays = _rays(cam)
     Kinv = np.linalg.inv(cam.K)
@@ -476,7 +473,6 @@ def _sweep(
     planes_total = 0
     w_lo = np.where(far > 0, 1.0 / np.maximum(far, 1e-30), np.inf).astype(np.float32)
     w_hi = np.where(near > 0, 1.0 / np.maximum(near, 1e-30), -np.inf).astype(np.float32)
-    srcs, sizes = _stack_sources(pairs)
     for fam in _families(cam, rays, up, config):
         lams = _plane_parameters(
             fam, rays, near, far, pairs, config.plane_step_px, config.max_planes
@@ -491,13 +487,10 @@ def _sweep(
         idx = np.zeros((h, w), np.int32)
         prev = np.full((h, w), -1.0, np.float32)
         nxt = np.full((h, w), -1.0, np.float32)
-        rows = functools.partial(
-            kernels.sweep,
-            stats.image, stats.mean, stats.var, stats.count, srcs, sizes, src_ok, stats.active, Hs,
-            lams.astype(np.float64), fam.nray, fam.usable, w_lo, w_hi, stats.radius,
-            config.ncc_top_k, config.ncc_top_gap, best, idx, prev, nxt,
+        scorer.sweep(
+            Hs, lams.astype(np.float64), fam.nray, fam.usable, w_lo, w_hi, config, best, idx,
+            prev, nxt,
         )  # fmt: skip
-        _run_rows(bands, rows, h)
         work += len(lams) * h * w * len(pairs)
         lam_best = _subplane(best, idx, prev, nxt, lams)
         inv = (fam.nray * lam_best).astype(np.float32)
@@ -594,26 +587,90 @@ def _sources(rays: NDArray[np.float32], pairs: Sequence[_Pair], ok: NDArray[np.b
     return _Sources(a=a, b=b, srcs=srcs, sizes=sizes, ok=ok)
 
 
-def _evaluate(
-    inv: F32,
-    src: _Sources,
-    stats: _RefStats,
-    config: DenseConfig,
-    w_lo: F32,
-    w_hi: F32,
-    bands: RowBands | None = None,
-) -> F32:
-    """Aggregated NCC of the per-pixel inverse depths ``inv`` (``kernels.evaluate``, scored
-    over the best ``config.ncc_top_k`` sources within ``config.ncc_top_gap``)."""
-    out = np.empty(inv.shape, np.float32)
-    rows = functools.partial(
-        kernels.evaluate,
-        stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes, src.ok,
-        stats.active, src.a, src.b, np.ascontiguousarray(inv, dtype=np.float32), w_lo, w_hi,
-        stats.radius, config.ncc_top_k, config.ncc_top_gap, out,
-    )  # fmt: skip
-    _run_rows(bands, rows, inv.shape[0])
-    return out
+class _Scorer:
+    """The NCC scoring of one level of one reference view: the plane sweep and the scores
+    of per-pixel hypotheses, by the compiled CPU kernels (row bands on the idle threads'
+    cores) or, where :func:`gpu.use_gpu` says so, on the GPU (``gpu.CudaScorer``; a GPU that
+    fails hands over to the CPU kernels for the rest of the process)."""
+
+    def __init__(
+        self, stats: _RefStats, src: _Sources, bands: RowBands | None, use_gpu: bool
+    ) -> None:
+        self.stats = stats
+        self.src = src
+        self.bands = bands
+        self.cuda: gpu.CudaScorer | None = None
+        if use_gpu:
+            try:
+                self.cuda = gpu.CudaScorer(
+                    stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes,
+                    src.ok, stats.active, stats.radius, src.a, src.b,
+                )  # fmt: skip
+            except Exception as exc:
+                gpu.report_failure(exc)
+
+    def _on_gpu(self) -> gpu.CudaScorer | None:
+        return self.cuda if self.cuda is not None and gpu.cuda_status()[0] else None
+
+    def sweep(
+        self,
+        Hs: NDArray[np.float64],
+        lams: NDArray[np.float64],
+        nray: F32,
+        usable: NDArray[np.bool_],
+        w_lo: F32,
+        w_hi: F32,
+        config: DenseConfig,
+        best: F32,
+        idx: NDArray[np.int32],
+        prev: F32,
+        nxt: F32,
+    ) -> None:
+        """``kernels.sweep`` of one plane family (updates best / idx / prev / nxt)."""
+        if (cuda := self._on_gpu()) is not None:
+            saved = [x.copy() for x in (best, idx, prev, nxt)]
+            try:
+                cuda.sweep(
+                    Hs, lams, nray, usable, w_lo, w_hi, config.ncc_top_k, config.ncc_top_gap,
+                    best, idx, prev, nxt,
+                )  # fmt: skip
+                return
+            except Exception as exc:
+                gpu.report_failure(exc)
+                for x, old in zip((best, idx, prev, nxt), saved, strict=True):
+                    x[...] = old
+        st, src = self.stats, self.src
+        rows = functools.partial(
+            kernels.sweep,
+            st.image, st.mean, st.var, st.count, src.srcs, src.sizes, src.ok, st.active, Hs,
+            lams, nray, usable, w_lo, w_hi, st.radius, config.ncc_top_k, config.ncc_top_gap,
+            best, idx, prev, nxt,
+        )  # fmt: skip
+        _run_rows(self.bands, rows, st.image.shape[0])
+
+    def evaluate(self, inv: F32, w_lo: F32, w_hi: F32, config: DenseConfig) -> F32:
+        """Aggregated NCC of the per-pixel inverse depths ``inv`` (``kernels.evaluate``)."""
+        inv = np.ascontiguousarray(inv, dtype=np.float32)
+        if (cuda := self._on_gpu()) is not None:
+            try:
+                return cuda.evaluate(inv, w_lo, w_hi, config.ncc_top_k, config.ncc_top_gap)
+            except Exception as exc:
+                gpu.report_failure(exc)
+        st, src = self.stats, self.src
+        out = np.empty(inv.shape, np.float32)
+        rows = functools.partial(
+            kernels.evaluate,
+            st.image, st.mean, st.var, st.count, src.srcs, src.sizes, src.ok, st.active, src.a,
+            src.b, inv, w_lo, w_hi, st.radius, config.ncc_top_k, config.ncc_top_gap, out,
+        )  # fmt: skip
+        _run_rows(self.bands, rows, inv.shape[0])
+        return out
+
+
+def _evaluate(inv: F32, scorer: _Scorer, config: DenseConfig, w_lo: F32, w_hi: F32) -> F32:
+    """Aggregated NCC of the per-pixel inverse depths ``inv``, scored over the best
+    ``config.ncc_top_k`` sources within ``config.ncc_top_gap``."""
+    return scorer.evaluate(inv, w_lo, w_hi, config)
 
 
 def _step_map(inv: F32, src: _Sources, step_px: float) -> F32:
@@ -652,24 +709,23 @@ _PROPAGATION = ((-2, 0), (2, 0), (0, -2), (0, 2), (-6, 0), (6, 0), (0, -6), (0, 
 def _refine(
     inv: F32,
     score: F32 | None,
-    src: _Sources,
-    stats: _RefStats,
+    scorer: _Scorer,
     w_lo: F32,
     w_hi: F32,
     config: DenseConfig,
     local_search: bool = True,
-    bands: RowBands | None = None,
 ) -> tuple[F32, F32, int]:
     work = 0
+    src = scorer.src
     n_src = len(src.b)
     npix = inv.size
     if score is None:
-        score = _evaluate(inv, src, stats, config, w_lo, w_hi, bands)
+        score = _evaluate(inv, scorer, config, w_lo, w_hi)
         work += npix * n_src
     for _ in range(config.propagation_iterations):
         for dx, dy in _PROPAGATION:
             cand = _shift(inv, dx, dy)
-            s = _evaluate(cand, src, stats, config, w_lo, w_hi, bands)
+            s = _evaluate(cand, scorer, config, w_lo, w_hi)
             work += npix * n_src
             better = s > score
             inv = np.where(better, cand, inv)
@@ -685,7 +741,7 @@ def _refine(
             if k_off == 0 and base is inv:
                 scores[i] = score
                 continue
-            scores[i] = _evaluate(base + k_off * step, src, stats, config, w_lo, w_hi, bands)
+            scores[i] = _evaluate(base + k_off * step, scorer, config, w_lo, w_hi)
             work += npix * n_src
         idx = np.argmax(scores, axis=0)
         s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
@@ -694,7 +750,7 @@ def _refine(
         offsets = _subplane(s0, idx, sm, sp, np.arange(-K, K + 1, dtype=np.float64))
         cand = (base + offsets * step).astype(np.float32)
         # The sub-step position is a prediction: keep it only where it scores as well.
-        s_sub = _evaluate(cand, src, stats, config, w_lo, w_hi, bands)
+        s_sub = _evaluate(cand, scorer, config, w_lo, w_hi)
         work += npix * n_src
         use_sub = s_sub >= s0 - 1e-3
         new = np.where(use_sub, cand, base + (idx - K).astype(np.float32) * step)
@@ -817,6 +873,7 @@ def estimate_depth(
     score: F32 | None = None
     prev: tuple[Roi, Camera] | None = None
     stats: _RefStats | None = None
+    on_gpu = gpu.use_gpu(config.device)
     for level in range(top, -1, -1):
         cam_l = ref.cameras[level]
         r = roi_at_level(roi, cam0, cam_l) if level else roi
@@ -840,20 +897,18 @@ def estimate_depth(
             crop, stats, pairs, config.min_epipolar_texture, config.min_epipolar_share
         )
         src_ok &= stats.scored[None]  # no scores outside the region
-        src = _sources(_rays(crop), pairs, src_ok)
+        scorer = _Scorer(stats, _sources(_rays(crop), pairs, src_ok), bands, on_gpu)
         lo, hi = w_lo * np.float32(0.999), w_hi * np.float32(1.001)
         if inv is None:
-            inv, score, wk, planes = _sweep(
-                crop, stats, pairs, near_l, far_l, up, config, src_ok, bands
-            )
+            inv, score, wk, planes = _sweep(crop, scorer, pairs, near_l, far_l, up, config)
             work += wk
             # Propagation at the coarsest level cleans the winner-take-all noise; the local
             # search waits for the next (finer) level unless this is the last one.
-            inv, score, wk = _refine(inv, score, src, stats, lo, hi, config, level == 0, bands)
+            inv, score, wk = _refine(inv, score, scorer, lo, hi, config, level == 0)
         else:
             assert prev is not None
             inv = _upsample(inv, prev[0], prev[1], r, cam_l)
-            inv, score, wk = _refine(inv, None, src, stats, lo, hi, config, bands=bands)
+            inv, score, wk = _refine(inv, None, scorer, lo, hi, config)
         work += wk
         prev = (r, cam_l)
     assert inv is not None and score is not None and stats is not None

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.dense import filters, kernels
+from edgerecon.dense import filters, gpu, kernels
 from edgerecon.dense.config import DenseConfig
 from edgerecon.dense.consistency import agreement_tolerance, support_and_conflicts
 from edgerecon.dense.cost import as_f32, to_grey
@@ -453,6 +453,7 @@ def reconstruct_dense(
         up=None if up_vec is None else [float(x) for x in up_vec],
         ground_plane=None if plane is None else dataclasses.asdict(plane),
         inferred_points=cloud.num_inferred,
+        scoring=gpu.scoring_device(config.device),
     )
     if plane is not None:
         stats["ground"] = {**ground_stats, "completed_points": cloud.num_inferred}
