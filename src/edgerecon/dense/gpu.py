@@ -62,8 +62,9 @@ def cuda_status() -> tuple[bool, str]:
 
 
 def _numpy_compat() -> None:
-    """numba-cuda (0.2x) registers an overload of ``np.row_stack``, which NumPy 2.5 removed:
-    its compiler fails to load there unless the name exists (it is ``np.vstack``)."""
+    """Some numba-cuda releases register an overload of ``np.row_stack``, which NumPy 2.5
+    removed: their compiler fails to load there unless the name exists (``np.vstack``; seen
+    on the H200 machine with NumPy 2.5.2)."""
     if "row_stack" not in np.__dict__:
         np.row_stack = np.vstack  # type: ignore[attr-defined]
 
