@@ -66,7 +66,7 @@ def _numpy_compat() -> None:
     removed: their compiler fails to load there unless the name exists (``np.vstack``; seen
     on the H200 machine with NumPy 2.5.2)."""
     if "row_stack" not in np.__dict__:
-        np.row_stack = np.vstack  # type: ignore[attr-defined]  # noqa: NPY201
+        np.row_stack = np.vstack  # noqa: NPY201
 
 
 def _probe() -> tuple[bool, str]:
