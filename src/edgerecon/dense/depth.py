@@ -347,25 +347,22 @@ def _plane_parameters(
     grid = np.linspace(lam_lo.min(), lam_hi.max(), _FINE_SAMPLES)
     motion = np.zeros(_FINE_SAMPLES - 1)
     inside_pix = (grid[:, None] >= lam_lo[None]) & (grid[:, None] <= lam_hi[None])  # (G, S)
+    g = grid[:, None]
     for p in pairs:
         a = (p.K @ p.R @ r.T).T  # (S, 3)
         b = np.outer(nr, p.K @ p.t)  # (S, 3)
-        hom = a[None] + grid[:, None, None] * b[None]  # (G, S, 3)
-        zs = hom[..., 2]
+        # The source pixel of each sample ray at each grid value, (G, S) per coordinate.
+        zs = a[:, 2] + g * b[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            xy = hom[..., :2] / zs[..., None]
+            x = (a[:, 0] + g * b[:, 0]) / zs
+            y = (a[:, 1] + g * b[:, 1]) / zs
         W, H = p.size
-        vis = (
-            inside_pix
-            & (zs > 0)
-            & (xy[..., 0] > -W)
-            & (xy[..., 0] < 2 * W)
-            & (xy[..., 1] > -H)
-            & (xy[..., 1] < 2 * H)
-        )
-        d = np.linalg.norm(np.diff(xy, axis=0), axis=2)  # (G-1, S)
-        both = vis[1:] & vis[:-1]
-        d = np.where(both, d, 0.0)
+        vis = inside_pix & (zs > 0) & (x > -W) & (x < 2 * W) & (y > -H) & (y < 2 * H)
+        dx = np.diff(x, axis=0)
+        dy = np.diff(y, axis=0)
+        with np.errstate(invalid="ignore", over="ignore"):
+            d = np.sqrt(dx * dx + dy * dy)  # (G-1, S)
+        d[~(vis[1:] & vis[:-1])] = 0.0
         motion = np.maximum(motion, d.max(axis=1))
     cum = np.concatenate([[0.0], np.cumsum(motion)])
     total = cum[-1]
