@@ -801,22 +801,44 @@ def _block(cam0: Camera, cam: Camera) -> NDArray[np.uint8]:
     return np.ones((k, k), np.uint8)
 
 
+@functools.lru_cache(maxsize=64)
+def _nearest_index(src: int, dst: int) -> NDArray[np.intp]:
+    """The source index ``cv2.resize(..., INTER_NEAREST)`` takes for each of ``dst`` output
+    pixels along an axis of ``src`` pixels (asked of OpenCV itself, so that a crop sampled
+    through it equals the crop of the resized image)."""
+    line = np.arange(src, dtype=np.float32)[None]
+    idx = cv2.resize(line, (dst, 1), interpolation=cv2.INTER_NEAREST)[0].astype(np.intp)
+    idx.flags.writeable = False
+    return idx
+
+
 def _bounds_at(near: F32, far: F32, roi: Roi, cam0: Camera, cam: Camera) -> tuple[F32, F32]:
     """Per-pixel near/far of the crop ``roi`` of level camera ``cam`` (0 = none)."""
-    if cam.size != cam0.size:
-        # Conservative resampling: nearest-neighbour of min(near) / max(far) over the blocks
-        # of working pixels each level pixel covers.
-        ker = _block(cam0, cam)
-        nz = np.where(near > 0, near, np.inf).astype(np.float32)
-        near = as_f32(cv2.erode(nz, ker))
-        near = np.where(np.isfinite(near), near, 0).astype(np.float32)
-        far = as_f32(cv2.dilate(far, ker))
-        near = as_f32(cv2.resize(near, cam.size, interpolation=cv2.INTER_NEAREST))
-        far = as_f32(cv2.resize(far, cam.size, interpolation=cv2.INTER_NEAREST))
-    return (
-        near[roi.y0 : roi.y1, roi.x0 : roi.x1],
-        far[roi.y0 : roi.y1, roi.x0 : roi.x1],
-    )
+    if cam.size == cam0.size:
+        return (
+            near[roi.y0 : roi.y1, roi.x0 : roi.x1],
+            far[roi.y0 : roi.y1, roi.x0 : roi.x1],
+        )
+    # Conservative resampling: nearest-neighbour of min(near) / max(far) over the blocks of
+    # working pixels each level pixel covers; only around the working pixels the crop
+    # samples (the morphology's window stays inside that margin, so the values are those
+    # of the whole image's).
+    ker = _block(cam0, cam)
+    k = ker.shape[0]
+    xs = _nearest_index(cam0.width, cam.width)[roi.x0 : roi.x1]
+    ys = _nearest_index(cam0.height, cam.height)[roi.y0 : roi.y1]
+    if len(xs) == 0 or len(ys) == 0:
+        empty = np.zeros((len(ys), len(xs)), np.float32)
+        return empty, empty.copy()
+    x0, x1 = max(int(xs[0]) - k, 0), min(int(xs[-1]) + k + 1, near.shape[1])
+    y0, y1 = max(int(ys[0]) - k, 0), min(int(ys[-1]) + k + 1, near.shape[0])
+    n = near[y0:y1, x0:x1]
+    nz = np.where(n > 0, n, np.inf).astype(np.float32)
+    n = as_f32(cv2.erode(nz, ker))
+    n = np.where(np.isfinite(n), n, 0).astype(np.float32)
+    f = as_f32(cv2.dilate(np.ascontiguousarray(far[y0:y1, x0:x1]), ker))
+    pick = np.ix_(ys - y0, xs - x0)
+    return np.ascontiguousarray(n[pick]), np.ascontiguousarray(f[pick])
 
 
 def _region_at(region: NDArray[np.bool_], roi: Roi, cam0: Camera, cam: Camera) -> NDArray[np.bool_]:
