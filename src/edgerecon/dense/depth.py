@@ -377,11 +377,16 @@ def _plane_parameters(
     return np.unique(lam)
 
 
-def _homography(
-    pair: _Pair, K_ref_inv: NDArray[np.floating[Any]], n: NDArray[np.floating[Any]], lam: float
+def _homographies(
+    pair: _Pair,
+    K_ref_inv: NDArray[np.floating[Any]],
+    n: NDArray[np.floating[Any]],
+    lams: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """Crop pixel -> source pixel for the plane ``n . X = 1 / lam`` (reference frame)."""
-    return pair.K @ (pair.R + lam * np.outer(pair.t, n)) @ K_ref_inv
+    """(P, 3, 3) crop pixel -> source pixel for the planes ``n . X = 1 / lam`` (reference
+    frame), one per ``lams``."""
+    planes = pair.R[None] + np.asarray(lams, np.float64)[:, None, None] * np.outer(pair.t, n)
+    return pair.K @ planes @ K_ref_inv
 
 
 @dataclass(frozen=True, eq=False)
@@ -477,8 +482,8 @@ def _sweep(
         if len(lams) < 3:
             continue
         planes_total += len(lams)
-        Hs = np.array(
-            [[_homography(p, Kinv, fam.normal, float(lam)) for p in pairs] for lam in lams]
+        Hs = np.ascontiguousarray(
+            np.stack([_homographies(p, Kinv, fam.normal, lams) for p in pairs], axis=1)
         )
         best = np.full((h, w), -np.inf, np.float32)
         idx = np.zeros((h, w), np.int32)
