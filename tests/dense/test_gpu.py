@@ -111,3 +111,62 @@ def test_a_failing_gpu_hands_over_to_the_cpu_with_the_same_cloud(monkeypatch, ca
     assert sum("the GPU failed" in r.message for r in caplog.records) == 1
     for res in (out, again):
         assert np.array_equal(res.cloud.points3D, cpu.cloud.points3D)
+
+
+class _KernelScorer:
+    """``gpu.CudaScorer``'s contract (its constructor, ``sweep`` and ``evaluate``) kept by the
+    CPU kernels: the GPU kernels are checked against these in ``gpu_check``; here the depth
+    maps are checked to use the contract as the CPU path uses the kernels."""
+
+    def __init__(self, ref, mean, var, count, srcs, sizes, src_ok, active, radius, a, b):
+        self.args = (ref, mean, var, count, srcs, sizes, src_ok, active)
+        self.radius, self.a, self.b = radius, a, b
+
+    def sweep(self, Hs, lams, nray, usable, w_lo, w_hi, top_k, top_gap, best, idx, prev, nxt):
+        from edgerecon.dense import kernels
+
+        _KernelScorer.used += 1
+        h = self.args[0].shape[0]
+        kernels.sweep(
+            *self.args, Hs, lams, nray, usable, w_lo, w_hi, self.radius, top_k, top_gap,
+            best, idx, prev, nxt, 0, h,
+        )  # fmt: skip
+
+    def evaluate(self, inv, w_lo, w_hi, top_k, top_gap):
+        from edgerecon.dense import kernels
+
+        _KernelScorer.used += 1
+        out = np.empty(inv.shape, np.float32)
+        kernels.evaluate(
+            *self.args, self.a, self.b, inv, w_lo, w_hi, self.radius, top_k, top_gap, out, 0,
+            inv.shape[0],
+        )  # fmt: skip
+        return out
+
+    used = 0
+
+
+def test_the_depth_maps_score_through_the_gpu_scorer_as_through_the_cpu_kernels(monkeypatch):
+    """With a GPU (here: a scorer that keeps ``CudaScorer``'s contract with the CPU kernels)
+    every sweep and score of the depth maps goes through the scorer, and the cloud is the CPU
+    path's to the point."""
+    from edgerecon.dense import reconstruct_dense
+    from tests.dense.scene import box_scene, render
+    from tests.dense.test_reconstruct import IDS, RIG
+
+    rects = box_scene()
+    views = [View(camera_id=i, camera=RIG[i], image=render(RIG[i], rects)[0]) for i in IDS[:3]]
+    # One thread: the CPU kernels then score whole levels, as the GPU does (row bands sum
+    # in another order: the same scores to rounding, not to the bit).
+    config = DenseConfig(num_threads=1, device="cpu")
+    cpu = reconstruct_dense(views, config, up=(0, 0, 1))
+    monkeypatch.setattr(gpu, "_status", (True, "test GPU"))
+    monkeypatch.setattr(gpu, "_failed", None)
+    monkeypatch.setattr(gpu, "CudaScorer", _KernelScorer)
+    monkeypatch.setattr(_KernelScorer, "used", 0)
+    out = reconstruct_dense(views, dataclasses.replace(config, device="cuda"), up=(0, 0, 1))
+    assert _KernelScorer.used > 50
+    assert out.stats["scoring"] == "cuda (test GPU)"
+    assert np.array_equal(out.cloud.points3D, cpu.cloud.points3D)
+    for k, depth in cpu.depth_maps.items():
+        assert np.array_equal(out.depth_maps[k], depth)
