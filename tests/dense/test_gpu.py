@@ -170,3 +170,25 @@ def test_the_depth_maps_score_through_the_gpu_scorer_as_through_the_cpu_kernels(
     assert np.array_equal(out.cloud.points3D, cpu.cloud.points3D)
     for k, depth in cpu.depth_maps.items():
         assert np.array_equal(out.depth_maps[k], depth)
+
+
+def test_more_sources_than_a_gpu_thread_keeps_score_on_the_cpu(monkeypatch):
+    """A level with more sources than ``gpu.MAX_SOURCES`` is scored by the CPU kernels and
+    the GPU stays in use for the others (it is not reported as failed)."""
+    from edgerecon.dense import reconstruct_dense
+    from tests.dense.scene import box_scene, render
+    from tests.dense.test_reconstruct import IDS, RIG
+
+    rects = box_scene()
+    views = [View(camera_id=i, camera=RIG[i], image=render(RIG[i], rects)[0]) for i in IDS[:3]]
+    config = DenseConfig(num_threads=1, device="cpu")
+    cpu = reconstruct_dense(views, config, up=(0, 0, 1))
+    monkeypatch.setattr(gpu, "_status", (True, "test GPU"))
+    monkeypatch.setattr(gpu, "_failed", None)
+    monkeypatch.setattr(gpu, "CudaScorer", _KernelScorer)
+    monkeypatch.setattr(gpu, "MAX_SOURCES", 1)  # every view here has two sources
+    monkeypatch.setattr(_KernelScorer, "used", 0)
+    out = reconstruct_dense(views, dataclasses.replace(config, device="cuda"), up=(0, 0, 1))
+    assert _KernelScorer.used == 0
+    assert gpu.cuda_status() == (True, "test GPU")
+    assert np.array_equal(out.cloud.points3D, cpu.cloud.points3D)

@@ -602,7 +602,8 @@ class _Scorer:
         self.src = src
         self.bands = bands
         self.cuda: gpu.CudaScorer | None = None
-        if use_gpu:
+        # More sources than a GPU thread keeps (``gpu.MAX_SOURCES``): this level on the CPU.
+        if use_gpu and len(src.b) <= gpu.MAX_SOURCES:
             try:
                 self.cuda = gpu.CudaScorer(
                     stats.image, stats.mean, stats.var, stats.count, src.srcs, src.sizes,
