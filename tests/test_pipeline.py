@@ -13,6 +13,7 @@ from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import (
     SplitPipelineConfig,
     fine_scale_limit,
+    foreground_dense_config,
     reconstruct,
     reconstruct_task,
     task_configs,
@@ -279,10 +280,18 @@ def test_task_configs_above_one_make_the_foreground_finer():
     assert fine_scale_limit(hd, dense) == 2.0
     rc, split = task_configs(0.6, hd, camera_ids=[0, 1, 2], dense_config=dense)
     assert (rc.scale, rc.camera_ids, split.fg_resolution_level) == (0.6, (0, 1, 2), None)
+    assert foreground_dense_config(dense, split).refine_passes == 2  # the golden passes
     rc, split = task_configs(1.5, hd, dense_config=dense)
     assert (rc.scale, split.fg_resolution_level) == (0.75, 0)
+    # Finer than golden: one local-search pass (the pixels pay more than the second pass).
+    assert foreground_dense_config(dense, split).refine_passes == 1
     rc, split = task_configs(2.0, hd, dense_config=dense)
     assert (rc.scale, split.fg_resolution_level) == (1.0, 0)
+    keep = SplitPipelineConfig(fine_refine_passes=None)
+    _, split = task_configs(2.0, hd, dense_config=dense, split_config=keep)
+    assert foreground_dense_config(dense, split).refine_passes == 2
+    with pytest.raises(ValueError, match="fine_refine_passes"):
+        SplitPipelineConfig(fine_refine_passes=0)
     with pytest.raises(ValueError, match="task scale"):
         task_configs(2.5, hd, dense_config=dense)
     vga = ring_rig(4)
