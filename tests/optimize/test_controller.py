@@ -607,3 +607,20 @@ def test_protocol_and_validation_errors():
     none.observe(10.0, 0.5)
     with pytest.raises(RuntimeError, match="no camera mapping"):
         none.next_config()
+
+
+def test_the_finest_configuration_is_said_once_when_the_average_leaves_time(caplog):
+    """At r_fine with every camera, a window whose average leaves part of the deadline
+    unused is said once even when single heavy tasks go over the target now and then (they
+    reset nothing while the average stays below it)."""
+    cfg = ControllerConfig(deadline_s=2.0, r_fine=2.0, adjust_target=0.95)
+    ctrl = BisectionController(cfg, LOWEST, 4)
+    times = [1.0] + [1.3, 1.5, 1.4, 2.05] * 6  # never five light tasks in a row
+    scales = []
+    with caplog.at_level("WARNING", logger="edgerecon.optimize.controller"):
+        for t in times:
+            scales.append(ctrl.next_config().scale)
+            ctrl.observe(t, 1.0)
+    assert scales[-1] == 2.0
+    said = [r.message for r in caplog.records if "above the finest" in r.message]
+    assert len(said) == 1, said
