@@ -64,13 +64,13 @@ def cuda_status() -> tuple[bool, str]:
 def _numpy_compat() -> None:
     """Some numba-cuda releases register an overload of ``np.row_stack``, which NumPy 2.5
     removed: their compiler fails to load there unless the name exists (``np.vstack``; seen
-    on the H200 machine with NumPy 2.5.2)."""
+    on the H200 machine with NumPy 2.5.2). Only where the kernels compile (a GPU is there):
+    finding the device works without it."""
     if "row_stack" not in np.__dict__:
         np.row_stack = np.vstack  # noqa: NPY201
 
 
 def _probe() -> tuple[bool, str]:
-    _numpy_compat()
     try:
         from numba import cuda
     except Exception as exc:  # numba built without its CUDA target, a broken install
