@@ -76,9 +76,11 @@ def test_cuda_requested_without_a_gpu_is_a_clear_error(monkeypatch):
     assert gpu.use_gpu("auto") is False
 
 
-def test_a_failing_gpu_hands_over_to_the_cpu_with_the_same_cloud(monkeypatch, caplog):
-    """A GPU whose kernels fail (here: every call raises) is reported once, and the dense
-    cloud is the CPU kernels' own."""
+@pytest.fixture(scope="module")
+def box_views():
+    """Three views of the rendered box scene and their dense cloud by the CPU kernels on one
+    thread (then they score whole levels, as the GPU does: row bands sum in another order,
+    the same scores to rounding, not to the bit)."""
     from edgerecon.dense import reconstruct_dense
     from tests.dense.scene import box_scene, render
     from tests.dense.test_reconstruct import IDS, RIG
@@ -88,6 +90,28 @@ def test_a_failing_gpu_hands_over_to_the_cpu_with_the_same_cloud(monkeypatch, ca
     config = DenseConfig(num_threads=1, device="cpu")
     cpu = reconstruct_dense(views, config, up=(0, 0, 1))
     assert len(cpu.cloud) > 1000
+    return views, config, cpu
+
+
+@pytest.fixture
+def found_gpu(monkeypatch):
+    """A process that found a GPU ("test GPU") and has seen no failure yet."""
+    monkeypatch.setattr(gpu, "_status", (True, "test GPU"))
+    monkeypatch.setattr(gpu, "_failed", None)
+
+
+def _dense(views, config, device):
+    from edgerecon.dense import reconstruct_dense
+
+    return reconstruct_dense(views, dataclasses.replace(config, device=device), up=(0, 0, 1))
+
+
+def test_a_failing_gpu_hands_over_to_the_cpu_with_the_same_cloud(
+    box_views, found_gpu, monkeypatch, caplog
+):
+    """A GPU whose kernels fail (here: every call raises) is reported once, and the dense
+    cloud is the CPU kernels' own."""
+    views, config, cpu = box_views
 
     class Broken:
         def __init__(self, *args: object, **kwargs: object) -> None:
@@ -99,13 +123,10 @@ def test_a_failing_gpu_hands_over_to_the_cpu_with_the_same_cloud(monkeypatch, ca
         def evaluate(self, *args: object) -> None:
             raise RuntimeError("CUDA_ERROR_LAUNCH_FAILED (test)")
 
-    monkeypatch.setattr(gpu, "_status", (True, "test GPU"))
-    monkeypatch.setattr(gpu, "_failed", None)
     monkeypatch.setattr(gpu, "CudaScorer", Broken)
-    auto = dataclasses.replace(config, device="auto")
     with caplog.at_level(logging.WARNING, logger="edgerecon.dense.gpu"):
-        out = reconstruct_dense(views, auto, up=(0, 0, 1))
-        again = reconstruct_dense(views, auto, up=(0, 0, 1))
+        out = _dense(views, config, "auto")
+        again = _dense(views, config, "auto")
     ok, why = gpu.cuda_status()
     assert not ok and "CUDA_ERROR_LAUNCH_FAILED" in why
     assert sum("the GPU failed" in r.message for r in caplog.records) == 1
@@ -146,25 +167,16 @@ class _KernelScorer:
     used = 0
 
 
-def test_the_depth_maps_score_through_the_gpu_scorer_as_through_the_cpu_kernels(monkeypatch):
+def test_the_depth_maps_score_through_the_gpu_scorer_as_through_the_cpu_kernels(
+    box_views, found_gpu, monkeypatch
+):
     """With a GPU (here: a scorer that keeps ``CudaScorer``'s contract with the CPU kernels)
     every sweep and score of the depth maps goes through the scorer, and the cloud is the CPU
     path's to the point."""
-    from edgerecon.dense import reconstruct_dense
-    from tests.dense.scene import box_scene, render
-    from tests.dense.test_reconstruct import IDS, RIG
-
-    rects = box_scene()
-    views = [View(camera_id=i, camera=RIG[i], image=render(RIG[i], rects)[0]) for i in IDS[:3]]
-    # One thread: the CPU kernels then score whole levels, as the GPU does (row bands sum
-    # in another order: the same scores to rounding, not to the bit).
-    config = DenseConfig(num_threads=1, device="cpu")
-    cpu = reconstruct_dense(views, config, up=(0, 0, 1))
-    monkeypatch.setattr(gpu, "_status", (True, "test GPU"))
-    monkeypatch.setattr(gpu, "_failed", None)
+    views, config, cpu = box_views
     monkeypatch.setattr(gpu, "CudaScorer", _KernelScorer)
     monkeypatch.setattr(_KernelScorer, "used", 0)
-    out = reconstruct_dense(views, dataclasses.replace(config, device="cuda"), up=(0, 0, 1))
+    out = _dense(views, config, "cuda")
     assert _KernelScorer.used > 50
     assert out.stats["scoring"] == "cuda (test GPU)"
     assert np.array_equal(out.cloud.points3D, cpu.cloud.points3D)
@@ -172,23 +184,14 @@ def test_the_depth_maps_score_through_the_gpu_scorer_as_through_the_cpu_kernels(
         assert np.array_equal(out.depth_maps[k], depth)
 
 
-def test_more_sources_than_a_gpu_thread_keeps_score_on_the_cpu(monkeypatch):
+def test_more_sources_than_a_gpu_thread_keeps_score_on_the_cpu(box_views, found_gpu, monkeypatch):
     """A level with more sources than ``gpu.MAX_SOURCES`` is scored by the CPU kernels and
     the GPU stays in use for the others (it is not reported as failed)."""
-    from edgerecon.dense import reconstruct_dense
-    from tests.dense.scene import box_scene, render
-    from tests.dense.test_reconstruct import IDS, RIG
-
-    rects = box_scene()
-    views = [View(camera_id=i, camera=RIG[i], image=render(RIG[i], rects)[0]) for i in IDS[:3]]
-    config = DenseConfig(num_threads=1, device="cpu")
-    cpu = reconstruct_dense(views, config, up=(0, 0, 1))
-    monkeypatch.setattr(gpu, "_status", (True, "test GPU"))
-    monkeypatch.setattr(gpu, "_failed", None)
+    views, config, cpu = box_views
     monkeypatch.setattr(gpu, "CudaScorer", _KernelScorer)
     monkeypatch.setattr(gpu, "MAX_SOURCES", 1)  # every view here has two sources
     monkeypatch.setattr(_KernelScorer, "used", 0)
-    out = reconstruct_dense(views, dataclasses.replace(config, device="cuda"), up=(0, 0, 1))
+    out = _dense(views, config, "cuda")
     assert _KernelScorer.used == 0
     assert gpu.cuda_status() == (True, "test GPU")
     assert np.array_equal(out.cloud.points3D, cpu.cloud.points3D)

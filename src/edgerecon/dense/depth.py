@@ -631,8 +631,7 @@ class _Scorer:
     ) -> None:
         """``kernels.sweep`` of one plane family (updates best / idx / prev / nxt)."""
         if (cuda := self._on_gpu()) is not None:
-            saved = [x.copy() for x in (best, idx, prev, nxt)]
-            try:
+            try:  # writes best / idx / prev / nxt only once the whole family succeeded
                 cuda.sweep(
                     Hs, lams, nray, usable, w_lo, w_hi, config.ncc_top_k, config.ncc_top_gap,
                     best, idx, prev, nxt,
@@ -640,8 +639,6 @@ class _Scorer:
                 return
             except Exception as exc:
                 gpu.report_failure(exc)
-                for x, old in zip((best, idx, prev, nxt), saved, strict=True):
-                    x[...] = old
         st, src = self.stats, self.src
         rows = functools.partial(
             kernels.sweep,
@@ -668,12 +665,6 @@ class _Scorer:
         )  # fmt: skip
         _run_rows(self.bands, rows, inv.shape[0])
         return out
-
-
-def _evaluate(inv: F32, scorer: _Scorer, config: DenseConfig, w_lo: F32, w_hi: F32) -> F32:
-    """Aggregated NCC of the per-pixel inverse depths ``inv``, scored over the best
-    ``config.ncc_top_k`` sources within ``config.ncc_top_gap``."""
-    return scorer.evaluate(inv, w_lo, w_hi, config)
 
 
 def _step_map(inv: F32, src: _Sources, step_px: float) -> F32:
@@ -723,12 +714,12 @@ def _refine(
     n_src = len(src.b)
     npix = inv.size
     if score is None:
-        score = _evaluate(inv, scorer, config, w_lo, w_hi)
+        score = scorer.evaluate(inv, w_lo, w_hi, config)
         work += npix * n_src
     for _ in range(config.propagation_iterations):
         for dx, dy in _PROPAGATION:
             cand = _shift(inv, dx, dy)
-            s = _evaluate(cand, scorer, config, w_lo, w_hi)
+            s = scorer.evaluate(cand, w_lo, w_hi, config)
             work += npix * n_src
             better = s > score
             inv = np.where(better, cand, inv)
@@ -744,7 +735,7 @@ def _refine(
             if k_off == 0 and base is inv:
                 scores[i] = score
                 continue
-            scores[i] = _evaluate(base + k_off * step, scorer, config, w_lo, w_hi)
+            scores[i] = scorer.evaluate(base + k_off * step, w_lo, w_hi, config)
             work += npix * n_src
         idx = np.argmax(scores, axis=0)
         s0 = np.take_along_axis(scores, idx[None], axis=0)[0]
@@ -753,7 +744,7 @@ def _refine(
         offsets = _subplane(s0, idx, sm, sp, np.arange(-K, K + 1, dtype=np.float64))
         cand = (base + offsets * step).astype(np.float32)
         # The sub-step position is a prediction: keep it only where it scores as well.
-        s_sub = _evaluate(cand, scorer, config, w_lo, w_hi)
+        s_sub = scorer.evaluate(cand, w_lo, w_hi, config)
         work += npix * n_src
         use_sub = s_sub >= s0 - 1e-3
         new = np.where(use_sub, cand, base + (idx - K).astype(np.float32) * step)

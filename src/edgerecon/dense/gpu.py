@@ -218,7 +218,8 @@ class CudaScorer:
         prev: F32,
         nxt: F32,
     ) -> None:
-        """``kernels.sweep`` over all rows; updates best / best_idx / prev / nxt in place."""
+        """``kernels.sweep`` over all rows; updates best / best_idx / prev / nxt in place, all
+        of them or (on an error) none."""
         d = self._d
         st = self._stream
         outs = [self._put(x) for x in (best, best_idx, prev, nxt)]
@@ -229,9 +230,11 @@ class CudaScorer:
             self._put(usable), self._dev(w_lo), self._dev(w_hi), self.radius, top_k,
             float(top_gap), self._k["a"], self._k["b"], self._k["inv"], *outs,
         )  # fmt: skip
-        for host, dev in zip((best, best_idx, prev, nxt), outs, strict=True):
-            dev.copy_to_host(host, stream=st)
+        done = [dev.copy_to_host(stream=st) for dev in outs]
         st.synchronize()
+        # Only now, with the whole family scored: a failure above leaves the inputs as they were.
+        for host, new in zip((best, best_idx, prev, nxt), done, strict=True):
+            host[...] = new
 
     def evaluate(self, inv: F32, w_lo: F32, w_hi: F32, top_k: int, top_gap: float) -> F32:
         """``kernels.evaluate`` over all rows: the aggregated NCC of ``inv``."""
