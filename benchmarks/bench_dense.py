@@ -188,7 +188,7 @@ def bench(
         **quality(name, rec, ref),
     }
     print(
-        f"{name:28s} {row['scoring']} r={scale:<4} cams={row['cameras']:14s} mask={mask_share} "
+        f"{name:28s} {_scoring_short(row)} r={scale:<4} cams={row['cameras']:14s} mask={mask_share} "
         f"total={row['total_seconds']:6.2f}s dense={row['dense_seconds']:6.2f}s "
         f"cpu={row['dense_cpu_seconds']:6.2f}s pts={row['points']:7d} {_quality_text(row)} "
         f"{row['stages']}",
@@ -251,6 +251,12 @@ def _quality_text(r: dict[str, Any]) -> str:
     if "floor_points" in r:
         return f"floor {r['floor_points']} pts, med|z| {r['floor_median_abs_z_mm']} mm"
     return ""
+
+
+def _scoring_short(row: dict[str, Any]) -> str:
+    """The table's "scoring" cell: "cuda (NAME)" or "cpu" (the JSON keeps why not the GPU)."""
+    scoring = str(row.get("scoring") or "")
+    return scoring if scoring.startswith("cuda") else "cpu"
 
 
 def _unit_mm(name: str) -> float:
@@ -323,7 +329,7 @@ def main() -> None:
          "vs cpu"],
         [
             [
-                r["dataset"], r["scoring"], r["scale"], r["cameras"], r["size"], r["mask_share"],
+                r["dataset"], _scoring_short(r), r["scale"], r["cameras"], r["size"], r["mask_share"],
                 r["total_seconds"], r["dense_seconds"], r["dense_cpu_seconds"],
                 r["stages"].get("depth"), r["stages"].get("consistency"),
                 r["stages"].get("ground"), r["stages"].get("fusion"), r["sparse_points"],
