@@ -302,3 +302,40 @@ def test_task_configs_above_one_make_the_foreground_finer():
     mixed = type(hd)(cameras=(*hd.cameras[:3], other), unit="m")
     assert fine_scale_limit(mixed, dense) == 1.0
     assert fine_scale_limit(hd, dense, SplitPipelineConfig(fg_resolution_level=0)) == 1.0
+
+
+def test_retune_chooses_the_configuration_from_the_masks(tiny, tiny_dataset):
+    """``reconstruct_task(retune=...)``: called once with the task's foreground, before the
+    views are prepared; the task runs at what it returns (as if given from the start)."""
+    ds, frames, _ = tiny
+    with ds.open_background() as bg:
+        model = RigForeground.learn_from_framesets(ds.rig, bg.iter_frames())
+    fg = model.segment(frames)
+    seen = []
+
+    def retune(result):
+        seen.append(result)
+        return task_configs(0.5, ds.rig)
+
+    background = PointCloud.empty()
+    tuned = reconstruct_task(
+        frames,
+        ds.rig,
+        lambda timings: fg,
+        task_configs(1.0, ds.rig)[0],
+        background=background,
+        sparse_scope="hull",
+        retune=retune,
+    )
+    assert seen == [fg]
+    assert tuned.config.scale == 0.5
+    rc, sc = task_configs(0.5, ds.rig)
+    direct = reconstruct_task(
+        frames, ds.rig, fg, rc, background=background, split_config=sc, sparse_scope="hull"
+    )
+    np.testing.assert_array_equal(tuned.foreground.cloud.points3D, direct.foreground.cloud.points3D)
+    # The paper's order needs the views for its SfM first: no retune there.
+    scene = reconstruct_task(
+        frames, ds.rig, fg, background=background, sparse_scope="scene", retune=retune
+    )
+    assert len(seen) == 1 and scene.config.scale == 1.0

@@ -577,6 +577,8 @@ SPARSE_SCOPES = ("foreground", "scene", "hull")
 #: The task's foreground: ready masks, or a callable that obtains them when the task needs
 #: them (the front-end waits for the back-end's there), adding its own stage timings.
 ForegroundSource = ForegroundResult | Callable[[StageTimings], ForegroundResult]
+#: A task's configurations from its foreground (``reconstruct_task(retune=...)``).
+Retune = Callable[[ForegroundResult], tuple[ReconstructionConfig, SplitPipelineConfig]]
 
 
 class TaskCancelled(EdgereconError):
@@ -641,6 +643,7 @@ def reconstruct_task(
     split_config: SplitPipelineConfig | None = None,
     sparse_scope: str = "foreground",
     cancel: threading.Event | None = None,
+    retune: Retune | None = None,
 ) -> SplitReconstructionResult:
     """One reconstruction task, the one composition every caller uses (the online front-end,
     ``reconstruct --split``, the benchmarks).
@@ -663,11 +666,16 @@ def reconstruct_task(
 
     ``cancel`` (set by a watchdog) stops the task at its next stage boundary
     (:class:`TaskCancelled`).
+
+    ``retune(foreground)`` (not with ``sparse_scope="scene"``, whose SfM needs the views
+    first): the task's configurations chosen once its masks are known (the online system
+    scales r by the masks' area, ``optimize.workload``); the views are then prepared after
+    the masks, at the configuration it returns.
     """
     if sparse_scope not in SPARSE_SCOPES:
         raise ValueError(f"sparse_scope must be one of {SPARSE_SCOPES}, got {sparse_scope!r}")
-    config = config or ReconstructionConfig()
-    split_config = split_config or SplitPipelineConfig()
+    cfg: ReconstructionConfig = config or ReconstructionConfig()
+    split: SplitPipelineConfig = split_config or SplitPipelineConfig()
     timings = StageTimings()
 
     def checkpoint(stage: str) -> None:
@@ -679,35 +687,40 @@ def reconstruct_task(
             sfm_views = (
                 views
                 if masks is None
-                else foreground_views(views, rig, masks, split_config.fg_mask_dilation_px)
+                else foreground_views(views, rig, masks, split.fg_mask_dilation_px)
             )
-            return reconstruct_sparse(sfm_views, config.sparse_config)
+            return reconstruct_sparse(sfm_views, cfg.sparse_config)
 
-    with timings.stage("prepare"):
-        views = prepare_task_views(frames, rig, config)
+    late = retune is not None and sparse_scope != "scene"
+    if not late:
+        with timings.stage("prepare"):
+            views = prepare_task_views(frames, rig, cfg)
     if sparse_scope == "scene":
         sparse = sfm(views, None)
         checkpoint("the masks")
     fg = foreground if isinstance(foreground, ForegroundResult) else foreground(timings)
-    if sparse_scope == "hull" and bounding_hull(fg, split_config) is not None:
+    if late:
+        assert retune is not None
+        cfg, split = retune(fg)
+        with timings.stage("prepare"):
+            views = prepare_task_views(frames, rig, cfg)
+    if sparse_scope == "hull" and bounding_hull(fg, split) is not None:
         sparse = SparseReconstruction.empty(tuple(v.camera_id for v in views))
     elif sparse_scope != "scene":
         checkpoint("sfm")
         sparse = sfm(views, fg.masks)
     checkpoint("the foreground")
-    if split_config.fg_hull_occluders and split_config.use_hull_ranges and background is not None:
+    if split.fg_hull_occluders and split.use_hull_ranges and background is not None:
         with timings.stage("fg_occluded_hull"):
             carved = occluded_hull(fg, background)
         if carved is not None:
             fg = dataclasses.replace(fg, hull=carved)
-    fg_rec = reconstruct_foreground(views, rig, sparse, fg, config.dense_config, split_config)
+    fg_rec = reconstruct_foreground(views, rig, sparse, fg, cfg.dense_config, split)
     timings.merge(fg_rec.timings)
     if background is None:
         checkpoint("the background")
         bg_sparse = sparse.select(fg_rec.labels == BACKGROUND_LABEL)
-        bg_dense = reconstruct_background(
-            views, rig, config.dense_config, fg.masks, bg_sparse, split_config
-        )
+        bg_dense = reconstruct_background(views, rig, cfg.dense_config, fg.masks, bg_sparse, split)
         timings.merge(bg_dense.timings, "bg_dense.")
         background = bg_dense.cloud
     checkpoint("the merge")
@@ -721,7 +734,7 @@ def reconstruct_task(
         merged = compose(fg_rec.cloud, background, bg_version=bg_version, dropped=dropped)
     return SplitReconstructionResult(
         time_index=frames.time_index,
-        config=config,
+        config=cfg,
         camera_ids=tuple(v.camera_id for v in views),
         sparse=sparse,
         masks=fg,

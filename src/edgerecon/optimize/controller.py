@@ -443,6 +443,12 @@ class BisectionController:
             )
         return ids
 
+    def scale_range(self, num_cameras: int) -> tuple[float, float]:
+        """The r an adjusted task with ``num_cameras`` cameras may run at: [r_min, r_max],
+        up to ``r_fine`` with every available camera (where a caller that scales the
+        controller's r per task, ``optimize.workload``, keeps it)."""
+        return self.config.r_min, self._r_ceiling(num_cameras)
+
     def _r_ceiling(self, n: int) -> float:
         """The largest r with N' = ``n`` outside the search: ``r_fine`` with every available
         camera, else ``r_max``."""

@@ -34,11 +34,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.config import MIN_CAMERAS
+from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.optimize.selection import camera_mapping, visibility_from_points
-from edgerecon.pipeline import TaskCancelled, num_objects, reconstruct_task, task_configs
+from edgerecon.optimize.workload import WorkloadScaler, mask_area
+from edgerecon.pipeline import (
+    SplitPipelineConfig,
+    TaskCancelled,
+    num_objects,
+    reconstruct_task,
+    task_configs,
+)
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
@@ -93,6 +100,9 @@ class FrontEndState:
     backend_epoch: int = 0
     """The last back-end epoch handed out."""
     backgrounds_received: int = 0
+    workload_history: tuple[tuple[float, float], ...] = ()
+    """The recent tasks' mask areas and seconds before their MVS (``optimize.workload``: the
+    reference of the next task's scale)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -101,6 +111,7 @@ class FrontEndState:
             "bg_version": self.bg_version.to_list(),
             "backend_epoch": self.backend_epoch,
             "backgrounds_received": self.backgrounds_received,
+            "workload_history": [list(x) for x in self.workload_history],
         }
 
     @classmethod
@@ -111,6 +122,7 @@ class FrontEndState:
             bg_version=BgVersion.from_list(d.get("bg_version", 0)),
             backend_epoch=int(d.get("backend_epoch", 0)),
             backgrounds_received=int(d.get("backgrounds_received", 0)),
+            workload_history=tuple((float(a), float(t)) for a, t in d.get("workload_history", ())),
         )
 
 
@@ -204,6 +216,13 @@ class FrontEnd:
         self._backends_registered = 0
         self.pi_source: dict[str, Any] | None = None
         self.backgrounds_received = 0
+        self.workload = (
+            None
+            if config.workload is None
+            else WorkloadScaler(
+                config.workload, () if restored is None else restored.workload_history
+            )
+        )
         if restored is not None:
             self.pi_source = restored.pi_source
             self._backend_epoch = restored.backend_epoch
@@ -224,6 +243,7 @@ class FrontEnd:
                 bg_version=self._bg_published,
                 backend_epoch=self._backend_epoch,
                 backgrounds_received=self.backgrounds_received,
+                workload_history=() if self.workload is None else self.workload.history,
             )
 
     def register_backend(self) -> BackendStart:
@@ -382,14 +402,23 @@ class FrontEnd:
             job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
             return fg
 
-        task_config, split_config = task_configs(
-            plan.scale,
-            self.rig,
-            camera_ids=plan.camera_ids,
-            sparse_config=self.config.sparse,
-            dense_config=self.config.dense,
-            split_config=self.config.split,
-        )
+        scale = [plan.scale]
+
+        def configs(r: float) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
+            return task_configs(
+                r,
+                self.rig,
+                camera_ids=plan.camera_ids,
+                sparse_config=self.config.sparse,
+                dense_config=self.config.dense,
+                split_config=self.config.split,
+            )
+
+        def retune(fg: ForegroundResult) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
+            scale[0] = self._workload_scale(plan, fg, time.perf_counter() - start)
+            return configs(scale[0])
+
+        task_config, split_config = configs(plan.scale)
         result = reconstruct_task(
             frames,
             self.rig,
@@ -400,6 +429,7 @@ class FrontEnd:
             split_config=split_config,
             sparse_scope=self._sparse_scope(plan.phase, want_golden),
             cancel=guard.cancel,
+            retune=None if self.workload is None else retune,
         )
         critical = time.perf_counter() - start
         timings = result.timings
@@ -462,7 +492,27 @@ class FrontEnd:
             num_sparse=result.sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
             num_objects=max(num_objects(labels), _cloud_objects(fg_rec.cloud)),
+            scale=scale[0],
+            planned_scale=None if scale[0] == plan.scale else plan.scale,
         )
+
+    def _workload_scale(self, plan: TaskPlan, fg: ForegroundResult, spent_s: float) -> float:
+        """The task's r: the controller's, scaled in the adjustment by the masks' area and
+        the time the task spent before its MVS (``spent_s``) against the recent tasks'
+        (``optimize.workload``), within the controller's range. Every task joins the
+        reference."""
+        assert self.workload is not None
+        area = mask_area(fg.masks, plan.camera_ids)
+        ctrl = self.controller
+        factor = 1.0
+        if plan.phase == "adjust" and isinstance(ctrl, BisectionController):
+            target = ctrl.config.deadline_s * ctrl.config.adjust_target
+            factor = self.workload.factor(area, spent_s, target)
+        self.workload.record(area, spent_s)
+        if factor == 1.0 or not isinstance(ctrl, BisectionController):
+            return plan.scale
+        lo, hi = ctrl.scale_range(len(plan.camera_ids))
+        return round(min(max(plan.scale * factor, lo), max(hi, plan.scale)), 6)
 
     def _recurring(
         self, critical: float, timings: StageTimings, phase: str, want_golden: bool
@@ -515,12 +565,12 @@ class FrontEnd:
         """An ok task's output: ``foreground`` merged with ``background`` (of ``bg_version``)
         without the points at ``dropped``; ``fields`` are the metrics that differ between
         tasks."""
+        fields.setdefault("scale", job.plan.scale)
         metrics = TaskMetrics(
             task=job.task,
             time_index=job.frames.time_index,
             status="ok",
             phase=job.plan.phase,
-            scale=job.plan.scale,
             num_cameras=len(fields["camera_ids"]),
             deadline_s=self.config.deadline_s,
             bg_version=bg_version.counter,

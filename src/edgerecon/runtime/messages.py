@@ -113,6 +113,9 @@ class TaskMetrics:
     """Image scale r of the task; above 1 (``RuntimeConfig.fine_foreground``): the golden
     camera set with the foreground's depth maps finer than the golden task's
     (``pipeline.task_configs``)."""
+    planned_scale: float | None = None
+    """The controller's r when the task ran at another (``RuntimeConfig.workload``: r
+    scaled by the masks' area against the recent tasks'); None: the same."""
     num_cameras: int = 0
     camera_ids: list[int] = field(default_factory=list)
     critical_path_s: float = 0.0
