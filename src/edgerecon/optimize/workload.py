@@ -11,13 +11,19 @@ task its masks (before any of its MVS), :class:`WorkloadScaler` scales the contr
      x (time left for the MVS in this task / the recent tasks' mean)) ^ exponent
 
 within ``[1 / max_factor, max_factor]`` (time left: the controller's target time less what
-the task spent before its MVS). The MVS's work per task then stays near what the controller
-measured, and the controller keeps steering r from the times as before (they vary less).
-Pure state, no clock::
+the task spent before its MVS). Relative to the recent tasks, so the factors average about
+1 and the controller keeps steering its r from the tasks' times as before (they vary less).
+A task is not made coarser when its MVS, predicted at the controller's r from the recent
+tasks' cost per unit of area x r^2, fits the target anyway (a controller at its ceiling with
+time to spare keeps its r). An absolute prediction alone was measured and not kept: it
+expects time to grow as r^2 where it grows slower, makes every task coarser, and the
+controller's r climbed to its ceiling against it (hd4p at 40 %: the controller at r = 2,
+the tasks at 1.54, and a false "deadline above the finest configuration"). Pure state, no
+clock::
 
     scaler = WorkloadScaler(WorkloadConfig())
-    f = scaler.factor(area, spent_s, target_s)  # 1.0 until the history is long enough
-    scaler.record(area, spent_s)                # every task, whatever its phase
+    f = scaler.factor(area, spent_s, target_s, r)  # 1.0 until the history is long enough
+    scaler.record(area, spent_s, r * f, mvs_s)     # every finished task, whatever its phase
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import math
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -37,12 +44,13 @@ class WorkloadConfig:
     """How a task's r follows its masks' area (``RuntimeConfig.workload``)."""
 
     window: int = 8
-    """Tasks in the reference: the mean area of the last ``window`` tasks."""
+    """Tasks in the reference (their mean area, time before the MVS and MVS cost)."""
     min_history: int = 3
     """Tasks recorded before any task is scaled (factor 1 until then)."""
     exponent: float = 0.5
-    """The factor is (reference / area) ^ exponent: 0.5 when the foreground's time grows
-    with area x r^2 (it grows as r^1.4-2.2 at one time index on hd4p)."""
+    """The factor is (area and time ratio) ^ exponent, the MVS's time taken to grow with
+    area x r^(1 / exponent): 0.5 for r^2 (it grows as r^1.4-2.2 at one time index on hd4p).
+    0: r is never scaled."""
     max_factor: float = 1.3
     """The factor stays in [1 / max_factor, max_factor]: one task's masks (an actor
     walking in, a mask that lost an arm) move r by at most this much."""
@@ -68,22 +76,25 @@ def mask_area(masks: Sequence[Mask | None], camera_ids: Sequence[int]) -> float 
 
 
 class WorkloadScaler:
-    """The factor of the next task's r from its area and the recent ones' (module doc)."""
+    """The factor of the next task's r from its area and the time it has left against the
+    recent tasks' (module doc)."""
 
     def __init__(
         self,
         config: WorkloadConfig | None = None,
-        history: Sequence[tuple[float, float]] = (),
+        history: Sequence[Sequence[float]] = (),
     ):
         self.config = config or WorkloadConfig()
-        self._tasks: deque[tuple[float, float]] = deque(maxlen=self.config.window)
-        for area, spent in history:
-            self.record(area, spent)
+        self._tasks: deque[tuple[float, float, float, float]] = deque(maxlen=self.config.window)
+        for entry in history:
+            if len(entry) == 4:
+                area, spent, scale, mvs = (float(x) for x in entry)
+                self.record(area, spent, scale, mvs)
 
     @property
-    def history(self) -> tuple[tuple[float, float], ...]:
-        """The recorded (area, seconds before the MVS), oldest first (what a resumed run
-        starts from)."""
+    def history(self) -> tuple[tuple[float, float, float, float], ...]:
+        """The recent tasks' (area, seconds before the MVS, r, MVS seconds), oldest first
+        (what a resumed run starts from)."""
         return tuple(self._tasks)
 
     def reference(self) -> tuple[float, float] | None:
@@ -91,37 +102,72 @@ class WorkloadScaler:
         recorded)."""
         if len(self._tasks) < self.config.min_history:
             return None
-        area, spent = np.mean(np.array(self._tasks), axis=0)
+        area, spent = np.mean(np.array(self._tasks)[:, :2], axis=0)
         return float(area), float(spent)
 
+    def predicted_mvs(self, area: float, scale: float) -> float | None:
+        """The MVS seconds of a task of ``area`` at ``scale`` from the recent tasks' cost per
+        unit of area x r^(1 / exponent) (a ratio of sums: the tasks with the most work
+        weigh most); None: too few recorded."""
+        if len(self._tasks) < self.config.min_history or self.config.exponent <= 0:
+            return None
+        t = np.array(self._tasks)
+        work = float(np.sum(self._work(t[:, 0], t[:, 2])))
+        if work <= 0:
+            return None
+        return float(np.sum(t[:, 3])) / work * float(self._work(max(area, 0.0), scale))
+
+    def _work(self, area: Any, scale: Any) -> Any:
+        return area * np.power(scale, 1.0 / self.config.exponent)
+
     def factor(
-        self, area: float | None, spent_s: float | None = None, target_s: float | None = None
+        self,
+        area: float | None,
+        spent_s: float | None = None,
+        target_s: float | None = None,
+        scale: float | None = None,
     ) -> float:
-        """How much this task's r is scaled: 1 without a reference or an area. With
-        ``spent_s`` (this task's seconds before its MVS) and ``target_s`` (the time the
-        controller steers the tasks to), also by the share of the target left for the MVS
-        against the recent tasks'."""
+        """How much this task's r is scaled: 1 without a reference or an area. The area
+        against the recent mean; with ``spent_s`` (this task's seconds before its MVS) and
+        ``target_s`` (the time the controller steers the tasks to) also the time left for
+        the MVS against the recent tasks'; with ``scale`` (the controller's r) never below 1
+        for a task whose predicted time at that r fits the target (a controller at its
+        ceiling with time to spare keeps its r)."""
         c = self.config
         ref = self.reference()
         if area is None or ref is None or ref[0] <= 0 or c.exponent == 0:
             return 1.0
         ratio = ref[0] / area if area > 0 else math.inf
-        if spent_s is not None and target_s is not None and target_s > 0:
+        timed = spent_s is not None and target_s is not None and target_s > 0
+        if timed:
+            assert spent_s is not None and target_s is not None
             usual, left = target_s - ref[1], target_s - spent_s
             if usual > 0.1 * target_s:  # else the MVS's share says nothing
                 ratio *= max(left, 0.0) / usual
-        if not ratio > 0:
-            return 1.0 / c.max_factor
-        f = ratio**c.exponent
-        return float(min(max(f, 1.0 / c.max_factor), c.max_factor))
+        f = ratio**c.exponent if ratio > 0 else 0.0
+        f = (
+            float(min(max(f, 1.0 / c.max_factor), c.max_factor))
+            if math.isfinite(f)
+            else c.max_factor
+        )
+        if f < 1.0 and timed and scale is not None:
+            assert spent_s is not None and target_s is not None
+            mvs = self.predicted_mvs(area, scale)
+            if mvs is not None and spent_s + mvs <= target_s:
+                return 1.0
+        return f
 
-    def record(self, area: float | None, spent_s: float = 0.0) -> None:
-        """A task's area and seconds before its MVS join the reference (no area, e.g. a task
-        without masks: nothing)."""
+    def record(
+        self, area: float | None, spent_s: float = 0.0, scale: float = 1.0, mvs_s: float = 0.0
+    ) -> None:
+        """A finished task: its area, seconds before its MVS, the r it ran at and its MVS's
+        seconds. Tasks without an area (no masks) teach nothing."""
         if area is None or not (math.isfinite(area) and area >= 0):
             return
         spent = float(spent_s) if math.isfinite(spent_s) and spent_s >= 0 else 0.0
-        self._tasks.append((float(area), spent))
+        r = float(scale) if math.isfinite(scale) and scale > 0 else 1.0
+        mvs = float(mvs_s) if math.isfinite(mvs_s) and mvs_s >= 0 else 0.0
+        self._tasks.append((float(area), spent, r, mvs))
 
 
 __all__ = ["WorkloadConfig", "WorkloadScaler", "mask_area"]

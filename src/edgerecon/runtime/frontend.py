@@ -100,9 +100,9 @@ class FrontEndState:
     backend_epoch: int = 0
     """The last back-end epoch handed out."""
     backgrounds_received: int = 0
-    workload_history: tuple[tuple[float, float], ...] = ()
-    """The recent tasks' mask areas and seconds before their MVS (``optimize.workload``: the
-    reference of the next task's scale)."""
+    workload_history: tuple[tuple[float, ...], ...] = ()
+    """The recent tasks' (mask area, seconds before the MVS, r, MVS seconds)
+    (``optimize.workload``: the reference of the next task's scale)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -122,7 +122,9 @@ class FrontEndState:
             bg_version=BgVersion.from_list(d.get("bg_version", 0)),
             backend_epoch=int(d.get("backend_epoch", 0)),
             backgrounds_received=int(d.get("backgrounds_received", 0)),
-            workload_history=tuple((float(a), float(t)) for a, t in d.get("workload_history", ())),
+            workload_history=tuple(
+                tuple(float(x) for x in entry) for entry in d.get("workload_history", ())
+            ),
         )
 
 
@@ -414,8 +416,13 @@ class FrontEnd:
                 split_config=self.config.split,
             )
 
+        before_mvs = [0.0]
+        area: list[float | None] = [None]
+
         def retune(fg: ForegroundResult) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
-            scale[0] = self._workload_scale(plan, fg, time.perf_counter() - start)
+            before_mvs[0] = time.perf_counter() - start
+            area[0] = mask_area(fg.masks, plan.camera_ids)
+            scale[0] = self._workload_scale(plan, area[0], before_mvs[0])
             return configs(scale[0])
 
         task_config, split_config = configs(plan.scale)
@@ -470,9 +477,10 @@ class FrontEnd:
                 # Every golden task refreshes pi(N') (a golden re-search included).
                 vis = result.sparse.visibility_matrix(len(self.rig))
                 self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
-            self.controller.observe(
-                self._recurring(critical, timings, plan.phase, want_golden), quality
-            )
+            recurring = self._recurring(critical, timings, plan.phase, want_golden)
+            self.controller.observe(recurring, quality)
+            if self.workload is not None:
+                self.workload.record(area[0], before_mvs[0], scale[0], recurring - before_mvs[0])
             guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
         return self._output(
@@ -496,20 +504,19 @@ class FrontEnd:
             planned_scale=None if scale[0] == plan.scale else plan.scale,
         )
 
-    def _workload_scale(self, plan: TaskPlan, fg: ForegroundResult, spent_s: float) -> float:
-        """The task's r: the controller's, scaled in the adjustment by the masks' area and
-        the time the task spent before its MVS (``spent_s``) against the recent tasks'
-        (``optimize.workload``), within the controller's range. Every task joins the
-        reference."""
-        assert self.workload is not None
-        area = mask_area(fg.masks, plan.camera_ids)
+    def _workload_scale(self, plan: TaskPlan, area: float | None, spent_s: float) -> float:
+        """The task's r: the controller's, scaled in the adjustment by the mask ``area`` and
+        the time the controller's target leaves after the ``spent_s`` seconds before the
+        MVS, against the recent tasks' (``optimize.workload``), within the controller's
+        range."""
         ctrl = self.controller
-        factor = 1.0
-        if plan.phase == "adjust" and isinstance(ctrl, BisectionController):
-            target = ctrl.config.deadline_s * ctrl.config.adjust_target
-            factor = self.workload.factor(area, spent_s, target)
-        self.workload.record(area, spent_s)
-        if factor == 1.0 or not isinstance(ctrl, BisectionController):
+        if self.workload is None or plan.phase != "adjust":
+            return plan.scale
+        if not isinstance(ctrl, BisectionController):
+            return plan.scale
+        target = ctrl.config.deadline_s * ctrl.config.adjust_target
+        factor = self.workload.factor(area, spent_s, target, plan.scale)
+        if factor == 1.0:
             return plan.scale
         lo, hi = ctrl.scale_range(len(plan.camera_ids))
         return round(min(max(plan.scale * factor, lo), max(hi, plan.scale)), 6)
