@@ -92,7 +92,7 @@ class BackEnd:
         self._crashed: str | None = None
         self._threads: list[threading.Thread] = []
         self._worker = (
-            _RebuildWorker(config.background_nice)
+            _RebuildWorker(config.background_nice, config.background_idle)
             if config.background_updates and config.background_process
             else None
         )
@@ -341,11 +341,16 @@ def rebuild_background(
     ).cloud
 
 
-def _lower_priority(nice: int) -> None:
+def _lower_priority(nice: int, idle: bool = False) -> None:
     try:
         os.nice(nice)
     except OSError:  # not allowed: run at the same priority
         pass
+    if idle and hasattr(os, "sched_setscheduler") and hasattr(os, "SCHED_IDLE"):
+        try:  # before any thread starts: numba's workers inherit it
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        except OSError:
+            pass
 
 
 class _RebuildWorker:
@@ -358,8 +363,9 @@ class _RebuildWorker:
     with the first rebuild (spawned: the parent has threads) and is started again if it
     dies."""
 
-    def __init__(self, nice: int) -> None:
+    def __init__(self, nice: int, idle: bool = False) -> None:
         self._nice = nice
+        self._idle = idle
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
 
@@ -376,7 +382,7 @@ class _RebuildWorker:
                     max_workers=1,
                     mp_context=multiprocessing.get_context("spawn"),
                     initializer=_lower_priority,
-                    initargs=(self._nice,),
+                    initargs=(self._nice, self._idle),
                 )
             pool = self._pool
         try:
