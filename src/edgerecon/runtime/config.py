@@ -95,11 +95,12 @@ class RuntimeConfig:
     = only the dilated foreground masks, so the front-end segments first, then runs SfM on
     the masked crops (its cost follows the foreground's area; the split and pi(N') need
     nothing else); "scene" = the paper's order: SfM of the whole frames, then the split;
-    "hull" (default) = as "foreground" on golden-configuration tasks (pi(N')) and with the
-    paper's online estimate, no SfM on the other tasks when the visual hull bounds the
-    foreground's depth search (``pipeline.reconstruct_task``): the same foreground cloud
-    without the SfM's 0.2-0.25 s per task (hd4, caliscope_charuco: about a third of the
-    online golden task)."""
+    "hull" (default) = as "foreground" with the paper's online estimate; otherwise no SfM on
+    a task's critical path when the visual hull bounds the foreground's depth search
+    (``pipeline.reconstruct_task``): the same foreground cloud without the SfM's 0.2-0.25 s
+    per task (hd4, caliscope_charuco: about a third of the online golden task); a
+    golden-configuration task runs the SfM of its foreground crops after its cloud, for
+    pi(N') (``sfm_mapping``)."""
     dense: DenseConfig = field(default_factory=DenseConfig)
     """Foreground MVS on the front-end."""
     background_dense: DenseConfig = field(default_factory=DenseConfig)

@@ -42,7 +42,9 @@ from edgerecon.optimize.workload import WorkloadScaler, mask_area
 from edgerecon.pipeline import (
     SplitPipelineConfig,
     TaskCancelled,
+    foreground_views,
     num_objects,
+    prepare_task_views,
     reconstruct_task,
     task_configs,
 )
@@ -59,6 +61,7 @@ from edgerecon.runtime.messages import (
 )
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.stream import SceneTracker
+from edgerecon.sparse import reconstruct_sparse
 from edgerecon.types import FrameSet, PointCloud, StageTimings
 
 logger = logging.getLogger(__name__)
@@ -470,17 +473,32 @@ class FrontEnd:
         with timings.stage("scene_update_after"), self._scene_lock:
             self._tracker().settle()  # static scenes due before this task's frame first
             self._tracker().learn(frames, fg)
+        sparse = result.sparse
+        mapping = plan.phase == "golden" and not isinstance(self.controller, FixedController)
+        if mapping and "sfm" not in timings.to_dict():
+            # pi(N') needs the golden task's sparse visibility; its cloud did not (the hull
+            # bounded the depth search): the SfM of the foreground runs after the task's
+            # cloud, not on its critical path.
+            with timings.stage("sfm_mapping"):
+                sparse = reconstruct_sparse(
+                    foreground_views(
+                        prepare_task_views(frames, self.rig, result.config),
+                        self.rig,
+                        fg.masks,
+                        self.config.split.fg_mask_dilation_px,
+                    ),
+                    self.config.sparse,
+                )
         with self._commit:
             if guard.cancel.is_set():
                 raise TaskCancelled(f"time {frames.time_index}: cancelled before the commit")
-            if plan.phase == "golden" and not isinstance(self.controller, FixedController):
+            if mapping:
                 # Every golden task refreshes pi(N') (a golden re-search included).
-                vis = result.sparse.visibility_matrix(len(self.rig))
+                vis = sparse.visibility_matrix(len(self.rig))
                 self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
-            recurring = self._recurring(critical, timings, plan.phase, want_golden)
-            self.controller.observe(recurring, quality)
+            self.controller.observe(critical, quality)
             if self.workload is not None:
-                self.workload.record(area[0], before_mvs[0], scale[0], recurring - before_mvs[0])
+                self.workload.record(area[0], before_mvs[0], scale[0], critical - before_mvs[0])
             guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
         return self._output(
@@ -497,7 +515,7 @@ class FrontEnd:
             degraded=degraded,
             degraded_reason=reason,
             frame_defects=defects,
-            num_sparse=result.sparse.num_points,
+            num_sparse=sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
             num_objects=max(num_objects(labels), _cloud_objects(fg_rec.cloud)),
             scale=scale[0],
@@ -521,28 +539,13 @@ class FrontEnd:
         lo, hi = ctrl.scale_range(len(plan.camera_ids))
         return round(min(max(plan.scale * factor, lo), max(hi, plan.scale)), 6)
 
-    def _recurring(
-        self, critical: float, timings: StageTimings, phase: str, want_golden: bool
-    ) -> float:
-        """What the task's configuration costs per task, for the controller: the critical
-        path, less the SfM of a golden-configuration task whose sparse scope differs from the
-        other tasks' (``sparse_scope`` "hull": SfM only to build pi(N')). Otherwise that
-        one-off SfM (0.13-0.55 s on caliscope_charuco, utrecht4cam, hd4, hd4p) made a golden
-        configuration that fits the deadline look too slow, and the search spent 7-8 tasks
-        finding r = 1 again. With the paper's online estimate every task runs SfM: then it
-        counts."""
-        if phase != "golden" or self._sparse_scope(phase, want_golden) == self._sparse_scope(
-            "adjust", want_golden
-        ):
-            return critical
-        return max(critical - timings.to_dict().get("sfm", 0.0), 0.0)
-
     def _sparse_scope(self, phase: str, want_golden: bool) -> str:
-        """The task's ``sparse_scope``: "hull" skips SfM on the critical path, except on a
-        golden-configuration task (pi(N') is built from its sparse visibility) and when the
-        online estimate is the paper's (it compares foreground sparse clouds)."""
+        """The task's ``sparse_scope``: "hull" skips SfM on the critical path, except when
+        the online estimate is the paper's (it compares foreground sparse clouds). A golden
+        task's SfM (pi(N') is built from its sparse visibility) runs after its cloud
+        (``sfm_mapping``)."""
         scope = self.config.sparse_scope
-        if scope == "hull" and (want_golden or phase == "golden"):
+        if scope == "hull" and want_golden:
             return "foreground"
         return scope
 
