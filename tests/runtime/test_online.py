@@ -32,7 +32,9 @@ def test_embedded_run_outputs_and_summary(tiny, tmp_path):
     assert all(m.offline_fscore is not None and m.offline_fscore > 0.1 for m in metrics)
     assert all(m.num_fg_points > 0 and m.critical_path_s > 0 for m in metrics)
     assert all(m.submitted for m in metrics)
-    assert {"scene", "sfm", "split", "merge", "online_quality"} <= set(metrics[0].stages)
+    # The golden task's SfM (pi(N')) after its cloud, not on its critical path.
+    assert {"scene", "sfm_mapping", "split", "merge", "online_quality"} <= set(metrics[0].stages)
+    assert "sfm" not in metrics[0].stages
     lines = _lines(tmp_path / "metrics.jsonl")
     assert [x["time_index"] for x in lines] == [0, 1, 2, 3]
     run = RunFolder(tmp_path)

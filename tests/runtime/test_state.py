@@ -420,11 +420,11 @@ def test_a_task_cloud_is_its_foreground_and_a_background_stored_once(tmp_path):
     assert run.cloud(10) is None
 
 
-def test_the_controller_sees_a_golden_task_without_its_one_off_sfm(tiny):
-    """A golden-configuration task runs SfM only to build pi(N') (the other tasks skip it,
-    sparse_scope "hull"): the controller judges the configuration by what it costs per task,
-    or a golden task that fits the deadline looks too slow and the search starts for
-    nothing. The task's own record keeps its whole critical path."""
+def test_the_golden_tasks_sfm_runs_after_its_cloud(tiny):
+    """A golden-configuration task needs SfM only to build pi(N') (its cloud, like every
+    other task's, takes its depth ranges from the hull, sparse_scope "hull"): the SfM runs
+    after the task's cloud, off its critical path, and the controller sees the critical
+    path; pi(N') comes from that SfM's visibility."""
     ds, scene = tiny
     seen: list[float] = []
 
@@ -443,11 +443,13 @@ def test_the_controller_sees_a_golden_task_without_its_one_off_sfm(tiny):
         outs.append((plan, fe.run_task(frames, plan, lambda w: None, time.sleep, task=task)))
     (golden, first), (after, second) = outs
     assert golden.phase == "golden" and after.phase != "golden"
-    sfm = first.metrics.stages["sfm"]
-    assert sfm > 0 and "sfm" not in second.metrics.stages
-    assert seen[0] == pytest.approx(first.metrics.critical_path_s - sfm, abs=1e-5)
+    assert "sfm" not in first.metrics.stages and "sfm" not in second.metrics.stages
+    assert first.metrics.stages["sfm_mapping"] > 0 and first.metrics.num_sparse > 0
+    assert "sfm_mapping" not in second.metrics.stages
+    assert fe.pi_source is not None and fe.pi_source["task"] == 0 and fe.pi_source["rows"] > 0
+    assert seen[0] == pytest.approx(first.metrics.critical_path_s, abs=1e-5)
     assert seen[1] == pytest.approx(second.metrics.critical_path_s, abs=1e-5)
-    # With the paper's online estimate every task runs SfM: the golden task's is recurring.
+    # With the paper's online estimate every task runs SfM on its critical path.
     seen.clear()
     ctrl = Recording(ControllerConfig(deadline_s=100.0), None, len(ds.rig))
     config = runtime_config(online_quality="golden", golden_timeout_s=0.1)
