@@ -138,24 +138,18 @@ class WorkloadScaler:
         if area is None or ref is None or ref[0] <= 0 or c.exponent == 0:
             return 1.0
         ratio = ref[0] / area if area > 0 else math.inf
-        timed = spent_s is not None and target_s is not None and target_s > 0
-        if timed:
-            assert spent_s is not None and target_s is not None
+        if spent_s is not None and target_s is not None and target_s > 0:
             usual, left = target_s - ref[1], target_s - spent_s
             if usual > 0.1 * target_s:  # else the MVS's share says nothing
                 ratio *= max(left, 0.0) / usual
-        f = ratio**c.exponent if ratio > 0 else 0.0
-        f = (
-            float(min(max(f, 1.0 / c.max_factor), c.max_factor))
-            if math.isfinite(f)
-            else c.max_factor
-        )
-        if f < 1.0 and timed and scale is not None:
-            assert spent_s is not None and target_s is not None
-            mvs = self.predicted_mvs(area, scale)
-            if mvs is not None and spent_s + mvs <= target_s:
-                return 1.0
-        return f
+            if scale is not None and ratio < 1.0:
+                mvs = self.predicted_mvs(area, scale)
+                if mvs is not None and spent_s + mvs <= target_s:
+                    return 1.0
+        if not ratio > 0:  # no time left (0, or an empty mask with none: nan)
+            return 1.0 / c.max_factor
+        f = ratio**c.exponent
+        return float(min(max(f, 1.0 / c.max_factor), c.max_factor))
 
     def record(
         self, area: float | None, spent_s: float = 0.0, scale: float = 1.0, mvs_s: float = 0.0

@@ -407,7 +407,9 @@ class FrontEnd:
             job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
             return fg
 
-        scale = [plan.scale]
+        scale = plan.scale
+        area: float | None = None
+        before_mvs = 0.0
 
         def configs(r: float) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
             return task_configs(
@@ -419,14 +421,13 @@ class FrontEnd:
                 split_config=self.config.split,
             )
 
-        before_mvs = [0.0]
-        area: list[float | None] = [None]
-
         def retune(fg: ForegroundResult) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
-            before_mvs[0] = time.perf_counter() - start
-            area[0] = mask_area(fg.masks, plan.camera_ids)
-            scale[0] = self._workload_scale(plan, area[0], before_mvs[0])
-            return configs(scale[0])
+            # Once the masks are known: the task's r from its workload (optimize.workload).
+            nonlocal scale, area, before_mvs
+            before_mvs = time.perf_counter() - start
+            area = mask_area(fg.masks, plan.camera_ids)
+            scale = self._workload_scale(plan, area, before_mvs)
+            return configs(scale)
 
         task_config, split_config = configs(plan.scale)
         result = reconstruct_task(
@@ -498,7 +499,7 @@ class FrontEnd:
                 self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
             self.controller.observe(critical, quality)
             if self.workload is not None:
-                self.workload.record(area[0], before_mvs[0], scale[0], critical - before_mvs[0])
+                self.workload.record(area, before_mvs, scale, critical - before_mvs)
             guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
         return self._output(
@@ -518,8 +519,8 @@ class FrontEnd:
             num_sparse=sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
             num_objects=max(num_objects(labels), _cloud_objects(fg_rec.cloud)),
-            scale=scale[0],
-            planned_scale=None if scale[0] == plan.scale else plan.scale,
+            scale=scale,
+            planned_scale=None if scale == plan.scale else plan.scale,
         )
 
     def _workload_scale(self, plan: TaskPlan, area: float | None, spent_s: float) -> float:
