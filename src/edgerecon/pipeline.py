@@ -335,6 +335,21 @@ def foreground_views(
     return with_masks(views, rig, grown)
 
 
+def task_sparse(
+    views: Sequence[View],
+    rig: Rig,
+    masks: Sequence[Mask | None] | None,
+    dilation_px: int,
+    sparse_config: SparseConfig,
+) -> SparseReconstruction:
+    """A task's SfM: of the views' foreground crops (``masks`` grown by ``dilation_px``,
+    ``foreground_views``), or of the whole views (``masks`` None). The one composition of
+    the task's sparse stage: ``reconstruct_task``, the front-end's pi(N') after a golden
+    task's cloud and the back-end's golden reference."""
+    sfm_views = views if masks is None else foreground_views(views, rig, masks, dilation_px)
+    return reconstruct_sparse(sfm_views, sparse_config)
+
+
 def reconstruct_foreground(
     views: Sequence[View],
     rig: Rig,
@@ -684,12 +699,7 @@ def reconstruct_task(
 
     def sfm(views: list[View], masks: Sequence[Mask | None] | None) -> SparseReconstruction:
         with timings.stage("sfm"):
-            sfm_views = (
-                views
-                if masks is None
-                else foreground_views(views, rig, masks, split.fg_mask_dilation_px)
-            )
-            return reconstruct_sparse(sfm_views, cfg.sparse_config)
+            return task_sparse(views, rig, masks, split.fg_mask_dilation_px, cfg.sparse_config)
 
     late = retune is not None and sparse_scope != "scene"
     if not late:

@@ -35,7 +35,7 @@ import numpy as np
 
 from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
-from edgerecon.pipeline import foreground_views, prepare_task_views, reconstruct_static
+from edgerecon.pipeline import prepare_task_views, reconstruct_static, task_sparse
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
@@ -46,7 +46,6 @@ from edgerecon.runtime.messages import (
 )
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.split import split_sparse
-from edgerecon.sparse import reconstruct_sparse
 from edgerecon.types import FrameSet, Mask, PointCloud
 
 logger = logging.getLogger(__name__)
@@ -239,12 +238,13 @@ class BackEnd:
     def _golden_reference(self, frames: FrameSet, fg: ForegroundResult) -> GoldenReply:
         t1 = time.perf_counter()
         golden = ReconstructionConfig(sparse_config=self.config.sparse)
-        views = prepare_task_views(frames, self.rig, golden)
-        if self.config.sparse_scope != "scene":  # as the front-end's SfM
-            views = foreground_views(
-                views, self.rig, fg.masks, self.config.split.fg_mask_dilation_px
-            )
-        sparse = reconstruct_sparse(views, self.config.sparse)
+        sparse = task_sparse(
+            prepare_task_views(frames, self.rig, golden),
+            self.rig,
+            None if self.config.sparse_scope == "scene" else fg.masks,  # as the front-end's
+            self.config.split.fg_mask_dilation_px,
+            self.config.sparse,
+        )
         split = split_sparse(
             sparse.points3D,
             sparse.visibility_matrix(len(self.rig)),

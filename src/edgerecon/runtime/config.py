@@ -48,10 +48,11 @@ class RuntimeConfig:
     ``pipeline.task_configs``; rigs whose golden foreground densifies at level 0, under
     1280 px, have nothing finer). False: r stops at 1, as in the paper."""
     workload: WorkloadConfig | None = field(default_factory=WorkloadConfig)
-    """Each adjusted task's r scaled by its masks' area against the recent tasks' (computed
-    after its scene stage, before its MVS; ``optimize.workload``): a task with more
-    foreground runs coarser, one with less finer, so that its time stays near the
-    deadline. None: every task runs the controller's r (the paper)."""
+    """Each adjusted task's r scaled by its masks' area and the time its scene stage left,
+    against the recent tasks' (computed after its scene stage, before its MVS;
+    ``optimize.workload``): a task with more foreground, or less time left, runs coarser,
+    one with less finer, so that its time stays near the deadline; not coarser when it fits
+    at the controller's r. None: every task runs the controller's r (the paper)."""
     golden_timeout_s: float | None = None
     """How long the front-end waits, after publishing a task's cloud, for the back-end's
     golden reference of the online estimate; None = the deadline, at least 2 s."""

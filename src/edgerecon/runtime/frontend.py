@@ -42,11 +42,11 @@ from edgerecon.optimize.workload import WorkloadScaler, mask_area
 from edgerecon.pipeline import (
     SplitPipelineConfig,
     TaskCancelled,
-    foreground_views,
     num_objects,
     prepare_task_views,
     reconstruct_task,
     task_configs,
+    task_sparse,
 )
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
@@ -61,7 +61,6 @@ from edgerecon.runtime.messages import (
 )
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.stream import SceneTracker
-from edgerecon.sparse import reconstruct_sparse
 from edgerecon.types import FrameSet, PointCloud, StageTimings
 
 logger = logging.getLogger(__name__)
@@ -481,14 +480,12 @@ class FrontEnd:
             # bounded the depth search): the SfM of the foreground runs after the task's
             # cloud, not on its critical path.
             with timings.stage("sfm_mapping"):
-                sparse = reconstruct_sparse(
-                    foreground_views(
-                        prepare_task_views(frames, self.rig, result.config),
-                        self.rig,
-                        fg.masks,
-                        self.config.split.fg_mask_dilation_px,
-                    ),
-                    self.config.sparse,
+                sparse = task_sparse(
+                    prepare_task_views(frames, self.rig, result.config),
+                    self.rig,
+                    fg.masks,
+                    self.config.split.fg_mask_dilation_px,
+                    result.config.sparse_config,
                 )
         with self._commit:
             if guard.cancel.is_set():
