@@ -93,3 +93,16 @@ def test_summary_names_the_distance_of_the_ground_truth_fscore(tmp_path):
     (run / "summary.json").write_text(json.dumps(summary))
     rows = dict(summary_rows(load_runs([run])[0]))
     assert rows["avg. F-score of FG (vs ground truth, d = 0.0173 m)"] == "0.500"
+
+
+def test_the_stage_figure_is_the_critical_path(tmp_path):
+    """Stages a task records after its cloud (``AFTER_CRITICAL_PATH``: a golden task's SfM
+    for pi(N'), the online estimate, ...) are not drawn as part of its critical path."""
+    run = write_run(tmp_path / "run", num_tasks=0)
+    after = {"sfm_mapping": 0.2, "online_quality": 0.01, "scene_update_after": 0.03}
+    append_task(run, task_metrics(0, stages={"scene": 0.3, "fg_dense.depth": 0.4, **after}), None)
+    append_task(run, task_metrics(1, stages={"scene": 0.5, "online_quality": 0.01}), None)
+    runs = load_runs([run])
+    assert stage_means(runs[0]) == pytest.approx({"scene": 0.4, "fg_dense.depth": 0.2})
+    ax = figure("stages", runs).axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["scene", "fg_dense.depth"]

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from edgerecon.io.ply import atomic_write_bytes
-from edgerecon.runtime.messages import TaskMetrics
+from edgerecon.runtime.messages import AFTER_CRITICAL_PATH, TaskMetrics
 from edgerecon.runtime.session import offline_fscore_label
 from edgerecon.types import EdgereconError
 from edgerecon.viewer.rundir import read_run
@@ -232,12 +232,14 @@ def _version(m: TaskMetrics) -> tuple[int, int]:
 
 def stage_means(run: RunData) -> dict[str, float]:
     """Mean seconds per critical-path stage over the run's successful tasks (tasks that
-    skipped a stage count 0 for it)."""
+    skipped a stage count 0 for it; the stages after the path, ``AFTER_CRITICAL_PATH``,
+    left out)."""
     ok = run.ok
     sums: dict[str, float] = {}
     for m in ok:
         for k, v in m.stages.items():
-            sums[k] = sums.get(k, 0.0) + float(v)
+            if k not in AFTER_CRITICAL_PATH:
+                sums[k] = sums.get(k, 0.0) + float(v)
     return {k: v / len(ok) for k, v in sums.items()} if ok else {}
 
 

@@ -25,6 +25,7 @@ from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import SPARSE_SCOPES
 from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetrics
 from edgerecon.runtime.config import ONLINE_QUALITIES
+from edgerecon.runtime.messages import AFTER_CRITICAL_PATH
 from edgerecon.runtime.online import run_online
 from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted, offline_fscore_label
 
@@ -270,9 +271,12 @@ def print_summary(title: str, s: RunSummary) -> None:
     print_table(title, ["metric", "value"], rows)
     if s.stage_means_s:
         print_table(
-            "stages per task (mean seconds; wait_golden is after the critical path)",
-            ["stage", "seconds"],
-            sorted(s.stage_means_s.items(), key=lambda kv: -kv[1]),
+            "stages per task (mean seconds)",
+            ["stage", "seconds", "when"],
+            [
+                (k, v, "after the cloud" if k in AFTER_CRITICAL_PATH else "critical path")
+                for k, v in sorted(s.stage_means_s.items(), key=lambda kv: -kv[1])
+            ],
         )
 
 

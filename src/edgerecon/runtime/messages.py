@@ -98,6 +98,12 @@ class BackgroundUpdate:
     """Time the rebuild took on the back-end."""
 
 
+#: Stages a task records after its cloud is out (not on its critical path): the paper's
+#: online estimate's wait for the golden reference, the online estimate, the background
+#: update of the task's frame and a golden task's SfM for pi(N').
+AFTER_CRITICAL_PATH = ("wait_golden", "online_quality", "scene_update_after", "sfm_mapping")
+
+
 @dataclass(kw_only=True)
 class TaskMetrics:
     """One line of ``metrics.jsonl``."""
@@ -121,7 +127,8 @@ class TaskMetrics:
     critical_path_s: float = 0.0
     """Seconds from the task's start to its merged cloud (what the deadline constrains)."""
     stages: dict[str, float] = field(default_factory=dict)
-    """Breakdown of the critical path (sparse, wait for masks, split, foreground MVS, merge)."""
+    """Seconds per stage: the critical path's (sparse, wait for masks, split, foreground
+    MVS, merge), then those of ``AFTER_CRITICAL_PATH``."""
     deadline_s: float = 0.0
     deadline_met: bool = False
     online_fscore: float | None = None
