@@ -186,3 +186,38 @@ def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_p
     )
     assert [m.status for m in metrics] == ["ok", "failed", "ok"]
     assert "usable camera" in metrics[1].error
+
+
+def test_background_updates_run_between_tasks_with_the_same_masks(tiny_dataset, tmp_path):
+    # Updates every frame: tasks every third frame leave two updates between tasks, which
+    # the session applies after a task's cloud instead of on the next task's critical path.
+    from edgerecon.runtime.engine import learn_scene_model
+    from edgerecon.runtime.frontend import FixedController, FrontEnd
+    from edgerecon.scene import ForegroundConfig
+    from edgerecon.scene.stream import dataset_scene_at
+
+    ds = open_dataset(tiny_dataset)
+    fg_config = ForegroundConfig(update_interval_s=1.0 / ds.fps)
+    scene = learn_scene_model(ds, fg_config)
+    assert scene.step == 1
+    config = runtime_config(foreground=fg_config)
+    opts = SessionOptions(frames=FrameRange(start=0, stop=8, step=3))
+    _, metrics = run_online(ds, config, opts, tmp_path, scene=scene)
+    assert [m.time_index for m in metrics] == [0, 3, 6]
+    assert all(m.status == "ok" for m in metrics)
+    # Updates 1-2 and 4-5 between the tasks, none left on a task's path; none after the last.
+    assert all("scene_update" not in m.stages for m in metrics)
+    assert all(m.stages.get("scene_update_ahead", 0) > 0 for m in metrics[:2])
+    assert "scene_update_ahead" not in metrics[2].stages
+    # The models the next task segments with are the stream's at its time index.
+    front = FrontEnd(
+        ds.rig, config, FixedController(1.0, (0, 1, 2)), scene.tracker(ds.rig, fg_config)
+    )
+    with ds.open_frames() as source:
+        front.learn_updates([source.read(s) for s in front.pending_updates(5)])
+        frames = source.read(5)
+    assert front.pending_updates(5) == []
+    ours = front.scene.segment(frames).masks  # type: ignore[union-attr]
+    theirs = dataset_scene_at(ds, 5, fg_config).segment(frames).masks
+    for a, b in zip(ours, theirs, strict=True):
+        np.testing.assert_array_equal(a, b)

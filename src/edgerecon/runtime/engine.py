@@ -143,6 +143,11 @@ class Engine(Protocol):
         of ``time_index`` (the session reads them and passes them to :meth:`run_task`)."""
         ...
 
+    def learn_updates(self, updates: Sequence[FrameSet]) -> float:
+        """Apply scheduled background updates between two tasks (``FrontEnd.learn_updates``);
+        returns the seconds spent."""
+        ...
+
     def run_task(
         self,
         frames: FrameSet,
@@ -359,6 +364,9 @@ class EmbeddedEngine:
 
     def pending_updates(self, time_index: int) -> list[int]:
         return self.frontend.pending_updates(time_index)
+
+    def learn_updates(self, updates: Sequence[FrameSet]) -> float:
+        return self.frontend.learn_updates(updates)
 
     def run_task(
         self,

@@ -4,7 +4,9 @@ Per task the front-end runs the one composition of a task (:func:`pipeline.recon
 with the optimizer's configuration (r, pi(N')), the foreground it computes itself (the scene
 stage: :meth:`FrontEnd.obtain_foreground`, a few tens of milliseconds at the working
 resolution; the front-end owns the background models and applies their scheduled updates,
-see :mod:`edgerecon.scene.stream`) and the newest background it holds. Once the foreground is
+see :mod:`edgerecon.scene.stream`: those whose frames have arrived by the end of a task
+between two tasks, :meth:`FrontEnd.learn_updates`, the rest before the next task's scene
+stage) and the newest background it holds. Once the foreground is
 known it hands the frames and masks to the back-end (golden reference, background rebuilds).
 The critical path ends when the merged cloud is ready; then the front-end estimates the
 task's quality (by default from its own dense foreground and the masks,
@@ -312,6 +314,46 @@ class FrontEnd:
         """Time indices of the scheduled background updates still to apply before the task
         of ``time_index`` (the session reads those frames for :meth:`run_task`)."""
         return [] if self.scene is None else self.scene.pending(time_index)
+
+    def learn_updates(self, updates: Sequence[FrameSet]) -> float:
+        """Apply scheduled background updates between two tasks, off both critical paths:
+        the session passes the frames of the updates due before the next task that have
+        arrived by the end of this one (``SceneTracker.learn``, then the static scenes they
+        make due). The next task's masks are those it would get with the updates on its own
+        path (the models at its time index are the same). Bounded by the watchdog; an update
+        that raises or hangs is logged and left to the next task, which applies it itself
+        (a failed-task record if it fails there too). Returns the seconds spent."""
+        if not updates or self.scene is None:
+            return 0.0
+        scene = self.scene
+        box: dict[str, Any] = {}
+
+        def work() -> None:
+            try:
+                t0 = time.perf_counter()
+                with self._scene_lock:
+                    for u in updates:
+                        scene.learn(u, defer_static=True)
+                    scene.settle()
+                box["seconds"] = time.perf_counter() - t0
+            except BaseException as exc:  # logged below: the next task retries it
+                box["exc"] = exc
+
+        limit = self.config.watchdog_s
+        worker = threading.Thread(target=work, name="scene-updates", daemon=True)
+        start = time.perf_counter()
+        worker.start()
+        worker.join(limit)
+        if worker.is_alive():
+            logger.error("background updates between tasks: still running after %.1f s", limit)
+            return time.perf_counter() - start
+        if "exc" in box:
+            logger.warning(
+                "background updates between tasks failed (%s); the next task applies them",
+                describe_exception(box["exc"]),
+            )
+            return time.perf_counter() - start
+        return float(box["seconds"])
 
     def obtain_foreground(
         self, frames: FrameSet, updates: Sequence[FrameSet], timings: StageTimings

@@ -100,8 +100,15 @@ class BackgroundUpdate:
 
 #: Stages a task records after its cloud is out (not on its critical path): the paper's
 #: online estimate's wait for the golden reference, the online estimate, the background
-#: update of the task's frame and a golden task's SfM for pi(N').
-AFTER_CRITICAL_PATH = ("wait_golden", "online_quality", "scene_update_after", "sfm_mapping")
+#: update of the task's frame, a golden task's SfM for pi(N') and the background updates due
+#: before the next task that the session applies between the two (``Session._learn_ahead``).
+AFTER_CRITICAL_PATH = (
+    "wait_golden",
+    "online_quality",
+    "scene_update_after",
+    "sfm_mapping",
+    "scene_update_ahead",
+)
 
 
 @dataclass(kw_only=True)

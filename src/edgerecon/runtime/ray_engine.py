@@ -212,6 +212,9 @@ class _FrontendActor:
     def pending_updates(self, time_index: int) -> list[int]:
         return self.frontend.pending_updates(time_index)
 
+    def learn_updates(self, updates: list[FrameSet]) -> float:
+        return self.frontend.learn_updates(updates)
+
     def run_task(
         self,
         frames_ref: list[Any],
@@ -297,6 +300,14 @@ class RayEngine:
 
     def pending_updates(self, time_index: int) -> list[int]:
         return list(_ray().get(self.frontend.pending_updates.remote(time_index)))
+
+    def learn_updates(self, updates: Sequence[FrameSet]) -> float:
+        if not updates:
+            return 0.0
+        small = [self._reduce(u) for u in updates]
+        # The front-end's watchdog answers first; this bound is for a front-end gone silent.
+        limit = self.config.watchdog_s + 2 * _RPC_GRACE_S
+        return float(_ray().get(self.frontend.learn_updates.remote(small), timeout=limit))
 
     def run_task(
         self,

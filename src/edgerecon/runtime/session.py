@@ -43,6 +43,7 @@ background (see :mod:`edgerecon.runtime.online`).
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -211,6 +212,10 @@ class RunInterrupted(KeyboardInterrupt):
         self.metrics = metrics
 
 
+def _same(value: int | None) -> int | None:
+    return value
+
+
 class Session:
     """Runs tasks on an engine and keeps the run's files (see module docstring)."""
 
@@ -238,6 +243,10 @@ class Session:
         self.identity = DatasetIdentity.of(dataset)
         self.frames_dropped = 0
         self._defects: dict[str, str] = {}
+        # The schedule's lower bound on the next task's time index, as of now (None: no
+        # next task, or not known): the background updates before it can be applied
+        # between tasks (``_learn_ahead``).
+        self._next_bound: Callable[[], int | None] = functools.partial(_same, None)
         self._gt: Any = None
         self._stream: dict[str, Any] = {}
         if options.ground_truth_threshold is not None and dataset.ground_truth is not None:
@@ -249,17 +258,32 @@ class Session:
     def _schedule(self, indices: list[int], done: set[int]) -> Iterator[int]:
         todo = [t for t in indices if t not in done]
         if self.options.policy == "all":
-            yield from todo
+            for i, t in enumerate(todo):
+                nxt = todo[i + 1] if i + 1 < len(todo) else None
+                self._next_bound = functools.partial(_same, nxt)
+                yield t
             return
         fps = self.options.arrival_fps or (self.dataset.fps or 25.0) / self.options.frames.step
         start = time.monotonic()
+
+        def newest_from(pos: int) -> int:
+            # The next task takes the newest frame that has arrived (at least todo[pos]).
+            arrived = int((time.monotonic() - start) * fps)
+            return min(max(arrived, pos), len(todo) - 1)
+
         pos = 0
         while pos < len(todo):
-            arrived = int((time.monotonic() - start) * fps)
-            newest = min(max(arrived, pos), len(todo) - 1)
+            newest = newest_from(pos)
             self.frames_dropped += newest - pos
+            after = newest + 1
+
+            def bound(after: int = after) -> int | None:
+                # Frames only arrive: the next task's frame is at least the newest one now.
+                return todo[newest_from(after)] if after < len(todo) else None
+
+            self._next_bound = bound
             yield todo[newest]
-            pos = newest + 1
+            pos = after
 
     def _live_schedule(self, done: set[int]) -> Iterator[int]:
         """Live streams: tasks ``start, start + 1, ...`` (after those done) until
@@ -332,6 +356,7 @@ class Session:
                     logger.error("drill: injecting %r failed: %s", kind, exc)
         out = self._run_one(source, t, task)
         m = out.metrics
+        self._learn_ahead(source, m)
         try:
             if m.status == "ok":
                 self._score(m, t, out)
@@ -391,6 +416,23 @@ class Session:
             logger.debug("traceback", exc_info=exc)
             m = TaskMetrics.failed(task=task, time_index=t, error=error, deadline_s=self.deadline_s)
             return TaskOutput(metrics=m, foreground=None)
+
+    def _learn_ahead(self, source: FrameSource, m: TaskMetrics) -> None:
+        """After a task's cloud, before its commit: the scheduled background updates due
+        before the next task whose frames have arrived, applied now rather than on the next
+        task's critical path (the models at its time index are the same, so are its masks).
+        Their seconds are this task's ``scene_update_ahead`` stage (after its cloud). A
+        failure here is logged; the next task applies what is left itself."""
+        bound = self._next_bound()
+        if bound is None or self.dataset.is_live:
+            return
+        try:
+            seconds = self.engine.learn_updates(self._update_frames(source, bound))
+        except Exception as exc:  # the next task applies the updates itself
+            logger.warning("background updates between tasks: %s", describe_exception(exc))
+            return
+        if seconds > 0.0:
+            m.stages["scene_update_ahead"] = round(seconds, 6)
 
     def _update_frames(self, source: FrameSource, t: int) -> list[FrameSet]:
         """The frames of the background models' scheduled updates due before ``t``, unusable

@@ -24,7 +24,9 @@ they are at t*, and the models at ``t`` are defined by the stream alone:
 ``edgerecon masks``, ``reconstruct --split`` and ``run`` all follow it, so one time index gets
 the same masks from each (with the same settings), whatever the task schedule. The updates
 cost one background-model update per camera per step, a few milliseconds at the working
-resolution: on a 25 fps stream with the default 0.5 s interval, one update every 12 frames;
+resolution (50-80 ms for 4 cameras at 480x270; the online session applies those due before
+the next task between two tasks, off both critical paths, ``Session._learn_ahead``): on a
+25 fps stream with the default 0.5 s interval, one update every 12 frames;
 with the static check, a static scene costs 0.5-0.8 s (hd4, 4 x 480x270) once every 2 s of
 stream, after the critical path of the task whose frames it uses (or, when that frame was not
 a task, of the next task).
