@@ -789,6 +789,9 @@ def warm_up() -> float:
             reconstruct(FrameSet(time_index=0, images=tuple(frame.images)), scene.rig)
         finally:
             package.setLevel(level)
+        from edgerecon.scene._kernels import warm_up as scene_kernels
+
+        scene_kernels()  # the scene stage's photo check
     _warmed_up = True
     seconds = time.perf_counter() - t0
     logger.info("kernels ready in %.1f s", seconds)

@@ -325,3 +325,77 @@ def test_the_floor_depth_follows_a_distorted_cameras_rays(rig: Rig) -> None:
     px = np.stack([xs[pick], ys[pick]], axis=1).astype(np.float64)
     points = cam.backproject(px, depth[ys[pick], xs[pick]].astype(np.float64))
     np.testing.assert_allclose(points[:, 2], 0.0, atol=1e-4 * cam.center[2] + 1e-5)
+
+
+def _judge_reference(c, idx, colours, contrasts, inside, alone, valid, ratios, has_ratio, cfg):
+    """The photo check's per-point judgement written with NumPy arrays (what the kernel
+    fuses): float32 throughout, as the check's NumPy version computed it."""
+    n = len(valid)
+    a = colours[c][:, idx]
+    sa = a[0] + a[1] + a[2] + 1.0
+    dist = np.full(len(idx), np.inf, np.float32)
+    vouch = np.zeros(len(idx), bool)
+    tinted = np.zeros(len(idx), bool)
+    for o in range(n):
+        if o == c or not valid[o]:
+            continue
+        both = inside[o][idx]
+        b = colours[o][:, idx]
+        if has_ratio[c, o]:
+            b = b * ratios[c, o][:, None]
+        sb = b[0] + b[1] + b[2] + 1.0
+        ia, ib = 1.0 / sa, 1.0 / sb
+        chroma = np.abs(a[0] * ia - b[0] * ib) + np.abs(a[1] * ia - b[1] * ib)
+        chroma = chroma + np.abs(a[2] * ia - b[2] * ib)
+        ratio = sa * ib
+        alike = (chroma < cfg.max_chroma) & (ratio < cfg.max_ratio) & (ratio * cfg.max_ratio > 1)
+        d = np.maximum(np.maximum(np.abs(a[0] - b[0]), np.abs(a[1] - b[1])), np.abs(a[2] - b[2]))
+        if len(contrasts):
+            x, y = contrasts[c][idx], contrasts[o][idx]
+            unlike = ~(np.abs(x - y) <= np.maximum(cfg.texture_tol, 2 / 3 * np.maximum(x, y)))
+            d[unlike] = np.inf
+            alike &= ~unlike
+        tinted |= both & alike
+        vouch |= alone[o][idx]
+        np.minimum(dist, np.where(both, d, np.inf), out=dist)
+    return dist, vouch, tinted
+
+
+@pytest.mark.parametrize("with_contrast", [True, False])
+def test_the_photo_check_kernel_is_the_numpy_judgement_bit_for_bit(with_contrast: bool) -> None:
+    from edgerecon.scene._kernels import judge_points
+    from edgerecon.scene.ghosts import PhotoCheckConfig
+
+    rng = np.random.default_rng(3)
+    n, num = 5, 4000
+    cfg = PhotoCheckConfig()
+    # Colours near each other (some alike, some not), one camera without a view.
+    base = rng.uniform(0, 255, (1, 3, num)).astype(np.float32)
+    colours = (base * rng.uniform(0.8, 1.25, (n, 1, 1)) + rng.normal(0, 6, (n, 3, num))).astype(
+        np.float32
+    )
+    contrasts = rng.uniform(0, 30, (n if with_contrast else 0, num)).astype(np.float32)
+    inside = rng.random((n, num)) < 0.8
+    alone = inside & (rng.random((n, num)) < 0.9)
+    valid = np.array([True, True, False, True, True])
+    ratios = rng.uniform(0.8, 1.25, (n, n, 3)).astype(np.float32)
+    has_ratio = rng.random((n, n)) < 0.7
+    for c in (0, 3):
+        idx = np.flatnonzero(inside[c]).astype(np.intp)
+        dist = np.full(len(idx), np.inf, np.float32)
+        vouch = np.zeros(len(idx), bool)
+        tinted = np.zeros(len(idx), bool)
+        judge_points(
+            c, idx, colours, contrasts, with_contrast, inside, alone, valid, ratios, has_ratio,
+            np.float32(cfg.max_chroma), np.float32(cfg.max_ratio), np.float32(cfg.texture_tol),
+            dist, vouch, tinted,
+        )  # fmt: skip
+        ref = _judge_reference(
+            c, idx, colours, contrasts, inside, alone, valid, ratios, has_ratio, cfg
+        )
+        np.testing.assert_array_equal(dist, ref[0])
+        np.testing.assert_array_equal(vouch, ref[1])
+        np.testing.assert_array_equal(tinted, ref[2])
+        # Every outcome occurs (the test is not vacuous).
+        assert np.isinf(dist).any() and np.isfinite(dist).any()
+        assert tinted.any() and not tinted.all() and vouch.any() and not vouch.all()

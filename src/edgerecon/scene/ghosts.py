@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
+from edgerecon.scene._kernels import judge_points
 from edgerecon.scene.masks import disk, min_discs
 from edgerecon.scene.parallel import per_camera
 from edgerecon.types import DataError, DepthMap, Mask, Points3D
@@ -267,6 +268,7 @@ def photo_consistent_masks(
         return _Seen(uv, depth, u, v, inside, colours, contrast)
 
     seen = per_camera(sees, list(range(n)), num_threads)
+    stack = _Stack.of(seen, len(pts))
     limit: float | None = None
     keep = np.ones(len(pts), bool)
     previous = out
@@ -285,7 +287,18 @@ def photo_consistent_masks(
                 break
         previous = list(out)
         out, gone, limit = _photo_pass(
-            seen, keep, size, labels, cameras, out, candidates, config, limit, carved, num_threads
+            seen,
+            stack,
+            keep,
+            size,
+            labels,
+            cameras,
+            out,
+            candidates,
+            config,
+            limit,
+            carved,
+            num_threads,
         )
         removed = [a + b for a, b in zip(removed, gone, strict=True)]
         if limit is None or not any(gone):
@@ -300,6 +313,7 @@ _Judgement = tuple[NDArray[np.float32] | None, Mask | None, Mask | None, Mask | 
 
 def _photo_pass(
     seen: list[_Seen | None],
+    stack: _Stack,
     keep: NDArray[np.bool_],
     size: NDArray[np.float64],
     labels: NDArray[np.integer] | None,
@@ -350,6 +364,21 @@ def _photo_pass(
                     ratios[c, o] = ratio
                     ratios[o, c] = None if ratio is None else 1.0 / ratio
 
+    # The kernel's inputs: every camera's views stacked (a camera without one: not valid).
+    valid = np.array([v is not None for v in views], bool)
+    inside_all = np.zeros((n, len(keep)), bool)
+    alone_all = np.zeros((n, len(keep)), bool)
+    ratio_all = np.ones((n, n, 3), np.float32)
+    has_ratio = np.zeros((n, n), bool)
+    for c, view in enumerate(views):
+        if view is not None:
+            inside_all[c] = view.inside
+            alone_all[c] = view.alone
+    for (c, o), ratio in ratios.items():
+        if ratio is not None:
+            ratio_all[c, o] = ratio
+            has_ratio[c, o] = True
+
     def judge(c: int) -> _Judgement:
         cam = cameras[c]
         here, mask, cand = views[c], out[c], candidates[c]
@@ -378,34 +407,32 @@ def _photo_pass(
             idx, radius = idx[on], radius[on]
         if len(idx) == 0:
             return None, None, None, opened_c
-        mine = here.at.colour[:, idx]
+        # Per point, against every other camera that holds it (its colours brought to this
+        # camera's by the pair's ratio, from every point both hold): the smallest largest-
+        # channel difference (inf where the local contrasts differ), whether one holds it
+        # in this tint at another brightness, and whether one vouches for it (any camera
+        # may; one that may see another object in front of it does not judge it).
         vouch = np.zeros(len(idx), bool)
         dist = np.full(len(idx), np.inf, np.float32)
         tinted = np.zeros(len(idx), bool)
-        for o, there in enumerate(views):
-            if o == c or there is None:
-                continue
-            both = there.inside[idx]
-            if not both.any():
-                continue
-            colour = there.at.colour[:, idx]
-            if config.calibrate:
-                # The ratio comes from every point both cameras hold.
-                ratio = ratios[c, o]
-                if ratio is not None:
-                    colour = colour * ratio[:, None]
-            d, alike = _colour_distance(mine, colour, config)
-            if here.at.contrast is not None and there.at.contrast is not None:
-                unlike = ~_contrast_alike(
-                    here.at.contrast[idx], there.at.contrast[idx], config.texture_tol
-                )
-                d[unlike] = np.inf
-                alike &= ~unlike
-            tinted |= both & alike
-            # Any camera may vouch for a point; one that may see another object in front
-            # of it does not judge it.
-            vouch |= there.alone[idx]
-            np.minimum(dist, np.where(both, d, np.inf), out=dist)
+        judge_points(
+            c,
+            idx,
+            stack.colours,
+            stack.contrasts,
+            stack.contrasts.shape[0] > 0,
+            inside_all,
+            alone_all,
+            valid,
+            ratio_all,
+            has_ratio,
+            np.float32(config.max_chroma),
+            np.float32(config.max_ratio),
+            np.float32(config.texture_tol),
+            dist,
+            vouch,
+            tinted,
+        )
         if not vouch.any():
             return None, None, None, opened_c
         uv = here.at.uv[idx]
@@ -506,6 +533,30 @@ class _Seen:
 
 
 @dataclass(frozen=True, eq=False)
+class _Stack:
+    """Every camera's ``_Seen`` colours and contrasts stacked for the kernel (zeros for a
+    camera without a view)."""
+
+    colours: NDArray[np.float32]
+    """(n, 3, N) BGR."""
+    contrasts: NDArray[np.float32]
+    """(n, N) local contrasts; (0, N) without the contrast test."""
+
+    @classmethod
+    def of(cls, seen: list[_Seen | None], num_points: int) -> _Stack:
+        n = len(seen)
+        colours = np.zeros((n, 3, num_points), np.float32)
+        with_contrast = any(sc is not None and sc.contrast is not None for sc in seen)
+        contrasts = np.zeros((n if with_contrast else 0, num_points), np.float32)
+        for c, sc in enumerate(seen):
+            if sc is not None:
+                colours[c] = sc.colour
+                if with_contrast and sc.contrast is not None:
+                    contrasts[c] = sc.contrast
+        return cls(colours, contrasts)
+
+
+@dataclass(frozen=True, eq=False)
 class _View:
     """The hull's points as one camera sees them in one pass."""
 
@@ -537,27 +588,6 @@ def _alone(
     return np.asarray(count[v, u] <= 1)
 
 
-def _colour_distance(
-    a: NDArray[np.float32], b: NDArray[np.float32], config: PhotoCheckConfig
-) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
-    """Largest channel difference of channel-first (3, N) colours, and whether their
-    chromaticities and brightnesses agree (``_same_colour``'s second test)."""
-    sa = a[0] + a[1] + a[2] + 1.0
-    sb = b[0] + b[1] + b[2] + 1.0
-    ia, ib = 1.0 / sa, 1.0 / sb
-    chroma = (
-        np.abs(a[0] * ia - b[0] * ib)
-        + np.abs(a[1] * ia - b[1] * ib)
-        + np.abs(a[2] * ia - b[2] * ib)
-    )
-    ratio = sa * ib
-    alike = (
-        (chroma < config.max_chroma) & (ratio < config.max_ratio) & (ratio * config.max_ratio > 1)
-    )
-    diff = np.maximum(np.maximum(np.abs(a[0] - b[0]), np.abs(a[1] - b[1])), np.abs(a[2] - b[2]))
-    return np.asarray(diff, np.float32), np.asarray(alike)
-
-
 #: A point's footprint never reaches farther than this (pixels).
 _MAX_FOOTPRINT_PX = 16
 
@@ -578,7 +608,7 @@ def _splat_min(
     v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
     r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.intp)
     vals = np.minimum(np.asarray(values, np.float32), np.float32(_BIG))
-    for rr in np.unique(r):
+    for rr in np.flatnonzero(np.bincount(r)).tolist():  # the radii present (small integers)
         sel = r == rr
         min_discs(out, u[sel], v[sel], vals[sel], int(rr))
     out[out >= _BIG] = np.inf
@@ -598,7 +628,7 @@ def _splat(shape: tuple[int, ...], uv: NDArray[np.float64], radius: NDArray[np.f
     u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.intp)
     v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
     r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.intp)
-    for rr in np.unique(r):
+    for rr in np.flatnonzero(np.bincount(r)).tolist():  # the radii present (small integers)
         sel = r == rr
         us, vs = u[sel], v[sel]
         x0, y0 = max(int(us.min()) - rr, 0), max(int(vs.min()) - rr, 0)

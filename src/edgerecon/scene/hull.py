@@ -1124,7 +1124,7 @@ def _splat_voxels(
     r_int = np.clip(np.ceil(radius), 0, max(h, w)).astype(np.int64)
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
-    for r in np.unique(r_int):
+    for r in np.flatnonzero(np.bincount(r_int)).tolist():  # the radii present (small integers)
         sel = (r_int == r) & (u >= bx0 - r) & (u < bx1 + r) & (v >= by0 - r) & (v < by1 + r)
         if not sel.any():
             continue
@@ -1137,9 +1137,8 @@ def _splat_voxels(
         ok = (us >= x0 - r) & (us < x1 + r) & (vs >= y0 - r) & (vs < y1 + r)
         layer[vs[ok] - y0 + r, us[ok] - x0 + r] = 1
         if r > 0:
-            layer = cv2.dilate(
-                layer, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-            )
+            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+            layer = np.asarray(cv2.dilate(layer, disc), np.uint8)
         out[y0:y1, x0:x1] |= layer[r : r + y1 - y0, r : r + x1 - x0]
     return out.astype(bool)
 
