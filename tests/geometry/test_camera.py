@@ -101,3 +101,29 @@ def test_look_at_points_optical_axis_at_target():
     np.testing.assert_allclose(cam.viewing_direction, [-1, 0, 0], atol=1e-12)
     # image 'down' (+y) points to world -z
     np.testing.assert_allclose(R[1], [0, 0, -1], atol=1e-12)
+
+
+@pytest.mark.parametrize("dist", [np.zeros(5), np.array([-0.31, 0.12, 0.002, -0.003, -0.02])])
+def test_the_compiled_projection_is_the_numpy_arithmetic_bit_for_bit(dist):
+    from edgerecon.geometry.camera import _distort
+
+    cam = dataclasses.replace(ring_rig(3)[0], dist=dist)
+    rng = np.random.default_rng(5)
+    # Points all around the camera: in front, behind, near its plane (huge normalised
+    # coordinates, overflowing the polynomial), on it (depth 0).
+    Xc = rng.normal(0, 3, (20000, 3))
+    Xc[:500, 2] = rng.normal(0, 1e-6, 500)
+    Xc[500:510, 2] = 0.0
+    pts = (Xc - cam.t) @ cam.R  # camera frame -> world
+    uv, depth = cam.project(pts)
+    xc = cam.world_to_cam(pts)
+    with np.errstate(all="ignore"):
+        xn, yn = xc[:, 0] / xc[:, 2], xc[:, 1] / xc[:, 2]
+        if cam.has_distortion:
+            xn, yn = _distort(xn, yn, cam.dist)
+        K = cam.K
+        ref = np.stack([K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2]], axis=1)
+    ref[~(xc[:, 2] > 0)] = np.nan
+    np.testing.assert_array_equal(uv, ref)
+    np.testing.assert_array_equal(depth, xc[:, 2])
+    assert np.isnan(uv).any() and np.isfinite(uv).any()

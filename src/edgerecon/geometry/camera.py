@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.geometry._kernels import project_camera_points
 from edgerecon.types import CalibrationError, Points2D, Points3D
 
 #: Tolerance for ``R @ R.T == I`` when validating a rotation.
@@ -219,16 +220,15 @@ class Camera:
         """
         Xc = self.world_to_cam(points3D)
         depth = Xc[:, 2].copy()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xn = Xc[:, 0] / depth
-            yn = Xc[:, 1] / depth
-        if self.has_distortion:
-            xn, yn = _distort(xn, yn, self.dist)
-        K = self.K
-        u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
-        v = K[1, 1] * yn + K[1, 2]
-        uv = np.stack([u, v], axis=1)
-        uv[~(depth > 0)] = np.nan
+        uv = np.empty((len(Xc), 2))
+        # One compiled pass: division, distortion, intrinsics (``_distort``'s arithmetic).
+        project_camera_points(
+            Xc,
+            np.ascontiguousarray(self.K, np.float64),
+            np.ascontiguousarray(self.dist, np.float64),
+            self.has_distortion,
+            uv,
+        )
         return uv, depth
 
     def pixel_rays(self, points2D: Points2D) -> NDArray[np.float64]:
