@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from edgerecon.geometry import Camera, Rig
 from edgerecon.quality.masks import mask_iou
 from edgerecon.scene.hull import (
+    _FOOTPRINT_SLACK,
     HullConfig,
     _pair_geometry,
     _paired_shares,
@@ -482,3 +486,148 @@ def test_an_object_one_unsettled_camera_carved_away_comes_back(rig: Rig) -> None
     three_c = [m if i < 3 else None for i, m in enumerate(consistent)]
     h3, _, r3 = hull_rescued(exact, rig.cameras, three_c, three, unsettled, cfg)
     assert h3 is exact and r3.objects == 0
+
+
+# ---- the visual hull's per-level carving: the compiled kernel against its NumPy version
+
+
+def _project_voxels_reference(
+    cam: Camera, idx: NDArray[np.int64], origin: NDArray[np.float64], size: float
+) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+    """(u, v, depth) of voxel centres ``origin + (idx + 0.5) * size`` in ``cam`` (distortion
+    applied), float32: the centres are an affine function of the integer indices, so this
+    avoids an (N, 3) float64 matrix product per camera."""
+    A = (cam.R * size).astype(np.float32)
+    b = (cam.R @ (origin + 0.5 * size) + cam.t).astype(np.float32)
+    f = idx.astype(np.float32)
+    i, j, k = f[:, 0], f[:, 1], f[:, 2]
+    xc = A[0, 0] * i + A[0, 1] * j + A[0, 2] * k + b[0]
+    yc = A[1, 0] * i + A[1, 1] * j + A[1, 2] * k + b[1]
+    zc = A[2, 0] * i + A[2, 1] * j + A[2, 2] * k + b[2]
+    # Voxels in the camera's plane (zc = 0, beside a camera) get non-finite pixels, which no
+    # image holds: the callers drop them with the voxels behind the camera.
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        xn = xc / zc
+        yn = yc / zc
+        if cam.has_distortion:
+            k1, k2, p1, p2, k3 = (np.float32(x) for x in cam.dist)
+            r2 = xn * xn + yn * yn
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+            yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+            xn, yn = xd, yd
+        K = cam.K.astype(np.float32)
+        u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
+        v = K[1, 1] * yn + K[1, 2]
+    return u, v, zc
+
+
+def _carve_level_reference(
+    idx: NDArray[np.int64],
+    origin: NDArray[np.float64],
+    size: float,
+    cameras: Sequence[Camera],
+    dists: Sequence[Any],
+    walls: Sequence[NDArray[np.float32] | None],
+    config: HullConfig,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(keep, full) among voxels of edge ``size``: ``keep`` = survives; ``full`` = its whole
+    footprint lies inside the silhouette in every camera that can see any part of it (then
+    every child survives too and need not be tested)."""
+    n = len(idx)
+    agree = np.zeros(n, np.int32)
+    missing = np.zeros(n, np.int32)
+    full = np.ones(n, bool)
+    half_diag = np.float32(0.5 * np.sqrt(3.0) * size)
+    tol = np.float32(config.tolerance_px + 0.71)  # + 0.71: the centre is rounded to a pixel
+    for cam, dist, wall in zip(cameras, dists, walls, strict=True):
+        if dist is None:
+            continue
+        to_fg, to_fg_or_border, inside_dist = dist
+        u, v, depth = _project_voxels_reference(cam, idx, origin, size)
+        front = depth > half_diag
+        with np.errstate(invalid="ignore", divide="ignore"):
+            radius = np.where(
+                front, half_diag * np.float32(cam.focal_px * _FOOTPRINT_SLACK) / depth, np.inf
+            )
+            ur = np.rint(u)
+            vr = np.rint(v)
+            inside = front & (ur >= 0) & (ur < cam.width) & (vr >= 0) & (vr < cam.height)
+            # Any part of the footprint may reach into the image: children may be seen.
+            near = (depth > -half_diag) & ~(
+                (u < -radius - 1)
+                | (u > cam.width + radius)
+                | (v < -radius - 1)
+                | (v > cam.height + radius)
+            )
+        if wall is not None:
+            # Behind the static scene (by more than the voxel): hidden from this camera.
+            uc = np.clip(np.nan_to_num(ur), 0, cam.width - 1).astype(np.intp)
+            vc = np.clip(np.nan_to_num(vr), 0, cam.height - 1).astype(np.intp)
+            hidden = inside & (depth - half_diag > wall[vc, uc])
+            inside &= ~hidden
+            near &= ~hidden
+        ii = np.flatnonzero(inside)
+        ui = ur[ii].astype(np.intp)
+        vi = vr[ii].astype(np.intp)
+        r = radius[ii]
+        # A camera confirms a voxel whose footprint touches its silhouette, and carves one whose
+        # footprint touches neither the silhouette nor the image border (beyond the border,
+        # part of the voxel may be foreground that this camera does not see).
+        agree[ii[to_fg[vi, ui] <= r + tol]] += 1
+        missing[ii[to_fg_or_border[vi, ui] > r + tol]] += 1
+        covered = np.zeros(n, bool)
+        covered[ii] = inside_dist[vi, ui] >= r + np.float32(0.71)
+        full &= ~near | covered
+    num_masks = sum(d is not None for d in dists)
+    # At least min_views cameras put the voxel in their foreground, at most max_missing not.
+    keep = (agree >= max(min(config.min_views, num_masks), 1)) & (missing <= config.max_missing)
+    return keep, keep & full
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+@pytest.mark.parametrize("with_walls", [False, True])
+def test_the_compiled_carving_is_the_numpy_carving_bit_for_bit(
+    rig: Rig, distorted: bool, with_walls: bool
+) -> None:
+    from edgerecon.scene.hull import _carve_level, _distance_to_silhouette
+
+    dist = np.array([-0.25, 0.08, 0.002, -0.001, 0.01]) if distorted else np.zeros(5)
+    cams = [dataclasses.replace(c, dist=dist) for c in rig]
+    masks = [box_silhouette(c, LO, HI) for c in rig]
+    masks[1][:, : masks[1].shape[1] // 2] = False  # a camera that misses part of it
+    dists = [_distance_to_silhouette(m) for m in masks]
+    dists[2] = None  # a camera without a mask
+    rng = np.random.default_rng(11)
+    walls = [
+        # Static depths around the box's: hiding it from a camera at some pixels only.
+        (
+            rng.uniform(0.9, 1.5, (c.height, c.width)) * np.linalg.norm(c.center - (LO + HI) / 2)
+        ).astype(np.float32)
+        if with_walls
+        else None
+        for c in cams
+    ]
+    config = HullConfig(voxel_size=VOXEL)
+    region = rig_region(cams)
+    kept, fulls = [], []
+    for size in (0.16, 0.04):
+        # Voxels over the whole region, beyond it and through the cameras' planes.
+        lo = np.floor((region[0] - 1.0) / size).astype(np.int64)
+        hi = np.ceil((region[1] + 1.0) / size).astype(np.int64)
+        far = np.stack([rng.integers(a, b, 20000) for a, b in zip(lo, hi, strict=True)], 1)
+        g = [
+            np.arange(np.floor(a / size) - 2, np.ceil(b / size) + 2)
+            for a, b in zip(LO, HI, strict=True)
+        ]
+        near = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3).astype(np.int64)
+        idx = np.concatenate([near, far])
+        origin = np.zeros(3)
+        keep, full = _carve_level(idx, origin, size, cams, dists, walls, config)
+        ref = _carve_level_reference(idx, origin, size, cams, dists, walls, config)
+        np.testing.assert_array_equal(keep, ref[0])
+        np.testing.assert_array_equal(full, ref[1])
+        kept.append(keep.mean())
+        fulls.append(full.mean())
+    # Votes of every kind happened (the test is not vacuous).
+    assert 0 < min(kept) and max(kept) < 1 and max(fulls) > 0

@@ -35,6 +35,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from edgerecon.geometry.camera import Camera
+from edgerecon.scene._kernels import carve_camera
 from edgerecon.scene.masks import fill_holes, min_discs
 from edgerecon.types import (
     BACKGROUND_LABEL,
@@ -296,9 +297,9 @@ def _distance_to_silhouette(mask: Mask) -> _Distances:
     fg = cv2.copyMakeBorder(m, 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     inside = cv2.distanceTransform(fg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
     return (
-        np.asarray(to_fg, np.float32),
-        np.asarray(to_fg_or_border, np.float32),
-        np.asarray(inside, np.float32),
+        np.ascontiguousarray(to_fg, np.float32),
+        np.ascontiguousarray(to_fg_or_border, np.float32),
+        np.ascontiguousarray(inside, np.float32),
     )
 
 
@@ -348,37 +349,6 @@ def rig_region(cameras: Sequence[Camera], margin_fraction: float = 0.05) -> NDAr
     return np.stack([pts.min(axis=0) - margin, pts.max(axis=0) + margin])
 
 
-def _project_voxels(
-    cam: Camera, idx: NDArray[np.int64], origin: NDArray[np.float64], size: float
-) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
-    """(u, v, depth) of voxel centres ``origin + (idx + 0.5) * size`` in ``cam`` (distortion
-    applied), float32: the centres are an affine function of the integer indices, so this
-    avoids an (N, 3) float64 matrix product per camera."""
-    A = (cam.R * size).astype(np.float32)
-    b = (cam.R @ (origin + 0.5 * size) + cam.t).astype(np.float32)
-    f = idx.astype(np.float32)
-    i, j, k = f[:, 0], f[:, 1], f[:, 2]
-    xc = A[0, 0] * i + A[0, 1] * j + A[0, 2] * k + b[0]
-    yc = A[1, 0] * i + A[1, 1] * j + A[1, 2] * k + b[1]
-    zc = A[2, 0] * i + A[2, 1] * j + A[2, 2] * k + b[2]
-    # Voxels in the camera's plane (zc = 0, beside a camera) get non-finite pixels, which no
-    # image holds: the callers drop them with the voxels behind the camera.
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        xn = xc / zc
-        yn = yc / zc
-        if cam.has_distortion:
-            k1, k2, p1, p2, k3 = (np.float32(x) for x in cam.dist)
-            r2 = xn * xn + yn * yn
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
-            yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
-            xn, yn = xd, yd
-        K = cam.K.astype(np.float32)
-        u = K[0, 0] * xn + K[0, 1] * yn + K[0, 2]
-        v = K[1, 1] * yn + K[1, 2]
-    return u, v, zc
-
-
 def _carve_level(
     idx: NDArray[np.int64],
     origin: NDArray[np.float64],
@@ -392,50 +362,42 @@ def _carve_level(
     footprint lies inside the silhouette in every camera that can see any part of it (then
     every child survives too and need not be tested)."""
     n = len(idx)
+    idx = np.ascontiguousarray(idx, np.int64)
     agree = np.zeros(n, np.int32)
     missing = np.zeros(n, np.int32)
     full = np.ones(n, bool)
     half_diag = np.float32(0.5 * np.sqrt(3.0) * size)
     tol = np.float32(config.tolerance_px + 0.71)  # + 0.71: the centre is rounded to a pixel
+    no_wall = np.zeros((1, 1), np.float32)
     for cam, dist, wall in zip(cameras, dists, walls, strict=True):
         if dist is None:
             continue
         to_fg, to_fg_or_border, inside_dist = dist
-        u, v, depth = _project_voxels(cam, idx, origin, size)
-        front = depth > half_diag
-        with np.errstate(invalid="ignore", divide="ignore"):
-            radius = np.where(
-                front, half_diag * np.float32(cam.focal_px * _FOOTPRINT_SLACK) / depth, np.inf
-            )
-            ur = np.rint(u)
-            vr = np.rint(v)
-            inside = front & (ur >= 0) & (ur < cam.width) & (vr >= 0) & (vr < cam.height)
-            # Any part of the footprint may reach into the image: children may be seen.
-            near = (depth > -half_diag) & ~(
-                (u < -radius - 1)
-                | (u > cam.width + radius)
-                | (v < -radius - 1)
-                | (v > cam.height + radius)
-            )
-        if wall is not None:
-            # Behind the static scene (by more than the voxel): hidden from this camera.
-            uc = np.clip(np.nan_to_num(ur), 0, cam.width - 1).astype(np.intp)
-            vc = np.clip(np.nan_to_num(vr), 0, cam.height - 1).astype(np.intp)
-            hidden = inside & (depth - half_diag > wall[vc, uc])
-            inside &= ~hidden
-            near &= ~hidden
-        ii = np.flatnonzero(inside)
-        ui = ur[ii].astype(np.intp)
-        vi = vr[ii].astype(np.intp)
-        r = radius[ii]
-        # A camera confirms a voxel whose footprint touches its silhouette, and carves one whose
-        # footprint touches neither the silhouette nor the image border (beyond the border,
-        # part of the voxel may be foreground that this camera does not see).
-        agree[ii[to_fg[vi, ui] <= r + tol]] += 1
-        missing[ii[to_fg_or_border[vi, ui] > r + tol]] += 1
-        covered = np.zeros(n, bool)
-        covered[ii] = inside_dist[vi, ui] >= r + np.float32(0.71)
-        full &= ~near | covered
+        # A camera confirms a voxel whose footprint touches its silhouette, and carves one
+        # whose footprint touches neither the silhouette nor the image border (beyond the
+        # border, part of the voxel may be foreground that this camera does not see); one
+        # pass per camera (``_kernels.carve_camera``).
+        carve_camera(
+            idx,
+            (cam.R * size).astype(np.float32),
+            (cam.R @ (origin + 0.5 * size) + cam.t).astype(np.float32),
+            cam.K.astype(np.float32),
+            cam.dist.astype(np.float32),
+            cam.has_distortion,
+            cam.width,
+            cam.height,
+            half_diag,
+            np.float32(half_diag * np.float32(cam.focal_px * _FOOTPRINT_SLACK)),
+            tol,
+            to_fg,
+            to_fg_or_border,
+            inside_dist,
+            no_wall if wall is None else wall,
+            wall is not None,
+            agree,
+            missing,
+            full,
+        )
     num_masks = sum(d is not None for d in dists)
     # At least min_views cameras put the voxel in their foreground, at most max_missing not.
     keep = (agree >= max(min(config.min_views, num_masks), 1)) & (missing <= config.max_missing)
