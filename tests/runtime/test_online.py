@@ -221,3 +221,32 @@ def test_background_updates_run_between_tasks_with_the_same_masks(tiny_dataset, 
     theirs = dataset_scene_at(ds, 5, fg_config).segment(frames).masks
     for a, b in zip(ours, theirs, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_background_update_that_raises_is_skipped_and_the_run_goes_on(
+    tiny_dataset, tmp_path, monkeypatch, caplog
+):
+    # Updates every frame, tasks every third: the update of frame 4 (between the tasks at
+    # 3 and 6) and that of frame 6 (the task's own frame) raise in the models' update.
+    from edgerecon.runtime.engine import learn_scene_model
+    from edgerecon.scene import ForegroundConfig
+    from edgerecon.scene.foreground import RigForeground
+
+    ds = open_dataset(tiny_dataset)
+    fg_config = ForegroundConfig(update_interval_s=1.0 / ds.fps)
+    scene = learn_scene_model(ds, fg_config)
+    update = RigForeground.update
+
+    def failing(self, frames, *args, **kw):  # type: ignore[no-untyped-def]
+        if frames.time_index in (4, 6):
+            raise RuntimeError(f"injected failure at {frames.time_index}")
+        return update(self, frames, *args, **kw)
+
+    monkeypatch.setattr(RigForeground, "update", failing)
+    opts = SessionOptions(frames=FrameRange(start=0, stop=8, step=3))
+    _, metrics = run_online(ds, runtime_config(foreground=fg_config), opts, tmp_path, scene=scene)
+    # Every task ran, none with an update left on its path.
+    assert [(m.time_index, m.status) for m in metrics] == [(0, "ok"), (3, "ok"), (6, "ok")]
+    assert all("scene_update" not in m.stages for m in metrics)
+    skipped = [r.getMessage() for r in caplog.records if "skipped, the models miss" in r.message]
+    assert any("time 4" in m for m in skipped)

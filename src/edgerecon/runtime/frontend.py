@@ -315,14 +315,37 @@ class FrontEnd:
         of ``time_index`` (the session reads those frames for :meth:`run_task`)."""
         return [] if self.scene is None else self.scene.pending(time_index)
 
+    @staticmethod
+    def _learn_update(
+        scene: SceneTracker,
+        frames: FrameSet,
+        result: ForegroundResult | None = None,
+        *,
+        defer_static: bool = True,
+    ) -> None:
+        """One scheduled background update (``SceneTracker.learn``); one that raises is
+        skipped with a warning (the schedule moves on, ``SceneTracker.skip``): a frame set
+        the models cannot learn must not fail every later task that would retry it, nor
+        the task whose cloud is already out."""
+        try:
+            scene.learn(frames, result, defer_static=defer_static)
+        except Exception as exc:
+            logger.warning(
+                "background update at time %d failed (%s): skipped, the models miss it",
+                frames.time_index,
+                describe_exception(exc),
+            )
+            scene.skip(frames.time_index)
+
     def learn_updates(self, updates: Sequence[FrameSet]) -> float:
         """Apply scheduled background updates between two tasks, off both critical paths:
         the session passes the frames of the updates due before the next task that have
         arrived by the end of this one (``SceneTracker.learn``, then the static scenes they
         make due). The next task's masks are those it would get with the updates on its own
         path (the models at its time index are the same). Bounded by the watchdog; an update
-        that raises or hangs is logged and left to the next task, which applies it itself
-        (a failed-task record if it fails there too). Returns the seconds spent."""
+        that raises is skipped (``_learn_update``), one that hangs is logged (the next
+        task's scene stage then waits for the models, and its watchdog fails it). Returns
+        the seconds spent."""
         if not updates or self.scene is None:
             return 0.0
         scene = self.scene
@@ -333,7 +356,7 @@ class FrontEnd:
                 t0 = time.perf_counter()
                 with self._scene_lock:
                     for u in updates:
-                        scene.learn(u, defer_static=True)
+                        self._learn_update(scene, u)
                     scene.settle()
                 box["seconds"] = time.perf_counter() - t0
             except BaseException as exc:  # logged below: the next task retries it
@@ -367,7 +390,7 @@ class FrontEnd:
             with timings.stage("scene_update"):
                 for u in updates:
                     # A static scene due here is built after the critical path (settle).
-                    scene.learn(u, defer_static=True)
+                    self._learn_update(scene, u)
         with timings.stage("scene"):
             return scene.segment(frames)
 
@@ -514,7 +537,7 @@ class FrontEnd:
                 quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
         with timings.stage("scene_update_after"), self._scene_lock:
             self._tracker().settle()  # static scenes due before this task's frame first
-            self._tracker().learn(frames, fg)
+            self._learn_update(self._tracker(), frames, fg, defer_static=False)
         sparse = result.sparse
         mapping = plan.phase == "golden" and not isinstance(self.controller, FixedController)
         if mapping and "sfm" not in timings.to_dict():

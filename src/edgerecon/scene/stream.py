@@ -120,6 +120,8 @@ class SceneTracker:
     """Scheduled updates applied."""
     ghosts: int = 0
     """Ghost blobs repaired by those updates."""
+    skipped: int = 0
+    """Scheduled updates skipped because they raised (``skip``)."""
     static_step: int = 0
     """Time-index step between two static scenes (0: none; ``static_step``)."""
     static_from: int | None = None
@@ -184,6 +186,16 @@ class SceneTracker:
             else:
                 seconds += self._build_static(frames, masks)
         return seconds
+
+    def skip(self, t: int) -> None:
+        """The scheduled update of time ``t`` could not be applied (its frames raised in the
+        models' update): the schedule moves on without it, as without a frame that cannot
+        be read. The models miss one update (a camera may hold part of it); the masks of
+        later time indices may then differ from ``scene_at``'s until the models converge."""
+        if t < self.next_update:
+            return
+        self.next_update = t - t % self.step + self.step
+        self.skipped += 1
 
     def settle(self) -> float:
         """Build the static scenes that ``learn(..., defer_static=True)`` kept, in order (the
