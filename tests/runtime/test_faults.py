@@ -154,3 +154,36 @@ def test_two_object_crash_is_a_failed_record_also_after_resume(tiny, tmp_path, m
     summary, metrics = run_frames(tiny, tmp_path, 0, 5, resume=True)
     assert [m.status for m in metrics] == ["ok", "failed", "ok", "failed", "ok"]
     assert summary.tasks == 5 and summary.failed == 2
+
+
+def test_a_scene_stage_that_hangs_leaves_the_background_models_to_the_next_tasks(
+    tiny_dataset, tmp_path, monkeypatch
+):
+    # The scene stage of the second task hangs holding the background models; with
+    # updates every frame (between tasks and on the tasks' own frames) the later tasks go
+    # on with the models' copy from before it, the updates since applied again.
+    from edgerecon.runtime.engine import learn_scene_model
+    from edgerecon.scene import ForegroundConfig
+
+    ds = open_dataset(tiny_dataset)
+    fg_config = ForegroundConfig(update_interval_s=1.0 / ds.fps)
+    scene = learn_scene_model(ds, fg_config)
+    release = threading.Event()
+    segment = RigForeground.segment
+
+    def hang(self, frames):  # type: ignore[no-untyped-def]
+        if frames.time_index == 2:
+            release.wait(120)  # a stage that never returns (until the test ends)
+        return segment(self, frames)
+
+    monkeypatch.setattr(RigForeground, "segment", hang)
+    config = runtime_config(task_timeout_s=12.0, foreground=fg_config)
+    try:
+        _, metrics = run_frames((ds, scene), tmp_path, 0, 6, config, fixed=(0.8, None))
+    finally:
+        release.set()
+    assert [m.status for m in metrics] == ["ok", "ok", "failed", "ok", "ok", "ok"]
+    assert metrics[2].error.startswith("watchdog: still running after 12.0 s")
+    # The next tasks did not wait for the hung one's models (each within its own time).
+    assert metrics[3].wall_time - metrics[2].wall_time < 12.0
+    assert all(m.num_fg_points > 0 for m in metrics[3:])

@@ -26,10 +26,11 @@ Plain Python, usable without a cluster; the Ray engine wraps it in an actor.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -213,6 +214,10 @@ class FrontEnd:
         self.controller = controller
         self.scene = scene
         self._scene_lock = threading.Lock()
+        # Who holds the background models now, and a copy of them after their last update:
+        # a stage that hangs holding them is abandoned with them (``_restore_scene``).
+        self._scene_holder: threading.Thread | None = None
+        self._scene_saved = None if scene is None else scene.snapshot()
         self._lock = threading.Lock()
         self._commit = threading.Lock()
         self._background = PointCloud.empty() if background is None else background
@@ -310,6 +315,47 @@ class FrontEnd:
             raise RuntimeError("this front-end was built without background models")
         return self.scene
 
+    @contextlib.contextmanager
+    def _holding_scene(self) -> Iterator[SceneTracker]:
+        """The background models, held by this thread (one holder at a time)."""
+        lock = self._scene_lock
+        with lock:
+            self._scene_holder = threading.current_thread()
+            try:
+                yield self._tracker()
+            finally:
+                if self._scene_lock is lock:  # not replaced since (``_restore_scene``)
+                    self._scene_holder = None
+
+    def _save_scene(self, scene: SceneTracker) -> None:
+        """Keep a copy of the models after an update (under ``_holding_scene``), if they
+        changed since the last copy."""
+        saved = self._scene_saved
+        if saved is None or (saved.next_update, saved.updates, saved.static_from) != (
+            scene.next_update,
+            scene.updates,
+            scene.static_from,
+        ):
+            self._scene_saved = scene.snapshot()
+
+    def _restore_scene(self, holder: threading.Thread, what: str) -> None:
+        """``holder`` was abandoned (watchdog): if it holds the background models, they go
+        with it (it may still change them) and the front-end goes on with the copy saved
+        after their last update; the session then applies again the scheduled updates since
+        (``pending_updates``), so later masks are those the models would have given."""
+        saved = self._scene_saved
+        if saved is None or self._scene_holder is not holder:
+            return
+        self.scene = saved.snapshot()
+        self._scene_lock = threading.Lock()
+        self._scene_holder = None
+        logger.warning(
+            "%s held the background models: going on with their copy (next update at time "
+            "%d; the updates since are applied again)",
+            what,
+            saved.next_update,
+        )
+
     def pending_updates(self, time_index: int) -> list[int]:
         """Time indices of the scheduled background updates still to apply before the task
         of ``time_index`` (the session reads those frames for :meth:`run_task`)."""
@@ -348,16 +394,16 @@ class FrontEnd:
         the seconds spent."""
         if not updates or self.scene is None:
             return 0.0
-        scene = self.scene
         box: dict[str, Any] = {}
 
         def work() -> None:
             try:
                 t0 = time.perf_counter()
-                with self._scene_lock:
+                with self._holding_scene() as scene:
                     for u in updates:
                         self._learn_update(scene, u)
                     scene.settle()
+                    self._save_scene(scene)
                 box["seconds"] = time.perf_counter() - t0
             except BaseException as exc:  # logged below: the next task retries it
                 box["exc"] = exc
@@ -369,6 +415,7 @@ class FrontEnd:
         worker.join(limit)
         if worker.is_alive():
             logger.error("background updates between tasks: still running after %.1f s", limit)
+            self._restore_scene(worker, "background updates abandoned between tasks")
             return time.perf_counter() - start
         if "exc" in box:
             logger.warning(
@@ -379,13 +426,17 @@ class FrontEnd:
         return float(box["seconds"])
 
     def obtain_foreground(
-        self, frames: FrameSet, updates: Sequence[FrameSet], timings: StageTimings
+        self,
+        scene: SceneTracker,
+        frames: FrameSet,
+        updates: Sequence[FrameSet],
+        timings: StageTimings,
     ) -> ForegroundResult:
         """The task's foreground: the scheduled background updates due before it (usually
         none or one: one per ``update_interval_s`` of stream time), then the segmentation at
         the working resolution. The masks are computed once, here, where they are needed
-        first; the back-end gets them with the frames."""
-        scene = self._tracker()
+        first; the back-end gets them with the frames. ``scene``: the background models,
+        held (``_holding_scene``)."""
         if updates:
             with timings.stage("scene_update"):
                 for u in updates:
@@ -434,6 +485,7 @@ class FrontEnd:
         with self._commit:
             if worker.is_alive() and not guard.committed:
                 guard.cancel.set()  # it stops at its next stage boundary, publishing nothing
+                self._restore_scene(worker, f"task {task} (time {frames.time_index})")
                 # The configuration took that long: the controller learns it.
                 self.controller.observe(limit, None)
                 error = f"watchdog: still running after {limit:.1f} s (abandoned)"
@@ -465,8 +517,8 @@ class FrontEnd:
         segmented: list[ForegroundResult] = []
 
         def foreground(timings: StageTimings) -> ForegroundResult:
-            with self._scene_lock:
-                fg = self.obtain_foreground(frames, job.updates, timings)
+            with self._holding_scene() as scene:
+                fg = self.obtain_foreground(scene, frames, job.updates, timings)
             segmented.append(fg)
             job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
             return fg
@@ -535,9 +587,12 @@ class FrontEnd:
         else:
             with timings.stage("online_quality"):
                 quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
-        with timings.stage("scene_update_after"), self._scene_lock:
-            self._tracker().settle()  # static scenes due before this task's frame first
-            self._learn_update(self._tracker(), frames, fg, defer_static=False)
+        with timings.stage("scene_update_after"), self._holding_scene() as scene:
+            if guard.cancel.is_set():  # abandoned: the models are no longer this task's
+                raise TaskCancelled(f"time {frames.time_index}: cancelled before its update")
+            scene.settle()  # static scenes due before this task's frame first
+            self._learn_update(scene, frames, fg, defer_static=False)
+            self._save_scene(scene)
         sparse = result.sparse
         mapping = plan.phase == "golden" and not isinstance(self.controller, FixedController)
         if mapping and "sfm" not in timings.to_dict():

@@ -17,6 +17,7 @@ teaches them one frame (see :mod:`edgerecon.scene.stream` for which frames of a 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import logging
@@ -344,6 +345,13 @@ class RigForeground:
     ) -> RigForeground:
         config = config or ForegroundConfig()
         return cls(rig, [BackgroundModel.from_state(s, config.background) for s in states], config)
+
+    def copy(self) -> RigForeground:
+        """An independent copy: the models' states copied; the static scene, the occluders
+        and their depth maps (replaced, never changed in place) shared."""
+        out = copy.copy(self)
+        out.models = [BackgroundModel.from_state(m.state, m.config) for m in self.models]
+        return out
 
     def states(self) -> list[BackgroundState]:
         """Snapshots of the models' states (picklable; see ``from_states``)."""

@@ -187,6 +187,16 @@ class SceneTracker:
                 seconds += self._build_static(frames, masks)
         return seconds
 
+    def snapshot(self) -> SceneTracker:
+        """An independent copy (``RigForeground.copy``): what a front-end falls back to when
+        a stage holding the tracker hangs."""
+        return dataclasses.replace(
+            self,
+            foreground=self.foreground.copy(),
+            seconds=dict(self.seconds),
+            _deferred=list(self._deferred),
+        )
+
     def skip(self, t: int) -> None:
         """The scheduled update of time ``t`` could not be applied (its frames raised in the
         models' update): the schedule moves on without it, as without a frame that cannot
