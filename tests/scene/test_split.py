@@ -157,3 +157,34 @@ def test_bad_input_names_the_problem(rig: Rig) -> None:
         )
     with pytest.raises(DataError, match="5 masks"):
         split_sparse(pts, np.zeros((2, 6), bool), rig.cameras, [None] * 5)
+
+
+def test_the_compiled_vote_is_the_numpy_mode_bit_for_bit() -> None:
+    # ``_associate_objects``' per-point vote (the component most of a point's nodes belong
+    # to, ties to the first node's) against the NumPy version it replaced.
+    from edgerecon.scene._kernels import mode_component, shared_points
+
+    rng = np.random.default_rng(2)
+    num_cams, stride = 6, 4
+    node = rng.integers(0, stride, (5000, num_cams))
+    node = np.where(node > 0, np.arange(num_cams)[None, :] * stride + node, -1).astype(np.int64)
+    node[:50] = -1  # points without a node
+    comp = rng.integers(0, 5, num_cams * stride).astype(np.int32)
+    valid = node >= 0
+    pt_comp = np.where(valid, comp[np.maximum(node, 0)], -1)
+    support = np.full(node.shape, -1, np.int32)
+    for j in range(num_cams):
+        same = (pt_comp == pt_comp[:, j : j + 1]) & valid
+        support[:, j] = np.where(valid[:, j], np.count_nonzero(same, axis=1), -1)
+    ref = pt_comp[np.arange(len(node)), np.argmax(support, axis=1)]
+    got = mode_component(node, comp, np.arange(len(node), dtype=np.intp))
+    np.testing.assert_array_equal(got, ref)
+    assert (got == -1).sum() >= 50 and len(np.unique(got)) == 6
+    # Shared points: the pairs of a lower and a higher camera's nodes on one point.
+    shared = shared_points(node, num_cams * stride)
+    expected = np.zeros_like(shared)
+    for a in range(num_cams):
+        for b in range(a + 1, num_cams):
+            both = valid[:, a] & valid[:, b]
+            np.add.at(expected, (node[both, a], node[both, b]), 1)
+    np.testing.assert_array_equal(shared, expected)

@@ -1,6 +1,7 @@
 """Compiled (numba) inner loops of the scene stage: the photo check's judgement
-(:mod:`edgerecon.scene.ghosts`) and the visual hull's per-camera carving vote
-(:func:`edgerecon.scene.hull.visual_hull`).
+(:mod:`edgerecon.scene.ghosts`), the visual hull's per-camera carving vote
+(:func:`edgerecon.scene.hull.visual_hull`) and the objects' association across cameras
+(:func:`edgerecon.scene.split.split_sparse`, which also labels each task's dense foreground).
 
 Per judged point the check compares its colour in one camera with its colour in every other
 camera that holds it: the per-pair colour ratio, the largest channel difference, the
@@ -142,6 +143,9 @@ def warm_up() -> None:
         np.zeros(num, np.int32),
         np.ones(num, bool),
     )
+    nodes = np.zeros((num, 2), np.int64)
+    mode_component(nodes, np.zeros(1, np.int32), np.arange(num, dtype=np.intp))
+    shared_points(nodes, 1)
 
 
 @nb.njit(nogil=True, cache=True, error_model="numpy")
@@ -226,3 +230,53 @@ def carve_camera(
                 covered = inside_dist[vi, ui] >= radius + half_px
         if near and not covered:
             full[n] = False
+
+
+@nb.njit(nogil=True, cache=True)
+def mode_component(
+    node: NDArray[np.int64], comp: NDArray[np.int32], rows: NDArray[np.intp]
+) -> NDArray[np.int64]:
+    """Per row of ``rows``: the component (``comp`` of its nodes) most of the row's nodes
+    (``node`` >= 0) belong to; ties go to the first such node's; -1 for a row without
+    nodes (``split._associate_objects``: the object a point takes from the cameras' images it
+    lands on)."""
+    num_cams = node.shape[1]
+    out = np.full(rows.shape[0], -1, np.int64)
+    pc = np.empty(num_cams, np.int64)
+    for k in range(rows.shape[0]):
+        p = rows[k]
+        for j in range(num_cams):
+            pc[j] = comp[node[p, j]] if node[p, j] >= 0 else -1
+        best = -1
+        best_support = 0
+        for j in range(num_cams):
+            if pc[j] < 0:
+                continue
+            support = 0
+            for i in range(num_cams):
+                if pc[i] == pc[j]:
+                    support += 1
+            if support > best_support:
+                best_support = support
+                best = pc[j]
+        out[k] = best
+    return out
+
+
+@nb.njit(nogil=True, cache=True)
+def shared_points(node: NDArray[np.int64], num_nodes: int) -> NDArray[np.int32]:
+    """(num_nodes, num_nodes) upper-triangular counts: entry (a, b) = how many rows hold
+    both node a (at a lower column) and node b (``split._associate_objects``: points two
+    cameras' per-image objects share)."""
+    out = np.zeros((num_nodes, num_nodes), np.int32)
+    num_cams = node.shape[1]
+    for p in range(node.shape[0]):
+        for a in range(num_cams):
+            na = node[p, a]
+            if na < 0:
+                continue
+            for b in range(a + 1, num_cams):
+                nb_ = node[p, b]
+                if nb_ >= 0:
+                    out[na, nb_] += 1
+    return out

@@ -26,6 +26,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from edgerecon.geometry.camera import Camera
+from edgerecon.scene._kernels import mode_component, shared_points
 from edgerecon.types import (
     BACKGROUND_LABEL,
     UNKNOWN_LABEL,
@@ -220,19 +221,6 @@ def split_sparse(
     )
 
 
-def _mode_component(node: NDArray[np.int64], comp: NDArray[np.int32]) -> NDArray[np.int64]:
-    """(P,) the most frequent component among each row's nodes (-1 for rows without)."""
-    valid = node >= 0
-    pt_comp = np.where(valid, comp[np.maximum(node, 0)], -1)
-    # For each entry, how many entries of its row share its component (one column at a
-    # time: no (P, C, C) temporary).
-    support = np.full(node.shape, -1, np.int32)
-    for j in range(node.shape[1]):
-        same = (pt_comp == pt_comp[:, j : j + 1]) & valid
-        support[:, j] = np.where(valid[:, j], np.count_nonzero(same, axis=1), -1)
-    return np.asarray(pt_comp[np.arange(len(node)), np.argmax(support, axis=1)], np.int64)
-
-
 def _associate_objects(
     local: NDArray[np.int32],
     local_any: NDArray[np.int32],
@@ -260,36 +248,30 @@ def _associate_objects(
     stride = max_id + 1
     node = np.where(loc > 0, np.arange(num_cams)[None, :] * stride + loc, -1)
     num_nodes = num_cams * stride
-    rows, cols = [], []
-    for a in range(num_cams):
-        for b in range(a + 1, num_cams):
-            both = (node[:, a] >= 0) & (node[:, b] >= 0)
-            if both.any():
-                rows.append(node[both, a])
-                cols.append(node[both, b])
-    present = np.unique(node[node >= 0])
-    if rows:
-        r = np.concatenate(rows)
-        c = np.concatenate(cols)
-        w = coo_matrix((np.ones(len(r), np.int32), (r, c)), shape=(num_nodes, num_nodes)).tocsr()
-        w.sum_duplicates()
-        size = np.bincount(node[node >= 0], minlength=num_nodes)
-        wc = w.tocoo()
-        need = np.maximum(min_shared, min_fraction * np.minimum(size[wc.row], size[wc.col]))
-        ok = wc.data >= need
-        strong = coo_matrix((wc.data[ok], (wc.row[ok], wc.col[ok])), shape=w.shape)
-        graph = coo_matrix(
-            (np.ones(len(strong.row), np.int8), (strong.row, strong.col)),
-            shape=(num_nodes, num_nodes),
-        )
-    else:
-        graph = coo_matrix((num_nodes, num_nodes), dtype=np.int8)
+    # Points each pair of nodes shares (nodes of a lower camera first, so a < b), and the
+    # links strong enough to join two cameras' objects.
+    shared = shared_points(np.ascontiguousarray(node, np.int64), num_nodes)
+    size = np.bincount(node[node >= 0], minlength=num_nodes)
+    present = np.flatnonzero(size)
+    r, c = np.nonzero(shared)
+    need = np.maximum(min_shared, min_fraction * np.minimum(size[r], size[c]))
+    ok = shared[r, c] >= need
+    graph = coo_matrix(
+        (np.ones(int(np.count_nonzero(ok)), np.int8), (r[ok], c[ok])),
+        shape=(num_nodes, num_nodes),
+    )
     _, comp = connected_components(graph, directed=False)
-    # Each point takes the component most of its nodes belong to.
-    best = _mode_component(node, comp)
-    any_loc = local_any[sel]
-    node_any = np.where(any_loc > 0, np.arange(num_cams)[None, :] * stride + any_loc, -1)
-    best = np.where(best >= 0, best, _mode_component(node_any, comp))
+    # Each point takes the component most of its nodes belong to; without any, most of
+    # its nodes in the cameras that saw it in their foreground.
+    comp = np.asarray(comp, np.int32)
+    best = mode_component(node, comp, np.arange(len(node), dtype=np.intp))
+    (lost,) = np.nonzero(best < 0)
+    if len(lost):
+        any_loc = local_any[sel[lost]]
+        node_any = np.where(any_loc > 0, np.arange(num_cams)[None, :] * stride + any_loc, -1)
+        best[lost] = mode_component(
+            np.ascontiguousarray(node_any, np.int64), comp, np.arange(len(lost), dtype=np.intp)
+        )
     # Rank components by the number of points they hold.
     has = best >= 0
     comps, counts = np.unique(best[has], return_counts=True)
