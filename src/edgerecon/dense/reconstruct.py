@@ -356,19 +356,34 @@ def reconstruct_dense(
             num_threads=config.num_threads,
             max_reproj_px=config.consistency_px,
         )
-        kept: dict[int, DepthMap] = {}
-        keep_masks: dict[int, NDArray[np.bool_]] = {}
         by_index = {p["index"]: p for p in plans}
-        for i, d in depths.items():
-            keep = filters.consistency_keep(
-                d, support[i], conflicts[i], candidates[i], scores[i], config
+
+        def filtered(i: int) -> tuple[NDArray[np.bool_], DepthMap]:
+            # The view's kept depths and their mask, computed within the box of its depths
+            # (a foreground's depths cover a fraction of the image; nothing outside it is
+            # kept: the same maps).
+            d = depths[i]
+            keep = np.zeros(d.shape, bool)
+            out = np.zeros(d.shape, np.float32)
+            box = _depth_box(d)
+            if box is None:
+                return keep, out
+            d = d[box]
+            k = filters.consistency_keep(
+                d, support[i][box], conflicts[i][box], candidates[i][box], scores[i][box], config
             )
             if config.depth_edge_rel > 0:
-                keep &= ~filters.depth_edge_mask(d, config.depth_edge_rel)
-            keep_masks[i] = keep
+                k &= ~filters.depth_edge_mask(d, config.depth_edge_rel)
+            keep[box] = k
             # The average over views stays within the view's own depth bounds.
-            avg = np.clip(averaged[i], by_index[i]["near"], by_index[i]["far"])
-            kept[i] = np.where(keep, avg, 0.0).astype(np.float32)
+            near, far = by_index[i]["near"], by_index[i]["far"]  # numbers or (H, W) maps
+            avg = np.clip(averaged[i][box], _within(near, box), _within(far, box))
+            out[box] = np.where(k, avg, 0.0)
+            return keep, out
+
+        done = thread_map(filtered, list(depths), config.num_threads)
+        keep_masks = {i: r[0] for i, r in zip(depths, done, strict=True)}
+        kept = {i: r[1] for i, r in zip(depths, done, strict=True)}
 
     with timings.stage("fusion"):
         parts: list[ViewPoints] = thread_map(
@@ -737,3 +752,18 @@ def _drop_below(part: ViewPoints, plane: Plane, band: float) -> ViewPoints:
     if keep.all():
         return part
     return part.select(keep)
+
+
+def _depth_box(depth: DepthMap) -> tuple[slice, slice] | None:
+    """The bounding box of a depth map's depths (> 0) as slices; None without any."""
+    valid = depth > 0
+    rows = np.flatnonzero(valid.any(axis=1))
+    if len(rows) == 0:
+        return None
+    cols = np.flatnonzero(valid[rows[0] : rows[-1] + 1].any(axis=0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+
+
+def _within(bound: Any, box: tuple[slice, slice]) -> Any:
+    """A depth bound (a number, or a per-pixel map) within ``box``."""
+    return bound[box] if np.ndim(bound) == 2 else bound
