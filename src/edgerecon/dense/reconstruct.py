@@ -161,11 +161,10 @@ def _bounds_maps(
             f"(the view's size) or {cam.width}x{cam.height} (the working resolution), got "
             f"{near_a.shape[::-1]} and {far_a.shape[::-1]}"
         )
-    near_a = np.nan_to_num(near_a, nan=0.0, posinf=0.0, neginf=0.0)
-    far_a = np.nan_to_num(far_a, nan=0.0, posinf=0.0, neginf=0.0)
-    ok = (near_a > 0) & (far_a > near_a)
-    near_a = np.where(ok, near_a, 0.0).astype(np.float32)
-    far_a = np.where(ok, far_a, 0.0).astype(np.float32)
+    # Finite bounds with 0 < near < far; elsewhere none (0).
+    ok = (near_a > 0) & (far_a > near_a) & np.isfinite(far_a)
+    near_a = np.where(ok, near_a, np.float32(0.0))
+    far_a = np.where(ok, far_a, np.float32(0.0))
     if cam.size != (shape[1], shape[0]):
         # Conservative: the nearest near and the farthest far over each working pixel.
         k = max(1, round(shape[1] / cam.width))
