@@ -188,3 +188,50 @@ def test_the_compiled_vote_is_the_numpy_mode_bit_for_bit() -> None:
             both = valid[:, a] & valid[:, b]
             np.add.at(expected, (node[both, a], node[both, b]), 1)
     np.testing.assert_array_equal(shared, expected)
+
+
+@pytest.mark.parametrize("reduced", [False, True])
+def test_the_compiled_camera_votes_are_the_numpy_votes_bit_for_bit(rig: Rig, reduced: bool) -> None:
+    # One camera's votes (``_kernels.camera_votes``) against the NumPy version they
+    # replaced: points all around the rig, some observing cameras, a label image at the
+    # camera's resolution or at a third of it, an unobserving weight of 0.5.
+    import cv2
+
+    from edgerecon.scene._kernels import camera_votes
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(0, 2.0, (20000, 3)) + [0, 0, 1]
+    vis = rng.random((len(pts), len(rig))) < 0.5
+    for c, cam in enumerate(rig):
+        lab = (box_silhouette(cam, *BOX_A) * 1 + box_silhouette(cam, *BOX_B) * 2).astype(np.uint8)
+        if reduced:
+            lab = cv2.resize(
+                lab, (cam.width // 3, cam.height // 3), interpolation=cv2.INTER_NEAREST
+            )
+        got = [np.zeros(len(pts), np.float32) for _ in range(2)]
+        got += [np.zeros((len(pts), len(rig)), np.int32) for _ in range(2)]
+        uv, depth = cam.project(pts)
+        camera_votes(
+            c, uv, depth, cam.width, cam.height, lab.shape[1] / cam.width,
+            lab.shape[0] / cam.height, reduced, lab, vis, np.float32(0.5), *got,
+        )  # fmt: skip
+        ref = [np.zeros(len(pts), np.float32) for _ in range(2)]
+        ref += [np.zeros((len(pts), len(rig)), np.int32) for _ in range(2)]
+        fg_w, bg_w, local, local_any = ref
+        inside = (depth > 0) & cam.in_image(uv)
+        if reduced:
+            uv = (uv + 0.5) * np.array([lab.shape[1] / cam.width, lab.shape[0] / cam.height]) - 0.5
+        weight = np.where(vis[:, c], 1.0, 0.5).astype(np.float32)
+        idx = np.flatnonzero(inside & (weight > 0))
+        u = np.clip(np.rint(uv[idx, 0]).astype(np.intp), 0, lab.shape[1] - 1)
+        v = np.clip(np.rint(uv[idx, 1]).astype(np.intp), 0, lab.shape[0] - 1)
+        hit = lab[v, u]
+        fg = hit > 0
+        fg_w[idx[fg]] += weight[idx[fg]]
+        bg_w[idx[~fg]] += weight[idx[~fg]]
+        obs = vis[idx, c] & fg
+        local[idx[obs], c] = hit[obs]
+        local_any[idx[fg], c] = hit[fg]
+        for a, b in zip(got, ref, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert fg.any() and (~fg).any() and (local > 0).any() and (local_any > local).any()

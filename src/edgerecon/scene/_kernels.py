@@ -146,6 +146,26 @@ def warm_up() -> None:
     nodes = np.zeros((num, 2), np.int64)
     mode_component(nodes, np.zeros(1, np.int32), np.arange(num, dtype=np.intp))
     shared_points(nodes, 1)
+    flags = np.zeros((num, 2), bool)
+    votes = np.zeros((num, 2), np.int32)
+    for scaled in (False, True):
+        camera_votes(
+            0,
+            np.zeros((num, 2)),
+            np.ones(num),
+            2,
+            2,
+            1.0,
+            1.0,
+            scaled,
+            np.ones((2, 2), np.uint8),
+            flags,
+            np.float32(1.0),
+            np.zeros(num, np.float32),
+            np.zeros(num, np.float32),
+            votes,
+            votes,
+        )
 
 
 @nb.njit(nogil=True, cache=True, error_model="numpy")
@@ -280,3 +300,56 @@ def shared_points(node: NDArray[np.int64], num_nodes: int) -> NDArray[np.int32]:
                 if nb_ >= 0:
                     out[na, nb_] += 1
     return out
+
+
+@nb.njit(nogil=True, cache=True)
+def camera_votes(
+    c: int,
+    uv: NDArray[np.float64],
+    depth: NDArray[np.float64],
+    width: int,
+    height: int,
+    scale_x: float,
+    scale_y: float,
+    scaled: bool,
+    lab: NDArray[np.uint8],
+    vis: NDArray[np.bool_],
+    unobserving_weight: np.float32,
+    fg_w: NDArray[np.float32],
+    bg_w: NDArray[np.float32],
+    local: NDArray[np.int32],
+    local_any: NDArray[np.int32],
+) -> None:
+    """Camera ``c``'s votes on the points (``split.split_sparse``): a point in front of the
+    camera and in its image (``uv`` within half a pixel of the ``width`` x ``height``
+    image) looks up its pixel of the label image ``lab`` (at a reduced resolution when
+    ``scaled``: ``(uv + 0.5) * scale - 0.5``, rounded half to even and clipped into it) and
+    adds its weight (1 when the camera observes it, ``vis[:, c]``, else
+    ``unobserving_weight``; 0 votes nothing) to ``fg_w`` or ``bg_w``; a foreground label is
+    the point's object in this camera (``local_any``; ``local`` only from observing
+    cameras)."""
+    lw = lab.shape[1]
+    lh = lab.shape[0]
+    for p in range(uv.shape[0]):
+        u = uv[p, 0]
+        v = uv[p, 1]
+        if not (depth[p] > 0):
+            continue
+        if not (u >= -0.5 and u <= width - 0.5 and v >= -0.5 and v <= height - 0.5):
+            continue
+        w = np.float32(1.0) if vis[p, c] else unobserving_weight
+        if not (w > 0):
+            continue
+        if scaled:
+            u = (u + 0.5) * scale_x - 0.5
+            v = (v + 0.5) * scale_y - 0.5
+        ui = min(max(int(np.rint(u)), 0), lw - 1)
+        vi = min(max(int(np.rint(v)), 0), lh - 1)
+        hit = lab[vi, ui]
+        if hit > 0:
+            fg_w[p] += w
+            if vis[p, c]:
+                local[p, c] = hit
+            local_any[p, c] = hit
+        else:
+            bg_w[p] += w

@@ -26,7 +26,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from edgerecon.geometry.camera import Camera
-from edgerecon.scene._kernels import mode_component, shared_points
+from edgerecon.scene._kernels import camera_votes, mode_component, shared_points
 from edgerecon.types import (
     BACKGROUND_LABEL,
     UNKNOWN_LABEL,
@@ -187,26 +187,27 @@ def split_sparse(
                     np.uint8,
                 )
             uv, depth = cam.project(pts)
-            inside = (depth > 0) & cam.in_image(uv)
-            if lab.shape[1] != cam.width:  # a mask at a reduced resolution
-                sx, sy = lab.shape[1] / cam.width, lab.shape[0] / cam.height
-                uv = (uv + 0.5) * np.array([sx, sy]) - 0.5
-            weight = np.where(vis[:, c], 1.0, config.unobserving_weight).astype(np.float32)
-            voting = inside & (weight > 0)
             # An observing camera whose projection falls outside its image still votes
-            # background-free: it cannot say anything about the point.
-            idx = np.flatnonzero(voting)
-            u = np.clip(np.rint(uv[idx, 0]).astype(np.intp), 0, lab.shape[1] - 1)
-            v = np.clip(np.rint(uv[idx, 1]).astype(np.intp), 0, lab.shape[0] - 1)
-            hit = lab[v, u]
-            fg = hit > 0
-            fg_w[idx[fg]] += weight[idx[fg]]
-            bg_w[idx[~fg]] += weight[idx[~fg]]
-            # Object ids only from cameras that observe the point (an occluded point lands on
-            # whatever object hides it).
-            obs = vis[idx, c] & fg
-            local[idx[obs], c] = hit[obs]
-            local_any[idx[fg], c] = hit[fg]
+            # background-free: it cannot say anything about the point. Object ids come only
+            # from cameras that observe the point (an occluded point lands on whatever
+            # object hides it).
+            camera_votes(
+                c,
+                uv,
+                depth,
+                cam.width,
+                cam.height,
+                lab.shape[1] / cam.width,
+                lab.shape[0] / cam.height,
+                lab.shape[1] != cam.width,  # a mask at a reduced resolution
+                np.ascontiguousarray(lab, np.uint8),
+                vis,
+                np.float32(config.unobserving_weight),
+                fg_w,
+                bg_w,
+                local,
+                local_any,
+            )
     labels = np.full(n, UNKNOWN_LABEL, np.int32)
     voted = (fg_w + bg_w) > 0
     is_fg = voted & (fg_w >= bg_w)
