@@ -389,9 +389,9 @@ class FrontEnd:
         arrived by the end of this one (``SceneTracker.learn``, then the static scenes they
         make due). The next task's masks are those it would get with the updates on its own
         path (the models at its time index are the same). Bounded by the watchdog; an update
-        that raises is skipped (``_learn_update``), one that hangs is logged (the next
-        task's scene stage then waits for the models, and its watchdog fails it). Returns
-        the seconds spent."""
+        that raises is skipped (``_learn_update``); one that hangs is abandoned with the
+        models, and the front-end goes on with their copy (``_restore_scene``). Returns the
+        seconds spent."""
         if not updates or self.scene is None:
             return 0.0
         box: dict[str, Any] = {}
@@ -419,7 +419,7 @@ class FrontEnd:
             return time.perf_counter() - start
         if "exc" in box:
             logger.warning(
-                "background updates between tasks failed (%s); the next task applies them",
+                "background updates between tasks failed (%s); the next task applies what is left",
                 describe_exception(box["exc"]),
             )
             return time.perf_counter() - start
