@@ -402,10 +402,10 @@ def reconstruct_foreground(
                 # At the depth maps' resolution (at half resolution, a quarter of the pixels
                 # to splat).
                 dr = hull_depth_range(hull, working_camera(v, fg_dense_config))
-                ranges[v.camera_id] = (
-                    np.nan_to_num(dr.near, nan=0.0),
-                    np.nan_to_num(dr.far, nan=0.0),
-                )
+                # No hull on a pixel's ray (NaN; the range is otherwise finite): no range.
+                for bound in (dr.near, dr.far):
+                    np.copyto(bound, np.float32(0.0), where=np.isnan(bound))
+                ranges[v.camera_id] = (dr.near, dr.far)
     dense = reconstruct_dense(
         fg_views,
         fg_dense_config,
