@@ -177,7 +177,7 @@ def test_the_compiled_vote_is_the_numpy_mode_bit_for_bit() -> None:
         same = (pt_comp == pt_comp[:, j : j + 1]) & valid
         support[:, j] = np.where(valid[:, j], np.count_nonzero(same, axis=1), -1)
     ref = pt_comp[np.arange(len(node)), np.argmax(support, axis=1)]
-    got = mode_component(node, comp, np.arange(len(node), dtype=np.intp))
+    got = mode_component(node, comp)
     np.testing.assert_array_equal(got, ref)
     assert (got == -1).sum() >= 50 and len(np.unique(got)) == 6
     # Shared points: the pairs of a lower and a higher camera's nodes on one point.

@@ -424,7 +424,7 @@ class Session:
         Their seconds are this task's ``scene_update_ahead`` stage (after its cloud). A
         failure here is logged; the next task applies what is left itself."""
         bound = self._next_bound()
-        if bound is None or self.dataset.is_live:
+        if bound is None:  # the last task, or a live stream (its schedule gives none)
             return
         try:
             seconds = self.engine.learn_updates(self._update_frames(source, bound))

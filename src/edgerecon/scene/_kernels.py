@@ -144,28 +144,27 @@ def warm_up() -> None:
         np.ones(num, bool),
     )
     nodes = np.zeros((num, 2), np.int64)
-    mode_component(nodes, np.zeros(1, np.int32), np.arange(num, dtype=np.intp))
+    mode_component(nodes, np.zeros(1, np.int32))
     shared_points(nodes, 1)
     flags = np.zeros((num, 2), bool)
     votes = np.zeros((num, 2), np.int32)
-    for scaled in (False, True):
-        camera_votes(
-            0,
-            np.zeros((num, 2)),
-            np.ones(num),
-            2,
-            2,
-            1.0,
-            1.0,
-            scaled,
-            np.ones((2, 2), np.uint8),
-            flags,
-            np.float32(1.0),
-            np.zeros(num, np.float32),
-            np.zeros(num, np.float32),
-            votes,
-            votes,
-        )
+    camera_votes(
+        0,
+        np.zeros((num, 2)),
+        np.ones(num),
+        2,
+        2,
+        1.0,
+        1.0,
+        False,
+        np.ones((2, 2), np.uint8),
+        flags,
+        np.float32(1.0),
+        np.zeros(num, np.float32),
+        np.zeros(num, np.float32),
+        votes,
+        votes,
+    )
 
 
 @nb.njit(nogil=True, cache=True, error_model="numpy")
@@ -253,18 +252,15 @@ def carve_camera(
 
 
 @nb.njit(nogil=True, cache=True)
-def mode_component(
-    node: NDArray[np.int64], comp: NDArray[np.int32], rows: NDArray[np.intp]
-) -> NDArray[np.int64]:
-    """Per row of ``rows``: the component (``comp`` of its nodes) most of the row's nodes
+def mode_component(node: NDArray[np.int64], comp: NDArray[np.int32]) -> NDArray[np.int64]:
+    """Per row of ``node``: the component (``comp`` of its nodes) most of the row's nodes
     (``node`` >= 0) belong to; ties go to the first such node's; -1 for a row without
     nodes (``split._associate_objects``: the object a point takes from the cameras' images it
     lands on)."""
     num_cams = node.shape[1]
-    out = np.full(rows.shape[0], -1, np.int64)
+    out = np.full(node.shape[0], -1, np.int64)
     pc = np.empty(num_cams, np.int64)
-    for k in range(rows.shape[0]):
-        p = rows[k]
+    for p in range(node.shape[0]):
         for j in range(num_cams):
             pc[j] = comp[node[p, j]] if node[p, j] >= 0 else -1
         best = -1
@@ -279,7 +275,7 @@ def mode_component(
             if support > best_support:
                 best_support = support
                 best = pc[j]
-        out[k] = best
+        out[p] = best
     return out
 
 

@@ -350,7 +350,8 @@ class RigForeground:
         """An independent copy: the models' states copied; the static scene, the occluders
         and their depth maps (replaced, never changed in place) shared."""
         out = copy.copy(self)
-        out.models = [BackgroundModel.from_state(m.state, m.config) for m in self.models]
+        # (``state`` is a copy already.)
+        out.models = [BackgroundModel(m.state, m.config) for m in self.models]
         return out
 
     def states(self) -> list[BackgroundState]:

@@ -265,14 +265,12 @@ def _associate_objects(
     # Each point takes the component most of its nodes belong to; without any, most of
     # its nodes in the cameras that saw it in their foreground.
     comp = np.asarray(comp, np.int32)
-    best = mode_component(node, comp, np.arange(len(node), dtype=np.intp))
+    best = mode_component(node, comp)
     (lost,) = np.nonzero(best < 0)
     if len(lost):
         any_loc = local_any[sel[lost]]
         node_any = np.where(any_loc > 0, np.arange(num_cams)[None, :] * stride + any_loc, -1)
-        best[lost] = mode_component(
-            np.ascontiguousarray(node_any, np.int64), comp, np.arange(len(lost), dtype=np.intp)
-        )
+        best[lost] = mode_component(np.ascontiguousarray(node_any, np.int64), comp)
     # Rank components by the number of points they hold.
     has = best >= 0
     comps, counts = np.unique(best[has], return_counts=True)
