@@ -339,3 +339,39 @@ def test_retune_chooses_the_configuration_from_the_masks(tiny, tiny_dataset):
         frames, ds.rig, fg, background=background, sparse_scope="scene", retune=retune
     )
     assert len(seen) == 1 and scene.config.scale == 1.0
+
+
+def test_a_task_cancelled_in_its_depth_maps_stops_there(tiny, monkeypatch):
+    # The watchdog's event reaches the foreground's dense stage: set while the first depth
+    # map runs, the task raises from there and starts no other map.
+    import threading
+
+    import edgerecon.dense.reconstruct as rec
+    from edgerecon.pipeline import TaskCancelled
+
+    ds, frames, _ = tiny
+    with ds.open_background() as bg:
+        model = RigForeground.learn_from_framesets(ds.rig, bg.iter_frames())
+    fg = model.segment(frames)
+    cancel = threading.Event()
+    real = rec.estimate_depth
+    started: list[int] = []
+
+    def first_then_cancel(*args, **kwargs):
+        started.append(1)
+        cancel.set()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rec, "estimate_depth", first_then_cancel)
+    config = ReconstructionConfig(dense_config=DenseConfig(num_threads=1))
+    with pytest.raises(TaskCancelled, match="dense depth maps: cancelled"):
+        reconstruct_task(
+            frames,
+            ds.rig,
+            fg,
+            config,
+            background=PointCloud.empty(),
+            sparse_scope="hull",
+            cancel=cancel,
+        )
+    assert started == [1]

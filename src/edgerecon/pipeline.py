@@ -34,11 +34,11 @@ from edgerecon.types import (
     BACKGROUND_LABEL,
     DataError,
     DepthMap,
-    EdgereconError,
     FrameSet,
     Mask,
     PointCloud,
     StageTimings,
+    TaskCancelled,
 )
 from edgerecon.views import View, mask_scale, prepare_views, with_masks
 
@@ -357,6 +357,8 @@ def reconstruct_foreground(
     foreground: ForegroundResult,
     dense_config: DenseConfig,
     config: SplitPipelineConfig | None = None,
+    *,
+    cancel: threading.Event | None = None,
 ) -> ForegroundReconstruction:
     """Split the sparse cloud with the foreground masks, then densify only the foreground.
 
@@ -364,6 +366,8 @@ def reconstruct_foreground(
     ``foreground`` are full-resolution per rig camera. Dense work is restricted to the
     (dilated) foreground of each view and, when available, to the visual hull's depth interval,
     so its cost follows the foreground's area. An empty foreground gives an empty result.
+    ``cancel``: the task's watchdog event, checked by the dense stage before each depth map
+    (``dense.reconstruct_dense``).
     """
     config = config or SplitPipelineConfig()
     timings = StageTimings()
@@ -412,6 +416,7 @@ def reconstruct_foreground(
         fg_sparse if len(fg_sparse) else None,
         depth_ranges=ranges,
         up=rig.up,
+        cancel=cancel,
     )
     timings.merge(dense.timings, "fg_dense.")
     with timings.stage("fg_label"):
@@ -596,11 +601,6 @@ ForegroundSource = ForegroundResult | Callable[[StageTimings], ForegroundResult]
 Retune = Callable[[ForegroundResult], tuple[ReconstructionConfig, SplitPipelineConfig]]
 
 
-class TaskCancelled(EdgereconError):
-    """Raised at a stage boundary of :func:`reconstruct_task` once its ``cancel`` event is
-    set (the task's watchdog gave up on it): nothing after that boundary runs."""
-
-
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SplitReconstructionResult:
     """One task through the FG/BG pipeline: merged cloud plus its parts."""
@@ -679,8 +679,8 @@ def reconstruct_task(
     source adds (e.g. ``wait_masks``), ``split``, ``fg_*``, ``bg_dense.*`` (only without
     ``background``), ``merge``.
 
-    ``cancel`` (set by a watchdog) stops the task at its next stage boundary
-    (:class:`TaskCancelled`).
+    ``cancel`` (set by a watchdog) stops the task at its next stage boundary, or in the
+    foreground's dense stage before its next depth map (:class:`TaskCancelled`).
 
     ``retune(foreground)`` (not with ``sparse_scope="scene"``, whose SfM needs the views
     first): the task's configurations chosen once its masks are known (the online system
@@ -725,7 +725,8 @@ def reconstruct_task(
             carved = occluded_hull(fg, background)
         if carved is not None:
             fg = dataclasses.replace(fg, hull=carved)
-    fg_rec = reconstruct_foreground(views, rig, sparse, fg, cfg.dense_config, split)
+    checkpoint("the foreground's dense stage")
+    fg_rec = reconstruct_foreground(views, rig, sparse, fg, cfg.dense_config, split, cancel=cancel)
     timings.merge(fg_rec.timings)
     if background is None:
         checkpoint("the background")

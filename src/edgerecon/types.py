@@ -45,6 +45,13 @@ class DataError(EdgereconError, ValueError):
     """Missing, unreadable or inconsistent input data (frames, datasets, files)."""
 
 
+class TaskCancelled(EdgereconError):
+    """Raised once a task's ``cancel`` event is set (its watchdog gave up on it): at a stage
+    boundary of ``pipeline.reconstruct_task``, and inside the dense stage before each depth
+    map and filter pass (``dense.reconstruct_dense``), so an abandoned task stops taking
+    work; nothing after that point runs."""
+
+
 @dataclass(frozen=True, kw_only=True, eq=False)
 class PointCloud:
     """A coloured point cloud with optional per-point attributes.

@@ -244,3 +244,40 @@ def test_small_images_are_swept_exhaustively_except_for_the_foreground():
     a = build_pyramid(0, big, g2, 3, 120)
     b = build_pyramid(0, big, g2, 3, 120, small_exhaustive=False)
     assert [c.width for c in a.cameras] == [c.width for c in b.cameras] == [320, 160]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_cancelled_dense_stage_starts_no_further_depth_map(scene, monkeypatch, threads):
+    # A task's watchdog gave up on it during its depth maps: the maps already running end,
+    # no other starts, and the stage raises instead of filtering and fusing (an abandoned
+    # task used to run on a core to its end).
+    import threading
+
+    import edgerecon.dense.reconstruct as rec
+    from edgerecon.types import TaskCancelled
+
+    views, _ = scene
+    cancel = threading.Event()
+    real = rec.estimate_depth
+    started: list[int] = []
+
+    def slow(*args, **kwargs):
+        started.append(1)
+        cancel.set()  # the watchdog fires while the first maps run
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rec, "estimate_depth", slow)
+    config = DenseConfig(resolution_level=1, num_threads=threads)
+    with pytest.raises(TaskCancelled, match="cancelled"):
+        reconstruct_dense(views, config, up=(0, 0, 1), cancel=cancel)
+    assert 1 <= len(started) <= threads < len(views)
+    # An event that is never set changes nothing: every map runs (one per view here).
+    started.clear()
+
+    def counted(*args, **kwargs):
+        started.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rec, "estimate_depth", counted)
+    assert len(reconstruct_dense(views, config, up=(0, 0, 1), cancel=threading.Event()).cloud)
+    assert len(started) == len(views)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,7 +36,15 @@ from edgerecon.dense.planes import (
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
 from edgerecon.dense.threads import RowBands, run_jobs, thread_map
 from edgerecon.geometry.camera import Camera
-from edgerecon.types import DataError, DepthMap, Image, Mask, PointCloud, StageTimings
+from edgerecon.types import (
+    DataError,
+    DepthMap,
+    Image,
+    Mask,
+    PointCloud,
+    StageTimings,
+    TaskCancelled,
+)
 from edgerecon.views import View, resize_mask
 
 logger = logging.getLogger(__name__)
@@ -226,6 +235,7 @@ def reconstruct_dense(
     *,
     depth_ranges: Mapping[int, DepthBounds] | None = None,
     up: Sequence[float] | None = None,
+    cancel: threading.Event | None = None,
 ) -> DenseReconstruction:
     """Dense coloured point cloud of the scene seen by ``views``.
 
@@ -238,6 +248,10 @@ def reconstruct_dense(
     ``up``) for ground-plane hypotheses; default: estimated from the cameras.
 
     Fewer than two views, empty masks or nothing consistent give an empty cloud (not an error).
+
+    ``cancel`` (a task's watchdog event): once set, no further depth map starts and the
+    filter and fusion passes do not run (:class:`TaskCancelled`); an abandoned task stops
+    within one depth map's time instead of running on a core to its end.
     """
     _check_views(views)
     timings = StageTimings()
@@ -322,7 +336,9 @@ def reconstruct_dense(
                     bands,
                 )
 
-            results = run_jobs(run, jobs, config.num_threads, bands, "dense depth maps")
+            results = run_jobs(
+                run, jobs, config.num_threads, bands, "dense depth maps", cancel=cancel
+            )
         depths: dict[int, DepthMap] = {}
         scores: dict[int, NDArray[np.float32]] = {}
         work = 0
@@ -344,6 +360,7 @@ def reconstruct_dense(
             if i in depths and m is not None:
                 depths[i][~m] = 0.0
 
+    _checkpoint(cancel, "the consistency filter")
     with timings.stage("consistency"):
         id_cams = {i: cams[i] for i in depths}
         rel_tol, noise = agreement_tolerance(depths, id_cams, config)
@@ -384,6 +401,7 @@ def reconstruct_dense(
         keep_masks = {i: r[0] for i, r in zip(depths, done, strict=True)}
         kept = {i: r[1] for i, r in zip(depths, done, strict=True)}
 
+    _checkpoint(cancel, "the fusion")
     with timings.stage("fusion"):
         parts: list[ViewPoints] = thread_map(
             lambda i: view_points(
@@ -485,6 +503,11 @@ def reconstruct_dense(
         timings=timings,
         stats=stats,
     )
+
+
+def _checkpoint(cancel: threading.Event | None, stage: str) -> None:
+    if cancel is not None and cancel.is_set():
+        raise TaskCancelled(f"dense: cancelled before {stage}")
 
 
 def _sparse_points(

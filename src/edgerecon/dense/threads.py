@@ -12,6 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
 from edgerecon.progress import track
+from edgerecon.types import TaskCancelled
 
 #: Bands narrower than this many rows are not worth a thread hand-off.
 _MIN_BAND_ROWS = 32
@@ -79,17 +80,31 @@ R = TypeVar("R")
 
 
 def run_jobs(
-    fn: Callable[[T], R], jobs: Sequence[T], num_threads: int, bands: RowBands, label: str
+    fn: Callable[[T], R],
+    jobs: Sequence[T],
+    num_threads: int,
+    bands: RowBands,
+    label: str,
+    *,
+    cancel: threading.Event | None = None,
 ) -> list[R]:
     """``[fn(job) for job in jobs]`` on ``num_threads`` threads that take the jobs in order;
     a thread that finds none left lends its core to the others (``bands.lend``), and so do
     the threads that have no job from the start (one foreground ROI: its kernels run on
     every core). Progress follows the finished jobs; the first error is raised once every
-    job has ended."""
+    job has ended. Once ``cancel`` is set no job starts (the jobs left end as
+    :class:`TaskCancelled` at once), so a cancelled caller gets its threads back after the
+    jobs already running."""
     for _ in range(max(num_threads - max(len(jobs), 1), 0)):
         bands.lend()
+
+    def guarded(job: T) -> R:
+        if cancel is not None and cancel.is_set():
+            raise TaskCancelled(f"{label}: cancelled")
+        return fn(job)
+
     if num_threads <= 1 or len(jobs) <= 1:
-        return list(track(map(fn, jobs), label, total=len(jobs)))
+        return list(track(map(guarded, jobs), label, total=len(jobs)))
     results: list[Any] = [None] * len(jobs)
     counter = itertools.count()
     finished: queue.Queue[BaseException | None] = queue.Queue()
@@ -98,7 +113,7 @@ def run_jobs(
         try:
             while (k := next(counter)) < len(jobs):
                 try:
-                    results[k] = fn(jobs[k])
+                    results[k] = guarded(jobs[k])
                     finished.put(None)
                 except BaseException as exc:  # re-raised by the caller
                     finished.put(exc)
