@@ -22,6 +22,9 @@ from edgerecon.optimize import (
 )
 
 LOWEST = {n: tuple(range(n)) for n in range(1, 12)}
+#: The paper's search: a level starts at r_min even after a measured time (the rules'
+#: tests; ``start_from_measurement`` has its own).
+PAPER_START = {"start_from_measurement": None}
 
 
 def run_search(ctrl: BisectionController, model: PipelineModel, rng, max_tasks: int = 300):
@@ -228,7 +231,7 @@ def test_a_noisy_golden_task_is_measured_once_more():
     assert ctrl.next_config().scale == 1.0
     # Two misses in a row start the search; so does one clear miss.
     for times in ((6.0, 6.5), (9.0,)):
-        ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+        ctrl = BisectionController(ControllerConfig(deadline_s=5, **PAPER_START), LOWEST, 4)
         for t in times:
             assert ctrl.next_config().phase == "golden"
             ctrl.observe(t, None)
@@ -244,7 +247,7 @@ def test_a_noisy_golden_task_is_measured_once_more():
 
 
 def test_rule1_baseline_check_skips_a_camera_count():
-    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 6)
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, **PAPER_START), LOWEST, 6)
     ctrl.next_config()
     ctrl.observe(20.0, 1.0)  # golden too slow
     cfg = ctrl.next_config()
@@ -260,8 +263,80 @@ def test_rule1_baseline_check_skips_a_camera_count():
     assert cfg.num_cameras == 5 and cfg.scale == pytest.approx(0.65)
 
 
-def test_rule1_a_noisy_baseline_keeps_its_camera_count():
+def test_a_search_after_a_near_miss_starts_from_the_measured_time():
+    # T = 0.3 + 0.8 r^2 s with 4 cameras (0.25 s less per camera dropped), deadline 1 s:
+    # the golden task misses by 10 %, twice. The paper's search then starts at r_min and
+    # spends tasks far below what fits; from the measurement the first probe is
+    # (1 / 1.1) x 0.95 = 0.864, which fits, and the bisection goes on above it.
+    def time_s(r: float, n: int) -> float:
+        return 0.3 + 0.8 * r * r - 0.25 * (4 - n)
+
+    def search(config: ControllerConfig) -> list[tuple[float, int]]:
+        ctrl = BisectionController(config, LOWEST, 4)
+        probes = []
+        for _ in range(30):
+            cfg = ctrl.next_config()
+            if cfg.phase == "adjust":
+                break
+            probes.append((cfg.scale, cfg.num_cameras))
+            ctrl.observe(time_s(cfg.scale, cfg.num_cameras), cfg.scale * cfg.num_cameras / 4)
+        return probes
+
+    measured = search(ControllerConfig(deadline_s=1.0))
+    paper = search(ControllerConfig(deadline_s=1.0, **PAPER_START))
+    assert measured[:2] == paper[:2] == [(1.0, 4), (1.0, 4)]  # golden, then once more
+    assert measured[2] == (pytest.approx(0.863636, abs=1e-6), 4)
+    assert min(r for r, _ in measured) > 0.85 and paper[2] == (0.3, 4)
+    assert len(measured) < len(paper)
+    # Both end at the same configuration (the bisection's resolution apart).
+    last = BisectionController(ControllerConfig(deadline_s=1.0), LOWEST, 4)
+    for r, n in measured:
+        last.next_config()
+        last.observe(time_s(r, n), r * n / 4)
+    assert last.next_config().scale == pytest.approx(0.935, abs=0.01)
+
+
+def test_a_predicted_probe_that_misses_falls_back_to_r_min():
     ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(8.0, 1.0)  # golden too slow: first probe (5 / 8) x 0.95
+    cfg = ctrl.next_config()
+    assert (cfg.phase, cfg.num_cameras) == ("search", 4)
+    assert cfg.scale == pytest.approx(0.59375)
+    ctrl.observe(6.0, 0.5)  # too slow after all: the paper's start, with rule 1
+    assert ctrl.next_config().scale == 0.3
+    ctrl.observe(3.0, 0.3)  # r_min fits: the bisection between r_min and the probe
+    assert ctrl.next_config().scale == pytest.approx((0.3 + 0.59375) / 2)
+    # Too close to r_min to be worth a probe of its own: the paper's start.
+    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(200.0, 1.0)
+    assert ctrl.next_config().scale == 0.3
+    with pytest.raises(ValueError, match="start_from_measurement"):
+        ControllerConfig(deadline_s=1.0, start_from_measurement=1.5)
+
+
+def test_a_re_search_probes_from_the_adjusted_tasks_time():
+    # Settled at r* = 1 with every camera, the work triples: the "slower" re-search's first
+    # probe comes from what the adjusted tasks' times say fits, not from r_min.
+    ctrl = BisectionController(ControllerConfig(deadline_s=1.0), LOWEST, 4)
+    ctrl.next_config()
+    ctrl.observe(0.9, 1.0)  # golden fits
+    probes = []
+    for _ in range(12):
+        cfg = ctrl.next_config()
+        if cfg.phase == "search":
+            probes.append(cfg.scale)
+            break
+        ctrl.observe(3.0 * (0.3 + 0.6 * cfg.scale**2), 0.9)
+    assert ctrl.events and ctrl.events[0]["reason"] == "slower"
+    # Nothing fits with 4 cameras (3 (0.3 + 0.6 r^2) > 1 at any r): the guesses from the
+    # adjusted tasks, r = 0.6-1.0 at 1.6-2.7 s, are 0.37-0.39, x 0.95.
+    assert probes and 0.33 < probes[0] < 0.38
+
+
+def test_rule1_a_noisy_baseline_keeps_its_camera_count():
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, **PAPER_START), LOWEST, 4)
     ctrl.next_config()
     ctrl.observe(9.0, 1.0)  # golden too slow
     ctrl.next_config()
@@ -273,7 +348,7 @@ def test_rule1_a_noisy_baseline_keeps_its_camera_count():
     assert cfg.num_cameras == 4 and cfg.scale == pytest.approx(0.65)
     # A clear miss (over baseline_confirm x the deadline) skips the level at once, and a
     # saved state from before the field existed loads.
-    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, **PAPER_START), LOWEST, 4)
     ctrl.next_config()
     ctrl.observe(20.0, 1.0)
     ctrl.next_config()
@@ -285,7 +360,7 @@ def test_rule1_a_noisy_baseline_keeps_its_camera_count():
 
 
 def test_rule2_stops_when_fewer_cameras_cannot_win():
-    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2), LOWEST, 6)
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2, **PAPER_START), LOWEST, 6)
     ctrl.next_config()
     ctrl.observe(20.0, 1.0)
     # bisection at N' = 6: r = 0.3 ok, 0.65 ok, 0.825 too slow -> range 0.175 <= tau
@@ -302,7 +377,7 @@ def test_rule2_stops_when_fewer_cameras_cannot_win():
 
 
 def test_rule2_probe_feasible_at_r_max_ends_the_search_there():
-    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2), LOWEST, 6)
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2, **PAPER_START), LOWEST, 6)
     ctrl.next_config()
     ctrl.observe(20.0, 1.0)
     for t, q in ((3.0, 0.5), (4.5, 0.8), (6.0, 0.9)):
@@ -315,7 +390,7 @@ def test_rule2_probe_feasible_at_r_max_ends_the_search_there():
 
 
 def test_rule3_abandons_a_camera_count_when_quality_is_already_beaten():
-    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.05), LOWEST, 6)
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.05, **PAPER_START), LOWEST, 6)
     ctrl.next_config()
     ctrl.observe(20.0, 1.0)
     for t, q in ((3.0, 0.5), (4.5, 0.8), (6.0, 0.9), (5.5, 0.85), (5.2, 0.83)):
