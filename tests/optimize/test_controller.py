@@ -296,17 +296,19 @@ def test_a_search_after_a_near_miss_starts_from_the_measured_time():
     assert last.next_config().scale == pytest.approx(0.935, abs=0.01)
 
 
-def test_a_predicted_probe_that_misses_falls_back_to_r_min():
+def test_predicted_probes_that_miss_fall_back_to_r_min():
     ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
     ctrl.next_config()
     ctrl.observe(8.0, 1.0)  # golden too slow: first probe (5 / 8) x 0.95
     cfg = ctrl.next_config()
     assert (cfg.phase, cfg.num_cameras) == ("search", 4)
     assert cfg.scale == pytest.approx(0.59375)
-    ctrl.observe(6.0, 0.5)  # too slow after all: the paper's start, with rule 1
+    ctrl.observe(6.0, 0.5)  # too slow: once more from its own time, (5 / 6) x 0.95 x r
+    assert ctrl.next_config().scale == pytest.approx(0.59375 * 5 / 6 * 0.95, abs=1e-6)
+    ctrl.observe(5.5, 0.45)  # too slow again: the paper's start, with rule 1
     assert ctrl.next_config().scale == 0.3
-    ctrl.observe(3.0, 0.3)  # r_min fits: the bisection between r_min and the probe
-    assert ctrl.next_config().scale == pytest.approx((0.3 + 0.59375) / 2)
+    ctrl.observe(3.0, 0.3)  # r_min fits: the bisection between r_min and the last probe
+    assert ctrl.next_config().scale == pytest.approx((0.3 + 0.470052) / 2)
     # Too close to r_min to be worth a probe of its own: the paper's start.
     ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
     ctrl.next_config()
@@ -387,6 +389,25 @@ def test_rule2_probe_feasible_at_r_max_ends_the_search_there():
     ctrl.observe(4.9, 0.85)  # (r_max, 5) meets the deadline with a better quality
     assert ctrl.phase == "adjust"
     assert (ctrl.chosen.scale, ctrl.chosen.num_cameras) == (1.0, 5)
+
+
+def test_the_search_keeps_each_camera_count_at_its_largest_feasible_r():
+    # Within a camera count the quality grows with r, but the tasks' content moves it too:
+    # a feasible r = 0.65 task with an unlucky (lower) quality does not hand the choice to
+    # r = 0.3 with the same cameras; the count's best quality still ranks it against others.
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, tau=0.2, **PAPER_START), LOWEST, 6)
+    ctrl.next_config()
+    ctrl.observe(20.0, 1.0)
+    # N' = 6: r = 0.3 ok (Q 0.6), 0.65 ok (Q 0.4: other content), 0.825 too slow.
+    for t, q in ((3.0, 0.6), (4.5, 0.4), (6.0, 0.9)):
+        ctrl.next_config()
+        ctrl.observe(t, q)
+    cfg = ctrl.next_config()
+    assert (cfg.scale, cfg.num_cameras) == (1.0, 5)  # rule 2 probe against Q 0.6
+    ctrl.observe(7.0, 0.55)  # no better: stop
+    assert ctrl.chosen is not None
+    assert (ctrl.chosen.scale, ctrl.chosen.num_cameras) == (0.65, 6)
+    assert ctrl.chosen.quality == 0.6 and ctrl.chosen.time_s == 4.5
 
 
 def test_rule3_abandons_a_camera_count_when_quality_is_already_beaten():
