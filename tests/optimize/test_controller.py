@@ -720,3 +720,23 @@ def test_the_finest_configuration_is_said_once_when_the_average_leaves_time(capl
     assert scales[-1] == 2.0
     said = [r.message for r in caplog.records if "above the finest" in r.message]
     assert len(said) == 1, said
+
+
+def test_after_a_slow_stretch_r_climbs_back_from_the_last_tasks_times():
+    # Settled at r = 1 (T = 0.3 + 0.6 r^2 against a 1 s deadline), four tasks twice as slow
+    # bring r down; once they are over, the window's mean still holds them, but the last two
+    # tasks' times show the room: r is back within 5 % in 4 tasks (the window's steps of at
+    # most 0.1 took 7).
+    ctrl = BisectionController(ControllerConfig(deadline_s=1.0, adjust_target=0.95), LOWEST, 4)
+    scales = []
+    for i in range(24):
+        cfg = ctrl.next_config()
+        scales.append(cfg.scale)
+        load = 2.0 if 6 <= i < 10 else 1.0
+        ctrl.observe(load * (0.3 + 0.6 * cfg.scale**2), 0.9)
+    assert ctrl.num_searches == 1 and scales[5] == 1.0
+    low = min(scales[6:12])
+    assert low < 0.8
+    back = next(i for i in range(10, 24) if scales[i] >= 0.95)
+    assert back - scales.index(low) <= 4, scales
+    assert max(scales) <= 1.0  # no finer than golden without r_fine

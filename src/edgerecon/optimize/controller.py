@@ -47,6 +47,10 @@ _R_HISTORY = 500  # adjusted r values kept for the drift trigger
 #: against a 1.85 s deadline.
 _FINE_CLIMB = 0.25
 
+#: The adjustment goes up when the last two tasks both took less than this share of its
+#: target, whatever the window's mean (which lags behind a slow stretch that is over).
+_CLEARLY_UNDER = 0.8
+
 
 @dataclass(frozen=True, kw_only=True)
 class ControllerConfig:
@@ -775,7 +779,12 @@ class BisectionController:
         s.recent_scales.append(s.r_star)
         del s.recent_scales[: -c.research_window]
         want = 0
-        if avg < dl and t < dl:
+        last_two = max(s.recent[-2:]) if len(s.recent) >= 2 else math.inf
+        if (avg < dl and t < dl) or last_two < _CLEARLY_UNDER * dl:
+            # Up when the window's mean and the last task agree, or when the last two tasks
+            # both left a fifth of the target unused: the window's mean still holds a slow
+            # stretch that is over (hd3 at 30 %: four slow first tasks held r for 3 tasks at
+            # 0.4-0.6 of the deadline).
             want = 1
         elif avg > dl and t > dl:
             want = -1
@@ -793,6 +802,11 @@ class BisectionController:
             # relative change).
             proportional = abs(r_old * (math.sqrt(dl / avg) - 1.0))
             step = min(max(step, proportional), c.adjust_max_step * max(1.0, r_old))
+            if want > 0 and len(s.recent) >= 2 and min(s.recent[-2:]) > 0:
+                # Up, also from the last two tasks' times as the climb above r_max does
+                # (the window's mean lags behind: hd3 at 30 %, four slow first tasks held
+                # the steps at 0.02-0.1 for 7 tasks at 0.4-0.6 of the deadline).
+                step = max(step, self._climb(r_old, max(s.recent[-2:]), dl) - r_old)
         s.r_star = min(max(r_old + want * step, c.r_min), ceiling)
         s.r_star = round(s.r_star, 6)
         at_min = r_old <= c.r_min + _EPS
