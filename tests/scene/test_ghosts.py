@@ -399,3 +399,49 @@ def test_the_photo_check_kernel_is_the_numpy_judgement_bit_for_bit(with_contrast
         # Every outcome occurs (the test is not vacuous).
         assert np.isinf(dist).any() and np.isfinite(dist).any()
         assert tinted.any() and not tinted.all() and vouch.any() and not vouch.all()
+
+
+def test_the_splat_kernels_draw_opencv_s_discs_pixel_for_pixel() -> None:
+    """``splat_discs`` / ``splat_min_discs`` (one pass over the points) give what one
+    ``cv2.dilate`` / ``cv2.erode`` per radius with the elliptic element gives, points at the
+    image's edges and in a box included."""
+    import cv2
+
+    from edgerecon.scene._kernels import (
+        MAX_KERNEL_DISC,
+        disc_half_widths,
+        splat_discs,
+        splat_min_discs,
+    )
+
+    rng = np.random.default_rng(11)
+    h, w, num = 90, 130, 600
+    u = rng.integers(0, w, num).astype(np.int64)
+    v = rng.integers(0, h, num).astype(np.int64)
+    u[:20], v[20:40] = 0, h - 1  # on the edges
+    r = rng.integers(0, MAX_KERNEL_DISC + 1, num).astype(np.int64)
+    values = rng.uniform(0, 100, num).astype(np.float32)
+    table = disc_half_widths()
+    got = np.zeros((h, w), np.uint8)
+    box = (17, 9, 101, 77)
+    splat_discs(got, u, v, r, table, *box)
+    got_min = np.full((h, w), np.inf, np.float32)
+    splat_min_discs(got_min, u, v, r, values, table)
+    want = np.zeros((h, w), np.uint8)
+    want_min = np.full((h, w), np.inf, np.float32)
+    for rr in np.unique(r):
+        sel = r == rr
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(rr) + 1,) * 2)
+        layer = np.zeros((h, w), np.uint8)
+        layer[v[sel], u[sel]] = 1
+        want |= cv2.dilate(layer, disc)
+        layer_min = np.full((h, w), 1e30, np.float32)
+        np.minimum.at(layer_min, (v[sel], u[sel]), values[sel])
+        np.minimum(want_min, cv2.erode(layer_min, disc), out=want_min)
+    want_min[want_min >= 1e30] = np.inf
+    x0, y0, x1, y1 = box
+    inside = np.zeros((h, w), bool)
+    inside[y0:y1, x0:x1] = True
+    np.testing.assert_array_equal(got.view(bool), want.view(bool) & inside)
+    np.testing.assert_array_equal(got_min, want_min)
+    assert 0.2 < inside[want > 0].mean() < 1  # the box cut some discs

@@ -16,6 +16,7 @@ made ~30 passes over float32 temporaries per camera and level.
 
 from __future__ import annotations
 
+import cv2
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
@@ -146,6 +147,10 @@ def warm_up() -> None:
     nodes = np.zeros((num, 2), np.int64)
     mode_component(nodes, np.zeros(1, np.int32))
     shared_points(nodes, 1)
+    table = disc_half_widths(1)
+    ones = np.ones(1, np.int64)
+    splat_discs(np.zeros((2, 2), np.uint8), ones, ones, ones, table, 0, 0, 2, 2)
+    splat_min_discs(np.zeros((2, 2), np.float32), ones, ones, ones, np.ones(1, np.float32), table)
     flags = np.zeros((num, 2), bool)
     votes = np.zeros((num, 2), np.int32)
     camera_votes(
@@ -349,3 +354,115 @@ def camera_votes(
             local_any[p, c] = hit
         else:
             bg_w[p] += w
+
+
+#: The largest disc radius (pixels) the splat kernels draw point by point; wider discs cost
+#: their area per point, and one dilation per radius is cheaper for them.
+MAX_KERNEL_DISC = 16
+
+
+def disc_half_widths(max_radius: int = MAX_KERNEL_DISC) -> NDArray[np.int32]:
+    """(R + 1, 2R + 1) per radius r and row offset dy + r, the half width of OpenCV's
+    elliptic structuring element of radius r in that row (-1: the row is outside it), so
+    that a disc drawn from this table is the element ``cv2.dilate`` / ``cv2.erode`` would
+    apply, pixel for pixel."""
+    out = np.full((max_radius + 1, 2 * max_radius + 1), -1, np.int32)
+    for r in range(max_radius + 1):
+        element = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        for row in range(2 * r + 1):
+            (cols,) = np.nonzero(element[row])
+            if len(cols):
+                out[r, row - r + max_radius] = r - int(cols[0])
+    return out
+
+
+@nb.njit(nogil=True, cache=True)
+def _draw_disc(
+    out: NDArray[np.uint8],
+    cu: int,
+    cv: int,
+    r: int,
+    half_widths: NDArray[np.int32],
+    x0: int,
+    y0: int,
+    x1: int,
+    y1: int,
+) -> None:
+    rmax = (half_widths.shape[1] - 1) // 2
+    for dy in range(-r, r + 1):
+        y = cv + dy
+        if y < y0 or y >= y1:
+            continue
+        hw = half_widths[r, dy + rmax]
+        if hw < 0:
+            continue
+        for x in range(max(cu - hw, x0), min(cu + hw + 1, x1)):
+            out[y, x] = 1
+
+
+@nb.njit(nogil=True, cache=True)
+def splat_discs(
+    out: NDArray[np.uint8],
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    radius: NDArray[np.int64],
+    half_widths: NDArray[np.int32],
+    x0: int,
+    y0: int,
+    x1: int,
+    y1: int,
+) -> None:
+    """Set to 1 the pixels of ``out`` within [x0, x1) x [y0, y1) that the disc of each point
+    (u, v) with its ``radius`` (at most the table's, ``disc_half_widths``) covers: one
+    ``cv2.dilate`` per radius with the elliptic element, without the passes over the box.
+    The elements are nested (a row's half width grows with the radius), so each centre pixel
+    is drawn once, with the largest radius of the points on it (tens of thousands of hull
+    samples land on a few thousand pixels)."""
+    h, w = out.shape
+    widest = np.full((h, w), -1, np.int8)
+    for i in range(len(u)):
+        r = radius[i]
+        cu, cv = u[i], v[i]
+        if cu + r < x0 or cu - r >= x1 or cv + r < y0 or cv - r >= y1:
+            continue
+        if 0 <= cu < w and 0 <= cv < h:
+            if r > widest[cv, cu]:
+                widest[cv, cu] = r
+        else:  # a centre outside the image whose disc reaches into the box
+            _draw_disc(out, cu, cv, r, half_widths, x0, y0, x1, y1)
+    for i in range(len(u)):
+        cu, cv = u[i], v[i]
+        if 0 <= cu < w and 0 <= cv < h and widest[cv, cu] == radius[i]:
+            widest[cv, cu] = -1  # drawn
+            _draw_disc(out, cu, cv, radius[i], half_widths, x0, y0, x1, y1)
+
+
+@nb.njit(nogil=True, cache=True)
+def splat_min_discs(
+    out: NDArray[np.float32],
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    radius: NDArray[np.int64],
+    values: NDArray[np.float32],
+    half_widths: NDArray[np.int32],
+) -> None:
+    """Lower ``out`` to the smallest of ``values`` over the discs (as ``splat_discs``, the
+    centres inside the image) that cover each pixel: ``cv2.erode`` of a layer holding each
+    point's value, per radius (merging the points that share a pixel and a radius first,
+    as ``splat_discs`` does, cost more than it saved: the values differ)."""
+    h, w = out.shape
+    rmax = (half_widths.shape[1] - 1) // 2
+    for i in range(len(u)):
+        r = radius[i]
+        cu, cv = u[i], v[i]
+        val = values[i]
+        for dy in range(-r, r + 1):
+            y = cv + dy
+            if y < 0 or y >= h:
+                continue
+            hw = half_widths[r, dy + rmax]
+            if hw < 0:
+                continue
+            for x in range(max(cu - hw, 0), min(cu + hw + 1, w)):
+                if val < out[y, x]:
+                    out[y, x] = val

@@ -56,8 +56,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
-from edgerecon.scene._kernels import judge_points
-from edgerecon.scene.masks import disk, min_discs
+from edgerecon.scene._kernels import (
+    MAX_KERNEL_DISC,
+    disc_half_widths,
+    judge_points,
+    splat_discs,
+    splat_min_discs,
+)
+from edgerecon.scene.masks import disk
 from edgerecon.scene.parallel import per_camera
 from edgerecon.types import DataError, DepthMap, Mask, Points3D
 
@@ -589,7 +595,9 @@ def _alone(
 
 
 #: A point's footprint never reaches farther than this (pixels).
-_MAX_FOOTPRINT_PX = 16
+_MAX_FOOTPRINT_PX = MAX_KERNEL_DISC
+#: The discs the footprints are drawn with (OpenCV's elliptic elements, per radius).
+_HALF_WIDTHS = disc_half_widths(_MAX_FOOTPRINT_PX)
 
 
 def _splat_min(
@@ -604,13 +612,11 @@ def _splat_min(
     out = np.full((h, w), np.inf, np.float32)
     if len(uv) == 0:
         return out
-    u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.intp)
-    v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
-    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.intp)
+    u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.int64)
+    v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
+    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.int64)
     vals = np.minimum(np.asarray(values, np.float32), np.float32(_BIG))
-    for rr in np.flatnonzero(np.bincount(r)).tolist():  # the radii present (small integers)
-        sel = r == rr
-        min_discs(out, u[sel], v[sel], vals[sel], int(rr))
+    splat_min_discs(out, u, v, r, vals, _HALF_WIDTHS)
     out[out >= _BIG] = np.inf
     return out
 
@@ -625,21 +631,11 @@ def _splat(shape: tuple[int, ...], uv: NDArray[np.float64], radius: NDArray[np.f
     out = np.zeros((h, w), np.uint8)
     if len(uv) == 0:
         return out.astype(bool)
-    u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.intp)
-    v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.intp)
-    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.intp)
-    for rr in np.flatnonzero(np.bincount(r)).tolist():  # the radii present (small integers)
-        sel = r == rr
-        us, vs = u[sel], v[sel]
-        x0, y0 = max(int(us.min()) - rr, 0), max(int(vs.min()) - rr, 0)
-        x1, y1 = min(int(us.max()) + rr + 1, w), min(int(vs.max()) + rr + 1, h)
-        layer = np.zeros((y1 - y0, x1 - x0), np.uint8)
-        layer[vs - y0, us - x0] = 1
-        if rr > 0:
-            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(rr) + 1,) * 2)
-            layer = np.asarray(cv2.dilate(layer, disc), np.uint8)
-        out[y0:y1, x0:x1] |= layer
-    return out.astype(bool)
+    u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.int64)
+    v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
+    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.int64)
+    splat_discs(out, u, v, r, _HALF_WIDTHS, 0, 0, w, h)
+    return out.view(bool)
 
 
 def static_consistent_masks(

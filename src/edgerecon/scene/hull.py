@@ -35,7 +35,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from edgerecon.geometry.camera import Camera
-from edgerecon.scene._kernels import carve_camera
+from edgerecon.scene._kernels import (
+    MAX_KERNEL_DISC,
+    carve_camera,
+    disc_half_widths,
+    splat_discs,
+)
 from edgerecon.scene.masks import fill_holes, min_discs
 from edgerecon.types import (
     BACKGROUND_LABEL,
@@ -1060,6 +1065,10 @@ def phantom_silhouette(
     return _splat_voxels(centers, hull, camera, box)
 
 
+#: The discs voxels are drawn with up to MAX_KERNEL_DISC (OpenCV's elliptic elements).
+_HALF_WIDTHS = disc_half_widths()
+
+
 def _splat_voxels(
     centers: Points3D,
     hull: VisualHull,
@@ -1086,6 +1095,15 @@ def _splat_voxels(
     r_int = np.clip(np.ceil(radius), 0, max(h, w)).astype(np.int64)
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
+    # The discs up to MAX_KERNEL_DISC point by point (compiled), the wider ones (voxels near
+    # the camera: few, large) with one dilation per radius.
+    small = r_int <= MAX_KERNEL_DISC
+    if small.any():
+        splat_discs(out, u[small], v[small], r_int[small], _HALF_WIDTHS, bx0, by0, bx1, by1)
+    if small.all():
+        return out.view(bool)
+    wide = ~small
+    u, v, r_int = u[wide], v[wide], r_int[wide]
     for r in np.flatnonzero(np.bincount(r_int)).tolist():  # the radii present (small integers)
         sel = (r_int == r) & (u >= bx0 - r) & (u < bx1 + r) & (v >= by0 - r) & (v < by1 + r)
         if not sel.any():
@@ -1098,11 +1116,10 @@ def _splat_voxels(
         layer = np.zeros((y1 - y0 + 2 * r, x1 - x0 + 2 * r), np.uint8)
         ok = (us >= x0 - r) & (us < x1 + r) & (vs >= y0 - r) & (vs < y1 + r)
         layer[vs[ok] - y0 + r, us[ok] - x0 + r] = 1
-        if r > 0:
-            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-            layer = np.asarray(cv2.dilate(layer, disc), np.uint8)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        layer = np.asarray(cv2.dilate(layer, disc), np.uint8)
         out[y0:y1, x0:x1] |= layer[r : r + y1 - y0, r : r + x1 - x0]
-    return out.astype(bool)
+    return out.view(bool)
 
 
 def depth_map(points3D: Points3D, camera: Camera, *, fill_px: int = 2) -> NDArray[np.float32]:
