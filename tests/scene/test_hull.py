@@ -23,6 +23,7 @@ from edgerecon.scene.hull import (
     hull_depth_range,
     hull_explained_masks,
     hull_filled_masks,
+    hull_object_silhouettes,
     hull_rescued,
     hull_silhouette,
     phantom_explained_masks,
@@ -199,6 +200,12 @@ def test_two_boxes_are_two_objects(rig: Rig) -> None:
     labels = hull.label_points(np.array([(LO + HI) / 2, (lo2 + hi2) / 2, [3.0, 3.0, 3.0]]))
     assert labels.tolist() == [1, 2, 0]  # the larger box is object 1
     assert set(hull.object_bounds()) == {1, 2}
+    for cam in rig:  # every object's silhouette at once, as one at a time
+        stack = hull_object_silhouettes(hull, cam)
+        assert stack.shape == (2, cam.height, cam.width)
+        for k in (1, 2):
+            assert stack[k - 1].any()
+            np.testing.assert_array_equal(stack[k - 1], hull_silhouette(hull, cam, object_id=k))
 
 
 def test_distorted_cameras(rig: Rig) -> None:

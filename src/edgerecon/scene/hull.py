@@ -725,12 +725,18 @@ def phantom_objects(
     if alive.sum() < 2:
         return removed
     shares: NDArray[np.float64] | None = None  # computed when two candidates compete
-    sils = []  # per camera with a mask: (n, H, W) object projections inside the mask
+    sils = []  # per camera with a mask: (n, h, w) object projections inside the mask
     for cam, m in zip(cameras, masks, strict=True):
         if m is None:
             continue
-        stack = np.stack([hull_silhouette(hull, cam, object_id=k) for k in range(1, n + 1)])
-        sils.append(stack & np.asarray(m, bool)[None])
+        stack = hull_object_silhouettes(hull, cam) & np.asarray(m, bool)[None]
+        # Only the box that holds them is counted in (the objects cover a few percent of
+        # the image; every removal below counts again).
+        rows = np.flatnonzero(stack.any(axis=(0, 2)))
+        cols = np.flatnonzero(stack.any(axis=(0, 1)))
+        if len(rows):
+            stack = stack[:, rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+        sils.append(stack)
     while alive.sum() > 1:
         own = np.zeros(n, np.int32)
         seen = np.zeros(n, np.int32)
@@ -779,9 +785,9 @@ def _pair_geometry(
         px[:, 1] = np.clip(px[:, 1], 0, h - 1)
         held[i, np.flatnonzero(inside)] = np.asarray(m, bool)[px[:, 1], px[:, 0]]
     sizes = np.maximum(np.bincount(hull.labels - 1, minlength=n)[:n], 1)
-    centroids = np.zeros((n, 3))
-    np.add.at(centroids, hull.labels - 1, centers)
-    centroids /= sizes[:, None]
+    # (Per coordinate a weighted bincount: the sums np.add.at made, 10x faster.)
+    sums = [np.bincount(hull.labels - 1, weights=centers[:, j], minlength=n)[:n] for j in range(3)]
+    centroids = np.stack(sums, axis=1).astype(np.float64) / sizes[:, None]
     origins = np.array([c.center for c in cameras], np.float64).reshape(-1, 3)
     rays = centroids[:, None, :] - origins[None]  # (K, C, 3)
     rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), 1e-12)
@@ -1069,6 +1075,51 @@ def phantom_silhouette(
 _HALF_WIDTHS = disc_half_widths()
 
 
+def hull_object_silhouettes(hull: VisualHull, camera: Camera) -> NDArray[np.bool_]:
+    """(objects, H, W) ``hull_silhouette`` of every object of the hull (object k at k - 1),
+    its surface voxels projected once."""
+    h, w = camera.height, camera.width
+    n = hull.num_objects
+    out = np.zeros((n, h, w), np.uint8)
+    if n == 0 or hull.num_voxels == 0:
+        return out.view(bool)
+    sel = hull.surface & (hull.labels > 0)
+    labels = hull.labels[sel]
+    drawn = _projected_voxels(
+        hull.origin + (hull.indices[sel] + 0.5) * hull.voxel_size, hull, camera
+    )
+    if drawn is None:
+        return out.view(bool)
+    u, v, r_int, ok = drawn
+    labels = labels[ok]
+    for k in np.unique(labels).tolist():
+        on = labels == k
+        _draw_voxels(out[k - 1], u[on], v[on], r_int[on], (0, 0, w, h))
+    return out.view(bool)
+
+
+def _projected_voxels(
+    centers: Points3D, hull: VisualHull, camera: Camera
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]] | None:
+    """The pixels (u, v) and integer disc radii of voxels of ``hull``'s size centred at
+    ``centers`` in ``camera``, and which centres they are (None: none is drawn)."""
+    h, w = camera.height, camera.width
+    if len(centers) == 0:
+        return None
+    uv, depth = camera.project(centers)
+    # (Voxels near the camera's plane project to huge or non-finite pixels: never drawn.)
+    ok = (depth > 0) & np.all(np.abs(uv) < 1e9, axis=1)
+    if not ok.any():
+        return None
+    uv, depth = uv[ok], depth[ok]
+    radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * camera.focal_px / depth
+    # (At most the image's size: a voxel at the camera's centre covers it all.)
+    r_int = np.clip(np.ceil(radius), 0, max(h, w)).astype(np.int64)
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    return u, v, r_int, ok
+
+
 def _splat_voxels(
     centers: Points3D,
     hull: VisualHull,
@@ -1079,29 +1130,30 @@ def _splat_voxels(
     (only within ``box`` = (x0, y0, x1, y1) when given: a phantom reaching towards a camera
     covers much of its image with discs of many radii)."""
     h, w = camera.height, camera.width
-    bx0, by0, bx1, by1 = (0, 0, w, h) if box is None else box
     out = np.zeros((h, w), np.uint8)
-    if len(centers) == 0:
-        return out.astype(bool)
-    uv, depth = camera.project(centers)
-    # (Voxels near the camera's plane project to huge or non-finite pixels: never drawn.)
-    ok = (depth > 0) & np.all(np.abs(uv) < 1e9, axis=1)
-    if not ok.any():
-        return out.astype(bool)
-    uv, depth = uv[ok], depth[ok]
-    radius = 0.5 * np.sqrt(3.0) * hull.voxel_size * camera.focal_px / depth
-    # Group by integer radius: one dilation per distinct radius.
-    # (At most the image's size: a voxel at the camera's centre covers it all.)
-    r_int = np.clip(np.ceil(radius), 0, max(h, w)).astype(np.int64)
-    u = np.rint(uv[:, 0]).astype(np.int64)
-    v = np.rint(uv[:, 1]).astype(np.int64)
+    drawn = _projected_voxels(centers, hull, camera)
+    if drawn is not None:
+        u, v, r_int, _ = drawn
+        _draw_voxels(out, u, v, r_int, (0, 0, w, h) if box is None else box)
+    return out.view(bool)
+
+
+def _draw_voxels(
+    out: NDArray[np.uint8],
+    u: NDArray[np.int64],
+    v: NDArray[np.int64],
+    r_int: NDArray[np.int64],
+    box: tuple[int, int, int, int],
+) -> None:
+    """Set in ``out`` (within ``box``) the discs of radius ``r_int`` around (u, v)."""
+    bx0, by0, bx1, by1 = box
     # The discs up to MAX_KERNEL_DISC point by point (compiled), the wider ones (voxels near
     # the camera: few, large) with one dilation per radius.
     small = r_int <= MAX_KERNEL_DISC
     if small.any():
         splat_discs(out, u[small], v[small], r_int[small], _HALF_WIDTHS, bx0, by0, bx1, by1)
     if small.all():
-        return out.view(bool)
+        return
     wide = ~small
     u, v, r_int = u[wide], v[wide], r_int[wide]
     for r in np.flatnonzero(np.bincount(r_int)).tolist():  # the radii present (small integers)
@@ -1119,7 +1171,6 @@ def _splat_voxels(
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
         layer = np.asarray(cv2.dilate(layer, disc), np.uint8)
         out[y0:y1, x0:x1] |= layer[r : r + y1 - y0, r : r + x1 - x0]
-    return out.view(bool)
 
 
 def depth_map(points3D: Points3D, camera: Camera, *, fill_px: int = 2) -> NDArray[np.float32]:
