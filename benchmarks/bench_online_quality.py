@@ -31,6 +31,15 @@ actors seated and still from the first frame (in no mask, so no estimate from th
 them) the offline F is also given without them ("moving").
 
     python benchmarks/bench_online_quality.py --dataset DIR --times 60 90 120
+    python benchmarks/bench_online_quality.py --dataset DIR --times 60 90 120 \
+        --configs-from RUN        # the configurations an online run's controller visited
+
+``--configs-from``: instead of the grid of ``--scales`` x subsets, the configurations
+(r, camera set) that the tasks of a run folder ran (``edgerecon run`` or ``bench_online.py``'s
+runs), each judged at every ``--times`` timestamp: the correlation "across the configurations
+the controller visits" (issue 11) with the content held fixed, where a run's own Pearson
+correlates tasks of different timestamps (on a run that settles on one configuration, the
+content's spread, not the configurations').
 """
 
 from __future__ import annotations
@@ -61,6 +70,7 @@ from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.stream import dataset_scene_at
 from edgerecon.sparse import SparseReconstruction
 from edgerecon.types import FrameSet, PointCloud
+from edgerecon.viewer.rundir import RunFolder
 
 ESTIMATES = ("sparse_F", "coverage", "dense_F", "sil_recall", "sil_F", "density")
 
@@ -133,6 +143,22 @@ def foreground_task(
     return rec.sparse, rec.foreground
 
 
+def visited_configs(run_dir: Path, step: float = 0.05) -> list[tuple[float, tuple[int, ...]]]:
+    """The distinct configurations (r to the nearest ``step``, camera ids) of a run's
+    finished tasks, in the order the controller first ran them (the workload scaling moves r
+    a little task by task: r within a step of each other is one configuration here)."""
+    folder = RunFolder(run_dir)
+    folder.poll()
+    seen: dict[tuple[float, tuple[int, ...]], None] = {}
+    for m in folder.tasks:
+        if m.status == "ok" and m.scale > 0 and m.camera_ids:
+            r = round(round(m.scale / step) * step, 4) or step
+            seen.setdefault((r, tuple(sorted(m.camera_ids))), None)
+    if not seen:
+        raise SystemExit(f"{run_dir}: no finished task to take configurations from")
+    return list(seen)
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     ds = open_dataset(args.dataset)
     rig = ds.rig
@@ -172,18 +198,22 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         if gt is not None and gt.seated_from_start and isinstance(reference, PointCloud):
             if reference.labels is not None:
                 moving_pts = reference.points3D[~np.isin(reference.labels, gt.seated_from_start)]
-        mapping = camera_mapping(
-            golden_sparse.visibility_matrix(len(rig)),
-            camera_centers=rig.centers,
-            viewing_directions=np.array([c.viewing_direction for c in rig]),
-            sizes=range(len(rig), MIN_CAMERAS - 1, -1),
-        )
-        subsets = [tuple(mapping(n)) for n in sorted(mapping.selections, reverse=True)]
-        if args.max_subsets:
-            subsets = subsets[: args.max_subsets]
-        limit = fine_scale_limit(rig, rc.dense, rc.split)
-        scales = [r for r in args.scales if 0 < r <= limit]
-        for scale, ids in itertools.product(scales, subsets):
+        if args.configs_from is not None:
+            configs = visited_configs(args.configs_from, args.config_step)
+        else:
+            mapping = camera_mapping(
+                golden_sparse.visibility_matrix(len(rig)),
+                camera_centers=rig.centers,
+                viewing_directions=np.array([c.viewing_direction for c in rig]),
+                sizes=range(len(rig), MIN_CAMERAS - 1, -1),
+            )
+            subsets = [tuple(mapping(n)) for n in sorted(mapping.selections, reverse=True)]
+            if args.max_subsets:
+                subsets = subsets[: args.max_subsets]
+            limit = fine_scale_limit(rig, rc.dense, rc.split)
+            scales = [r for r in args.scales if 0 < r <= limit]
+            configs = list(itertools.product(scales, subsets))
+        for scale, ids in configs:
             if scale == 1.0 and ids == all_ids:
                 rec = golden
             else:
@@ -281,6 +311,19 @@ def main() -> int:
         "scales above its limit are left out)",
     )
     ap.add_argument("--max-subsets", type=int, default=0, help="largest N' subsets only (0 = all)")
+    ap.add_argument(
+        "--configs-from",
+        type=Path,
+        default=None,
+        metavar="RUN",
+        help="the configurations a run folder's tasks ran, instead of --scales x subsets",
+    )
+    ap.add_argument(
+        "--config-step",
+        type=float,
+        default=0.05,
+        help="with --configs-from: r within this of each other is one configuration",
+    )
     ap.add_argument("--json", type=Path, default=None, help="write a JSON report")
     args = ap.parse_args()
     out = run(args)
