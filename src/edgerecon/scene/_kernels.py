@@ -147,6 +147,7 @@ def warm_up() -> None:
     nodes = np.zeros((num, 2), np.int64)
     mode_component(nodes, np.zeros(1, np.int32))
     shared_points(nodes, 1)
+    gather_channels(np.ones((2, 2, 3), np.float32), np.zeros(1, np.intp), np.zeros(1, np.intp))
     table = disc_half_widths(1)
     ones = np.ones(1, np.int64)
     splat_discs(np.zeros((2, 2), np.uint8), ones, ones, ones, table, 0, 0, 2, 2)
@@ -466,3 +467,17 @@ def splat_min_discs(
             for x in range(max(cu - hw, 0), min(cu + hw + 1, w)):
                 if val < out[y, x]:
                     out[y, x] = val
+
+
+@nb.njit(nogil=True, cache=True)
+def gather_channels(
+    image: NDArray[np.float32], u: NDArray[np.intp], v: NDArray[np.intp]
+) -> NDArray[np.float32]:
+    """(C, N) ``image[v, u].T`` of an (H, W, C) image, channel-first and contiguous, in one
+    pass (NumPy's fancy index and transpose copy made two, holding the GIL)."""
+    channels = image.shape[2]
+    out = np.empty((channels, len(u)), np.float32)
+    for i in range(len(u)):
+        for k in range(channels):
+            out[k, i] = image[v[i], u[i], k]
+    return out

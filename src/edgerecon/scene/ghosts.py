@@ -59,6 +59,7 @@ from edgerecon.geometry.camera import Camera
 from edgerecon.scene._kernels import (
     MAX_KERNEL_DISC,
     disc_half_widths,
+    gather_channels,
     judge_points,
     splat_discs,
     splat_min_discs,
@@ -270,7 +271,7 @@ def photo_consistent_masks(
         contrast = _local_contrast(im, config.texture_px)[v, u] if config.texture_px else None
         # Channel-first: the per-point tests are sums over three rows, not reductions over a
         # trailing axis of 3 (10x faster).
-        colours = np.ascontiguousarray(colour[v, u].T)
+        colours = gather_channels(colour, u, v)
         return _Seen(uv, depth, u, v, inside, colours, contrast)
 
     seen = per_camera(sees, list(range(n)), num_threads)
@@ -516,11 +517,14 @@ def _colour_ratio(
     both hold with channels within ``calibration_diff``; None with too few such points."""
     (both,) = np.nonzero(here.inside & there.inside)
     both = both[:: max(1, len(both) // _CALIBRATION_SAMPLES)]
-    a, b = here.at.colour[:, both].T, there.at.colour[:, both].T
-    pair = np.abs(a - b).max(axis=1) < config.calibration_diff
+    # Channel-first (3, k): the largest channel difference and the medians per row, not
+    # reductions over a trailing axis of 3 (the same numbers, 4x faster).
+    a, b = here.at.colour[:, both], there.at.colour[:, both]
+    diff = np.abs(a - b)
+    pair = np.maximum(np.maximum(diff[0], diff[1]), diff[2]) < config.calibration_diff
     if np.count_nonzero(pair) < config.min_calibration_points:
         return None
-    return np.median((a[pair] + 1.0) / (b[pair] + 1.0), axis=0).astype(np.float32)
+    return np.median((a[:, pair] + 1.0) / (b[:, pair] + 1.0), axis=1).astype(np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -753,7 +757,9 @@ def _local_contrast(
 ) -> NDArray[np.float32]:
     """Grey-level standard deviation in a ``size`` x ``size`` box around each pixel."""
     im = np.asarray(image, np.float32)
-    grey = im.mean(axis=2) if im.ndim == 3 else im
+    # (The channels' mean as NumPy's mean over the last axis computes it, without its
+    # strided reduction: 3.4 -> 0.2 ms at 480x270.)
+    grey = ((im[..., 0] + im[..., 1]) + im[..., 2]) / np.float32(3) if im.ndim == 3 else im
     m1 = cv2.blur(grey, (size, size))
     m2 = cv2.blur(grey * grey, (size, size))
     return np.sqrt(np.maximum(m2 - m1 * m1, 0.0)).astype(np.float32)
