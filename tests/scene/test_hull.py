@@ -638,3 +638,21 @@ def test_the_compiled_carving_is_the_numpy_carving_bit_for_bit(
         fulls.append(full.mean())
     # Votes of every kind happened (the test is not vacuous).
     assert 0 < min(kept) and max(kept) < 1 and max(fulls) > 0
+
+
+def test_the_compiled_surface_normals_are_numpy_s() -> None:
+    """``_surface_normals`` through the compiled pass gives NumPy's surface flags and
+    normals, to the bit (a random blob of voxels with holes and single cells)."""
+    from edgerecon.scene.hull import _NEIGHBOURS6, _empty_neighbours, _surface_normals
+
+    rng = np.random.default_rng(5)
+    grid = rng.random((14, 11, 9)) < 0.55
+    idx = np.argwhere(grid).astype(np.int64) + np.array([-40, 7, 1000])
+    surface, normals = _surface_normals(idx)
+    empty_nb = _empty_neighbours(idx)
+    outward = empty_nb.astype(np.float64) @ _NEIGHBOURS6.astype(np.float64)
+    norm = np.linalg.norm(outward, axis=1, keepdims=True)
+    want = np.where(norm > 0, outward / np.maximum(norm, 1e-12), 0.0).astype(np.float32)
+    np.testing.assert_array_equal(surface, empty_nb.any(axis=1))
+    np.testing.assert_array_equal(normals, want)
+    assert 0 < surface.mean() < 1 and normals.dtype == np.float32

@@ -148,6 +148,7 @@ def warm_up() -> None:
     mode_component(nodes, np.zeros(1, np.int32))
     shared_points(nodes, 1)
     gather_channels(np.ones((2, 2, 3), np.float32), np.zeros(1, np.intp), np.zeros(1, np.intp))
+    surface_normals(np.zeros((3, 3, 3), bool), np.ones((1, 3), np.int64), np.eye(3, dtype=np.int64))
     table = disc_half_widths(1)
     ones = np.ones(1, np.int64)
     splat_discs(np.zeros((2, 2), np.uint8), ones, ones, ones, table, 0, 0, 2, 2)
@@ -481,3 +482,35 @@ def gather_channels(
         for k in range(channels):
             out[k, i] = image[v[i], u[i], k]
     return out
+
+
+@nb.njit(nogil=True, cache=True)
+def surface_normals(
+    occ: NDArray[np.bool_], p: NDArray[np.int64], directions: NDArray[np.int64]
+) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
+    """Per voxel at grid cell ``p`` of the occupancy grid ``occ`` (padded: every neighbour
+    is inside it), whether one of its ``directions`` (6, 3) neighbours is empty and its unit
+    outward normal (the sum of the directions towards the empty ones, zero inside), in one
+    pass; the arithmetic of the NumPy version (integer sums, a square root, a division), so
+    the same normals."""
+    m = p.shape[0]
+    surface = np.zeros(m, np.bool_)
+    normals = np.zeros((m, 3), np.float32)
+    for i in range(m):
+        x, y, z = 0.0, 0.0, 0.0
+        for j in range(directions.shape[0]):
+            a = p[i, 0] + directions[j, 0]
+            b = p[i, 1] + directions[j, 1]
+            c = p[i, 2] + directions[j, 2]
+            if not occ[a, b, c]:
+                surface[i] = True
+                x += directions[j, 0]
+                y += directions[j, 1]
+                z += directions[j, 2]
+        norm = np.sqrt(x * x + y * y + z * z)
+        if norm > 0:
+            d = max(norm, 1e-12)
+            normals[i, 0] = x / d
+            normals[i, 1] = y / d
+            normals[i, 2] = z / d
+    return surface, normals

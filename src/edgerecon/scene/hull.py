@@ -40,6 +40,7 @@ from edgerecon.scene._kernels import (
     carve_camera,
     disc_half_widths,
     splat_discs,
+    surface_normals,
 )
 from edgerecon.scene.masks import fill_holes, min_discs
 from edgerecon.types import (
@@ -478,6 +479,10 @@ def _empty_neighbours(idx: NDArray[np.int64]) -> NDArray[np.bool_]:
 def _surface_normals(idx: NDArray[np.int64]) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
     """Per voxel (``idx`` sorted by key): whether it has an empty 6-neighbour, and its outward
     unit normal (the sum of the directions towards empty neighbours; zero inside)."""
+    grid = _occupancy(idx) if len(idx) else None
+    if grid is not None:  # one compiled pass over the dense grid (the same numbers)
+        occ, lo = grid
+        return surface_normals(occ, idx - lo, _NEIGHBOURS6)
     empty_nb = _empty_neighbours(idx)
     surface = np.any(empty_nb, axis=1)
     outward = empty_nb.astype(np.float64) @ _NEIGHBOURS6.astype(np.float64)
