@@ -378,6 +378,10 @@ def disc_half_widths(max_radius: int = MAX_KERNEL_DISC) -> NDArray[np.int32]:
     return out
 
 
+#: The table of ``disc_half_widths`` up to MAX_KERNEL_DISC, shared by every caller.
+DISC_HALF_WIDTHS = disc_half_widths()
+
+
 @nb.njit(nogil=True, cache=True)
 def _draw_disc(
     out: NDArray[np.uint8],

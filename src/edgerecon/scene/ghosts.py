@@ -57,8 +57,8 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
 from edgerecon.scene._kernels import (
+    DISC_HALF_WIDTHS,
     MAX_KERNEL_DISC,
-    disc_half_widths,
     gather_channels,
     judge_points,
     splat_discs,
@@ -600,8 +600,6 @@ def _alone(
 
 #: A point's footprint never reaches farther than this (pixels).
 _MAX_FOOTPRINT_PX = MAX_KERNEL_DISC
-#: The discs the footprints are drawn with (OpenCV's elliptic elements, per radius).
-_HALF_WIDTHS = disc_half_widths(_MAX_FOOTPRINT_PX)
 
 
 def _splat_min(
@@ -620,7 +618,7 @@ def _splat_min(
     v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
     r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.int64)
     vals = np.minimum(np.asarray(values, np.float32), np.float32(_BIG))
-    splat_min_discs(out, u, v, r, vals, _HALF_WIDTHS)
+    splat_min_discs(out, u, v, r, vals, DISC_HALF_WIDTHS)
     out[out >= _BIG] = np.inf
     return out
 
@@ -638,7 +636,7 @@ def _splat(shape: tuple[int, ...], uv: NDArray[np.float64], radius: NDArray[np.f
     u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.int64)
     v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
     r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.int64)
-    splat_discs(out, u, v, r, _HALF_WIDTHS, 0, 0, w, h)
+    splat_discs(out, u, v, r, DISC_HALF_WIDTHS, 0, 0, w, h)
     return out.view(bool)
 
 

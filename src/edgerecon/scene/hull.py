@@ -36,9 +36,9 @@ from scipy.sparse.csgraph import connected_components
 
 from edgerecon.geometry.camera import Camera
 from edgerecon.scene._kernels import (
+    DISC_HALF_WIDTHS,
     MAX_KERNEL_DISC,
     carve_camera,
-    disc_half_widths,
     splat_discs,
     surface_normals,
 )
@@ -737,8 +737,9 @@ def phantom_objects(
         stack = hull_object_silhouettes(hull, cam) & np.asarray(m, bool)[None]
         # Only the box that holds them is counted in (the objects cover a few percent of
         # the image; every removal below counts again).
-        rows = np.flatnonzero(stack.any(axis=(0, 2)))
-        cols = np.flatnonzero(stack.any(axis=(0, 1)))
+        covered = stack.any(axis=0)  # one pass over the stack, then over one image
+        rows = np.flatnonzero(covered.any(axis=1))
+        cols = np.flatnonzero(covered.any(axis=0))
         if len(rows):
             stack = stack[:, rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
         sils.append(stack)
@@ -1076,10 +1077,6 @@ def phantom_silhouette(
     return _splat_voxels(centers, hull, camera, box)
 
 
-#: The discs voxels are drawn with up to MAX_KERNEL_DISC (OpenCV's elliptic elements).
-_HALF_WIDTHS = disc_half_widths()
-
-
 def hull_object_silhouettes(hull: VisualHull, camera: Camera) -> NDArray[np.bool_]:
     """(objects, H, W) ``hull_silhouette`` of every object of the hull (object k at k - 1),
     its surface voxels projected once."""
@@ -1156,7 +1153,7 @@ def _draw_voxels(
     # the camera: few, large) with one dilation per radius.
     small = r_int <= MAX_KERNEL_DISC
     if small.any():
-        splat_discs(out, u[small], v[small], r_int[small], _HALF_WIDTHS, bx0, by0, bx1, by1)
+        splat_discs(out, u[small], v[small], r_int[small], DISC_HALF_WIDTHS, bx0, by0, bx1, by1)
     if small.all():
         return
     wide = ~small
