@@ -117,6 +117,14 @@ def test_the_compiled_projection_is_the_numpy_arithmetic_bit_for_bit(dist):
     pts = (Xc - cam.t) @ cam.R  # camera frame -> world
     uv, depth = cam.project(pts)
     xc = cam.world_to_cam(pts)
+    # The rigid transform, compiled: NumPy's row sums left to right, not BLAS's product.
+    R, t = cam.R, cam.t
+    ref_xc = np.stack(
+        [R[r, 0] * pts[:, 0] + R[r, 1] * pts[:, 1] + R[r, 2] * pts[:, 2] + t[r] for r in range(3)],
+        axis=1,
+    )
+    np.testing.assert_array_equal(xc, ref_xc)
+    np.testing.assert_allclose(xc, pts @ R.T + t, rtol=1e-12, atol=1e-12)
     with np.errstate(all="ignore"):
         xn, yn = xc[:, 0] / xc[:, 2], xc[:, 1] / xc[:, 2]
         if cam.has_distortion:
@@ -127,3 +135,10 @@ def test_the_compiled_projection_is_the_numpy_arithmetic_bit_for_bit(dist):
     np.testing.assert_array_equal(uv, ref)
     np.testing.assert_array_equal(depth, xc[:, 2])
     assert np.isnan(uv).any() and np.isfinite(uv).any()
+    # Back to the world from the pixels in front of the camera, near its axis (where the
+    # distortion is invertible).
+    near_axis = np.abs(xc[:, :2]).max(axis=1) < 0.4 * np.abs(xc[:, 2])
+    front = np.flatnonzero((depth > 0.5) & near_axis)[:2000]
+    back = cam.backproject(uv[front], depth[front])
+    np.testing.assert_allclose(back, pts[front], rtol=1e-9, atol=1e-9)
+    np.testing.assert_array_equal(cam.world_to_cam(pts.T.copy().T), xc)  # not C-contiguous

@@ -114,3 +114,41 @@ def test_component_inside_another_ones_hole_does_not_crash() -> None:
     ring = seg.labels[25, 40]
     assert inner > 0 and ring > 0
     assert (seg.labels > 0).sum() == m.sum()
+
+
+def test_component_gaps_are_the_nearest_outline_distances() -> None:
+    """The compiled pairwise gaps against a k-d tree's nearest-neighbour distances between
+    every two components' outline pixels (blobs of random shapes, one inside a hole)."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    from edgerecon.scene.objects import _component_gaps
+
+    rng = np.random.default_rng(3)
+    m = np.zeros((180, 240), np.uint8)
+    for _ in range(14):
+        cv2.ellipse(
+            m,
+            (int(rng.integers(10, 230)), int(rng.integers(10, 170))),
+            (int(rng.integers(2, 18)), int(rng.integers(2, 18))),
+            float(rng.uniform(0, 180)),
+            0,
+            360,
+            1,
+            -1,
+        )
+    m[60:120, 100:160] = 1
+    m[75:105, 115:145] = 0
+    m[85:95, 125:135] = 1  # inside the hole: only an inner outline around it
+    n, cc = cv2.connectedComponents(m, connectivity=8, ltype=cv2.CV_32S)
+    assert n - 1 >= 5
+    gaps = _component_gaps(cc, n - 1)
+    contours, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    pts = np.concatenate([c.reshape(-1, 2) for c in contours])
+    owner = cc[pts[:, 1], pts[:, 0]] - 1
+    for i in range(n - 1):
+        tree = cKDTree(pts[owner == i])
+        for j in range(n - 1):
+            if i != j:
+                assert gaps[i, j] == tree.query(pts[owner == j], k=1)[0].min()
+    assert np.array_equal(gaps, gaps.T) and not np.diag(gaps).any()

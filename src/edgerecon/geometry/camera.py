@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry._kernels import project_camera_points
+from edgerecon.geometry._kernels import project_world_points, rigid_transform
 from edgerecon.types import CalibrationError, Points2D, Points3D
 
 #: Tolerance for ``R @ R.T == I`` when validating a rotation.
@@ -205,11 +205,10 @@ class Camera:
     # ----------------------------------------------------------------------------- geometry
     def world_to_cam(self, points3D: Points3D) -> Points3D:
         """(N, 3) world points -> (N, 3) camera-frame points."""
-        pts = np.asarray(points3D, dtype=np.float64).reshape(-1, 3)
-        # A contiguous R^T and an in-place offset: numpy's matmul with the transposed view
-        # takes a slow non-BLAS path (100k points: 16.6 -> 0.7 ms).
-        out = pts @ np.ascontiguousarray(self.R.T)
-        out += self.t
+        pts = np.ascontiguousarray(np.asarray(points3D, dtype=np.float64).reshape(-1, 3))
+        out = np.empty_like(pts)
+        # Compiled, not ``pts @ R.T``: see ``geometry._kernels`` (OpenBLAS's spinning threads).
+        rigid_transform(pts, self.R, self.t, out)
         return out
 
     def project(self, points3D: Points3D) -> tuple[Points2D, NDArray[np.float64]]:
@@ -218,17 +217,12 @@ class Camera:
         Returns ``(points2D, depth)``: (N, 2) pixel coordinates and (N,) depth along the
         optical axis. Points with ``depth <= 0`` get NaN pixel coordinates.
         """
-        Xc = self.world_to_cam(points3D)
-        depth = Xc[:, 2].copy()
-        uv = np.empty((len(Xc), 2))
-        # One compiled pass: division, distortion, intrinsics (``_distort``'s arithmetic).
-        project_camera_points(
-            Xc,
-            np.ascontiguousarray(self.K, np.float64),
-            np.ascontiguousarray(self.dist, np.float64),
-            self.has_distortion,
-            uv,
-        )
+        pts = np.ascontiguousarray(np.asarray(points3D, dtype=np.float64).reshape(-1, 3))
+        uv = np.empty((len(pts), 2))
+        depth = np.empty(len(pts))
+        # One compiled pass: rigid transform, division, distortion, intrinsics
+        # (``world_to_cam`` and ``_distort``'s arithmetic, the same numbers).
+        project_world_points(pts, self.R, self.t, self.K, self.dist, self.has_distortion, uv, depth)
         return uv, depth
 
     def pixel_rays(self, points2D: Points2D) -> NDArray[np.float64]:
@@ -256,7 +250,10 @@ class Camera:
         """Pixels and their depths (along the optical axis) -> (N, 3) world points."""
         rays = self.pixel_rays(points2D)
         Xc = rays * np.asarray(depth, dtype=np.float64).reshape(-1, 1)
-        return (Xc - self.t) @ self.R
+        Xc -= self.t
+        out = np.empty_like(Xc)
+        rigid_transform(Xc, np.ascontiguousarray(self.R.T), np.zeros(3), out)  # R^T (Xc - t)
+        return out
 
     def in_image(self, points2D: Points2D, margin: float = 0.0) -> NDArray[np.bool_]:
         """(N,) True where a pixel lies inside the image (minus ``margin`` pixels)."""

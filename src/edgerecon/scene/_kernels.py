@@ -518,3 +518,33 @@ def surface_normals(
             normals[i, 1] = y / d
             normals[i, 2] = z / d
     return surface, normals
+
+
+@nb.njit(nogil=True, cache=True)
+def outline_gaps(pts: NDArray[np.int32], owner: NDArray[np.int64], num: int) -> NDArray[np.float64]:
+    """(num, num) smallest distance between the points ``pts`` (P, 2) of every two owners
+    (``owner`` (P,), 0..num-1; every owner has a point): all pairs of points of different
+    owners, squared distances in integers, one square root per pair of owners at the end,
+    so the same numbers as a k-d tree's nearest-neighbour queries (the few thousand
+    points of a mask's outlines: ~0.5 M pairs)."""
+    big = np.iinfo(np.int64).max
+    best = np.full((num, num), big, np.int64)
+    n = pts.shape[0]
+    for i in range(n):
+        xi, yi, oi = np.int64(pts[i, 0]), np.int64(pts[i, 1]), owner[i]
+        row = best[oi]
+        for j in range(i + 1, n):
+            oj = owner[j]
+            if oj == oi:
+                continue
+            dx = xi - pts[j, 0]
+            dy = yi - pts[j, 1]
+            d2 = dx * dx + dy * dy
+            if d2 < row[oj]:
+                row[oj] = d2
+    gaps = np.zeros((num, num))
+    for a in range(num):
+        for b in range(a + 1, num):
+            d2 = min(best[a, b], best[b, a])
+            gaps[a, b] = gaps[b, a] = np.sqrt(np.float64(d2))
+    return gaps

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.scene._kernels import outline_gaps
 from edgerecon.types import Mask
 
 logger = logging.getLogger(__name__)
@@ -229,34 +230,22 @@ def _group_components(
 
 def _component_gaps(cc: NDArray[np.int32], num_comp: int) -> NDArray[np.float64]:
     """(n, n) smallest pixel distance between the outlines of every pair of components."""
-    from scipy.spatial import cKDTree
-
     # RETR_LIST, not RETR_EXTERNAL: a component inside another one's hole (a person seen
     # through the arms of another) has only an inner outline; without it that component had
     # no points and the whole run died on an empty reduction.
     contours, _ = cv2.findContours(
         (cc > 0).astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE
     )
-    pts = np.concatenate([c.reshape(-1, 2) for c in contours])
-    owner = cc[pts[:, 1], pts[:, 0]] - 1
-    outline = [pts[owner == i] for i in range(num_comp)]
-    for i in range(num_comp):
-        if not len(outline[i]):  # never expected; any pixel of the component will do
-            ys, xs = np.nonzero(cc == i + 1)
-            outline[i] = np.stack([xs, ys], axis=1)[:1]
-    gaps = np.zeros((num_comp, num_comp))
-    # One query per component of all the later components' outline points, reduced per
-    # owner (the same distances as a query per pair, without n^2 / 2 calls).
-    counts = np.array([len(o) for o in outline])
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    every = np.concatenate(outline)
-    for i in range(num_comp - 1):
-        later = every[starts[i + 1] :]
-        d, _ = cKDTree(outline[i]).query(later, k=1)
-        nearest = np.minimum.reduceat(d, starts[i + 1 : -1] - starts[i + 1])
-        gaps[i, i + 1 :] = nearest
-        gaps[i + 1 :, i] = nearest
-    return gaps
+    pts = np.concatenate([c.reshape(-1, 2) for c in contours]).astype(np.int32)
+    owner = cc[pts[:, 1], pts[:, 0]].astype(np.int64) - 1
+    missing = np.setdiff1d(np.arange(num_comp), owner)
+    for i in missing:  # never expected; any pixel of the component will do
+        ys, xs = np.nonzero(cc == i + 1)
+        pts = np.vstack([pts, np.array([[xs[0], ys[0]]], np.int32)])
+        owner = np.append(owner, i)
+    # Every pair of outline points of two components, compiled (a k-d tree per component
+    # took ~5 ms per mask at 480x270; the same distances).
+    return outline_gaps(pts, owner, num_comp)
 
 
 def _single_linkage(gaps: NDArray[np.float64]) -> list[tuple[float, NDArray[np.int64]]]:
