@@ -142,3 +142,32 @@ def test_the_compiled_projection_is_the_numpy_arithmetic_bit_for_bit(dist):
     back = cam.backproject(uv[front], depth[front])
     np.testing.assert_allclose(back, pts[front], rtol=1e-9, atol=1e-9)
     np.testing.assert_array_equal(cam.world_to_cam(pts.T.copy().T), xc)  # not C-contiguous
+
+
+@pytest.mark.parametrize("dist", [np.zeros(5), np.array([-0.31, 0.12, 0.002, -0.003, -0.02])])
+def test_nearest_pixels_are_project_in_image_and_rounding(dist):
+    """The compiled pass against its NumPy composition: ``project``, ``in_image``, rounding
+    half to even and clipping (points behind, on the image's edges and halfway between)."""
+    cam = dataclasses.replace(ring_rig(3)[0], dist=dist)
+    rng = np.random.default_rng(7)
+    Xc = rng.normal(0, 2, (20000, 3))
+    Xc[:2000, 2] = np.abs(Xc[:2000, 2]) + 0.1
+    pts = (Xc - cam.t) @ cam.R
+    # Points exactly on pixel halves and on the image's borders (in front of the camera).
+    uv0 = np.array(
+        [[-0.5, 3.0], [cam.width - 0.5, 2.5], [4.5, cam.height - 0.5], [10.5, 11.5], [0, 0]]
+    )
+    on_edges = cam.backproject(uv0, np.full(len(uv0), 2.0))
+    pts = np.vstack([pts, on_edges])
+    uv, depth, u, v, inside = cam.nearest_pixels(pts)
+    ref_uv, ref_depth = cam.project(pts)
+    np.testing.assert_array_equal(uv, ref_uv)
+    np.testing.assert_array_equal(depth, ref_depth)
+    ref_inside = (ref_depth > 0) & cam.in_image(ref_uv)
+    np.testing.assert_array_equal(inside, ref_inside)
+    safe = np.where(ref_inside[:, None], ref_uv, 0.0)
+    np.testing.assert_array_equal(u, np.clip(np.rint(safe[:, 0]), 0, cam.width - 1).astype(np.intp))
+    np.testing.assert_array_equal(
+        v, np.clip(np.rint(safe[:, 1]), 0, cam.height - 1).astype(np.intp)
+    )
+    assert inside.any() and not inside.all()

@@ -117,3 +117,46 @@ def project_world_points(
             r00 * x + r01 * y + r02 * z + t0, r10 * x + r11 * y + r12 * z + t1, zc, k, d, distorted
         )
         depth[i] = zc
+
+
+@nb.njit(nogil=True, cache=True, error_model="numpy")
+def nearest_pixels_world(
+    pts: NDArray[np.float64],
+    R: NDArray[np.float64],
+    t: NDArray[np.float64],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    distorted: bool,
+    width: int,
+    height: int,
+    uv: NDArray[np.float64],
+    depth: NDArray[np.float64],
+    u: NDArray[np.intp],
+    v: NDArray[np.intp],
+    inside: NDArray[np.bool_],
+) -> None:
+    """``project_world_points``, then whether each pixel lies in the image in front of the
+    camera (``Camera.in_image``'s bounds) and its nearest pixel (rounded half to even,
+    clipped into the image; (0, 0) for a point not inside), in the same pass."""
+    k, d = _intrinsics(K, dist)
+    r00, r01, r02, r10, r11, r12 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22, t0, t1, t2 = R[2, 0], R[2, 1], R[2, 2], t[0], t[1], t[2]
+    hi_u = width - 0.5
+    hi_v = height - 0.5
+    for i in range(pts.shape[0]):
+        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+        zc = r20 * x + r21 * y + r22 * z + t2
+        pu, pv = _pixel(
+            r00 * x + r01 * y + r02 * z + t0, r10 * x + r11 * y + r12 * z + t1, zc, k, d, distorted
+        )
+        uv[i, 0] = pu
+        uv[i, 1] = pv
+        depth[i] = zc
+        ok = zc > 0 and pu >= -0.5 and pu <= hi_u and pv >= -0.5 and pv <= hi_v
+        inside[i] = ok
+        if ok:
+            u[i] = min(max(int(np.rint(pu)), 0), width - 1)
+            v[i] = min(max(int(np.rint(pv)), 0), height - 1)
+        else:
+            u[i] = 0
+            v[i] = 0

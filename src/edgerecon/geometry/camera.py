@@ -26,7 +26,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry._kernels import project_world_points, rigid_transform
+from edgerecon.geometry._kernels import (
+    nearest_pixels_world,
+    project_world_points,
+    rigid_transform,
+)
 from edgerecon.types import CalibrationError, Points2D, Points3D
 
 #: Tolerance for ``R @ R.T == I`` when validating a rotation.
@@ -224,6 +228,36 @@ class Camera:
         # (``world_to_cam`` and ``_distort``'s arithmetic, the same numbers).
         project_world_points(pts, self.R, self.t, self.K, self.dist, self.has_distortion, uv, depth)
         return uv, depth
+
+    def nearest_pixels(
+        self, points3D: Points3D
+    ) -> tuple[
+        Points2D, NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]
+    ]:
+        """``project`` and where the points land: ``(points2D, depth, u, v, inside)``, with
+        ``inside`` (N,) in front of the camera and in the image (``in_image``) and (u, v)
+        (N,) the nearest pixel of each (rounded half to even, clipped into the image; (0, 0)
+        for a point not inside), in one compiled pass."""
+        pts = np.ascontiguousarray(np.asarray(points3D, dtype=np.float64).reshape(-1, 3))
+        n = len(pts)
+        uv, depth = np.empty((n, 2)), np.empty(n)
+        u, v, inside = np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n, bool)
+        nearest_pixels_world(
+            pts,
+            self.R,
+            self.t,
+            self.K,
+            self.dist,
+            self.has_distortion,
+            self.width,
+            self.height,
+            uv,
+            depth,
+            u,
+            v,
+            inside,
+        )
+        return uv, depth, u, v, inside
 
     def pixel_rays(self, points2D: Points2D) -> NDArray[np.float64]:
         """(N, 2) (distorted) pixels -> (N, 3) normalised camera-frame rays with z = 1."""

@@ -655,10 +655,12 @@ class RigForeground:
             and result.segmentations
             else (None,) * len(self.rig)
         )
-        return [
-            None if im is None else model.update(im, sg)
-            for model, im, sg in zip(self.models, frames.images, segs, strict=True)
-        ]
+        jobs = list(zip(self.models, frames.images, segs, strict=True))
+        return per_camera(
+            lambda job: None if job[1] is None else job[0].update(job[1], job[2]),
+            jobs,
+            self.config.num_threads,
+        )
 
 
 class _CheckedObjects:

@@ -267,7 +267,7 @@ def photo_consistent_masks(
         if mask is None or im is None:
             return None
         colour = np.asarray(cv2.blur(np.asarray(im, np.float32), (k, k)), np.float32)
-        uv, depth, u, v, inside = _nearest_pixels(cam, pts)
+        uv, depth, u, v, inside = cam.nearest_pixels(pts)
         contrast = _local_contrast(im, config.texture_px)[v, u] if config.texture_px else None
         # Channel-first: the per-point tests are sums over three rows, not reductions over a
         # trailing axis of 3 (10x faster).
@@ -704,7 +704,7 @@ def static_consistent_masks(
             o_mask, o_colour, o_depth = masks[o], means[o], depths[o]
             if o == c or o_mask is None or o_colour is None or o_depth is None:
                 continue
-            _, d, u, v, seen = _nearest_pixels(other, points)
+            _, d, u, v, seen = other.nearest_pixels(points)
             with np.errstate(invalid="ignore"):
                 seen &= np.abs(o_depth[v, u] - d) < config.depth_tol_rel * d
             seen &= ~np.asarray(o_mask, bool)[v, u]
@@ -725,21 +725,6 @@ def static_consistent_masks(
             out[c] = mask
             removed[c] = int(static.sum())
     return out, removed
-
-
-def _nearest_pixels(
-    cam: Camera, points: NDArray[np.float64]
-) -> tuple[
-    NDArray[np.float64], NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]
-]:
-    """The points' projections and depths in ``cam``, their nearest pixels (clipped into the
-    image) and whether they land in the image in front of the camera."""
-    uv, depth = cam.project(points)
-    inside = (depth > 0) & cam.in_image(uv)
-    safe = np.where(inside[:, None], uv, 0.0)
-    u = np.clip(np.rint(safe[:, 0]), 0, cam.width - 1).astype(np.intp)
-    v = np.clip(np.rint(safe[:, 1]), 0, cam.height - 1).astype(np.intp)
-    return uv, depth, u, v, inside
 
 
 def _contrast_alike(

@@ -1287,11 +1287,7 @@ def _uncontradicted(
     flat = pts.reshape(-1, 3)
     for other, omask, wall in others:
         fg = cv2.dilate(omask.view(np.uint8), grow).astype(bool)
-        uv, d = other.project(flat)
-        vis = (d > 0) & other.in_image(uv)
-        safe = np.where(vis[:, None], uv, 0.0)
-        u = np.clip(np.rint(safe[:, 0]).astype(np.intp), 0, other.width - 1)
-        v = np.clip(np.rint(safe[:, 1]).astype(np.intp), 0, other.height - 1)
+        _, d, u, v, vis = other.nearest_pixels(flat)
         if wall is not None:
             vis &= ~(d > wall[v, u])
         contradicted += (vis & ~fg[v, u]).reshape(len(px), ray_samples)
