@@ -548,3 +548,21 @@ def outline_gaps(pts: NDArray[np.int32], owner: NDArray[np.int64], num: int) -> 
             d2 = min(best[a, b], best[b, a])
             gaps[a, b] = gaps[b, a] = np.sqrt(np.float64(d2))
     return gaps
+
+
+@nb.njit(nogil=True, cache=True)
+def disc_centres(
+    uv: NDArray[np.float64], radius: NDArray[np.float64], width: int, height: int, max_radius: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The splats' integer discs of points at pixels ``uv`` (N, 2) (finite): the nearest
+    pixel (rounded half to even, clipped into the image) and the radius rounded up, clipped
+    to [0, ``max_radius``]; NumPy's ``clip(rint(.))`` / ``clip(ceil(.))`` in one pass."""
+    n = uv.shape[0]
+    u = np.empty(n, np.int64)
+    v = np.empty(n, np.int64)
+    r = np.empty(n, np.int64)
+    for i in range(n):
+        u[i] = int(min(max(np.rint(uv[i, 0]), 0.0), width - 1.0))
+        v[i] = int(min(max(np.rint(uv[i, 1]), 0.0), height - 1.0))
+        r[i] = int(min(max(np.ceil(radius[i]), 0.0), float(max_radius)))
+    return u, v, r

@@ -59,6 +59,7 @@ from edgerecon.geometry.camera import Camera
 from edgerecon.scene._kernels import (
     DISC_HALF_WIDTHS,
     MAX_KERNEL_DISC,
+    disc_centres,
     gather_channels,
     judge_points,
     splat_discs,
@@ -614,9 +615,7 @@ def _splat_min(
     out = np.full((h, w), np.inf, np.float32)
     if len(uv) == 0:
         return out
-    u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.int64)
-    v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
-    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.int64)
+    u, v, r = disc_centres(uv, radius, w, h, _MAX_FOOTPRINT_PX)
     vals = np.minimum(np.asarray(values, np.float32), np.float32(_BIG))
     splat_min_discs(out, u, v, r, vals, DISC_HALF_WIDTHS)
     out[out >= _BIG] = np.inf
@@ -633,9 +632,7 @@ def _splat(shape: tuple[int, ...], uv: NDArray[np.float64], radius: NDArray[np.f
     out = np.zeros((h, w), np.uint8)
     if len(uv) == 0:
         return out.astype(bool)
-    u = np.clip(np.rint(uv[:, 0]), 0, w - 1).astype(np.int64)
-    v = np.clip(np.rint(uv[:, 1]), 0, h - 1).astype(np.int64)
-    r = np.clip(np.ceil(radius), 0, _MAX_FOOTPRINT_PX).astype(np.int64)
+    u, v, r = disc_centres(uv, radius, w, h, _MAX_FOOTPRINT_PX)
     splat_discs(out, u, v, r, DISC_HALF_WIDTHS, 0, 0, w, h)
     return out.view(bool)
 
