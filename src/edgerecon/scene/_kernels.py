@@ -153,6 +153,14 @@ def warm_up() -> None:
     ones = np.ones(1, np.int64)
     splat_discs(np.zeros((2, 2), np.uint8), ones, ones, ones, table, 0, 0, 2, 2)
     splat_min_discs(np.zeros((2, 2), np.float32), ones, ones, ones, np.ones(1, np.float32), table)
+    outline_gaps(np.zeros((2, 2), np.int32), np.arange(2, dtype=np.int64), 2)
+    disc_centres(np.zeros((1, 2)), np.ones(1), 2, 2, 1)
+    # The projections' kernels as the scene stage calls them (``Camera.nearest_pixels``).
+    from edgerecon.geometry.camera import Camera
+
+    probe = Camera(name="warm-up", width=2, height=2, K=np.eye(3), R=np.eye(3), t=np.ones(3))
+    probe.nearest_pixels(np.zeros((1, 3)))
+    probe.backproject(np.zeros((1, 2)), np.ones(1))
     flags = np.zeros((num, 2), bool)
     votes = np.zeros((num, 2), np.int32)
     camera_votes(
