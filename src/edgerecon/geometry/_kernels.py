@@ -3,8 +3,9 @@
 ``Camera.project`` is called thousands of times per task by the scene stage (hull voxels,
 photo-check samples, splats) on 10^4-10^5 points; in NumPy the perspective division, the
 Brown-Conrady distortion and the intrinsics take ~25 passes over full-length temporaries.
-Fused here into one pass per point, with NumPy's operation order and no fastmath, so the
-pixels are the NumPy code's bit for bit (tested).
+Fused here into one pass per point (the rigid transform included, no camera-frame array),
+with NumPy's operation order and no fastmath, so the pixels are the NumPy code's bit for bit
+(tested).
 
 The rigid transform is a loop too, not ``points @ R.T``: OpenBLAS runs that (N, 3) x (3, 3)
 product on its own threads, which then spin waiting for the next call, on a 2-core machine
@@ -18,23 +19,42 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+_Rows = tuple[float, float, float, float, float, float, float, float, float, float, float, float]
 
-@nb.njit(nogil=True, cache=True)
-def rigid_transform(
-    pts: NDArray[np.float64],
-    R: NDArray[np.float64],
-    t: NDArray[np.float64],
-    out: NDArray[np.float64],
-) -> None:
-    """``out = pts @ R.T + t`` for (N, 3) ``pts``, each row summed left to right (NumPy's
+
+@nb.njit(inline="always")
+def _rows(R: NDArray[np.float64], t: NDArray[np.float64]) -> _Rows:
+    """R's and t's entries as scalars (the loops keep them in registers)."""
+    return (
+        R[0, 0], R[0, 1], R[0, 2], t[0],
+        R[1, 0], R[1, 1], R[1, 2], t[1],
+        R[2, 0], R[2, 1], R[2, 2], t[2],
+    )  # fmt: skip
+
+
+@nb.njit(inline="always")
+def _transform(m: _Rows, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """``R @ (x, y, z) + t``, each row summed left to right (NumPy's
     ``R[:, 0] * x + R[:, 1] * y + R[:, 2] * z + t`` bit for bit)."""
-    r00, r01, r02, r10, r11, r12 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2]
-    r20, r21, r22, t0, t1, t2 = R[2, 0], R[2, 1], R[2, 2], t[0], t[1], t[2]
-    for i in range(pts.shape[0]):
-        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
-        out[i, 0] = r00 * x + r01 * y + r02 * z + t0
-        out[i, 1] = r10 * x + r11 * y + r12 * z + t1
-        out[i, 2] = r20 * x + r21 * y + r22 * z + t2
+    return (
+        m[0] * x + m[1] * y + m[2] * z + m[3],
+        m[4] * x + m[5] * y + m[6] * z + m[7],
+        m[8] * x + m[9] * y + m[10] * z + m[11],
+    )
+
+
+@nb.njit(inline="always")
+def _intrinsics(
+    K: NDArray[np.float64], dist: NDArray[np.float64]
+) -> tuple[tuple[float, float, float, float, float], tuple[float, float, float, float, float]]:
+    """K's (0,0), (0,1), (0,2), (1,1), (1,2) and k1, k2, p1, p2, k3 as scalars."""
+    return (K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]), (
+        dist[0],
+        dist[1],
+        dist[2],
+        dist[3],
+        dist[4],
+    )
 
 
 @nb.njit(inline="always", error_model="numpy")
@@ -46,9 +66,9 @@ def _pixel(
     d: tuple[float, float, float, float, float],
     distorted: bool,
 ) -> tuple[float, float]:
-    """The pixel of one camera-frame point (NaN when not in front of the camera); ``k``:
-    K's (0,0), (0,1), (0,2), (1,1), (1,2); ``d``: k1, k2, p1, p2, k3 (scalars, so that the
-    loops keep them in registers)."""
+    """The pixel of one camera-frame point (NaN when not in front of the camera): divided by
+    depth, distorted (``distorted``: the ``_intrinsics``' k1, k2, p1, p2, k3), through K.
+    Points near the camera's plane give inf / NaN pixels, as in NumPy."""
     if not depth > 0:
         return np.nan, np.nan
     xn = x / depth
@@ -63,34 +83,17 @@ def _pixel(
     return k[0] * xn + k[1] * yn + k[2], k[3] * yn + k[4]
 
 
-@nb.njit(inline="always")
-def _intrinsics(
-    K: NDArray[np.float64], dist: NDArray[np.float64]
-) -> tuple[tuple[float, float, float, float, float], tuple[float, float, float, float, float]]:
-    return (K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]), (
-        dist[0],
-        dist[1],
-        dist[2],
-        dist[3],
-        dist[4],
-    )
-
-
-@nb.njit(nogil=True, cache=True, error_model="numpy")
-def project_camera_points(
-    xc: NDArray[np.float64],
-    K: NDArray[np.float64],
-    dist: NDArray[np.float64],
-    distorted: bool,
-    uv: NDArray[np.float64],
+@nb.njit(nogil=True, cache=True)
+def rigid_transform(
+    pts: NDArray[np.float64],
+    R: NDArray[np.float64],
+    t: NDArray[np.float64],
+    out: NDArray[np.float64],
 ) -> None:
-    """Pixels of the (N, 3) camera-frame points ``xc`` written to ``uv`` (N, 2): divided
-    by depth, distorted (``distorted``: k1, k2, p1, p2, k3 of ``dist``), through ``K``; NaN
-    for points not in front of the camera (depth <= 0 or NaN). Points near the camera's
-    plane give inf / NaN pixels, as in NumPy."""
-    k, d = _intrinsics(K, dist)
-    for i in range(xc.shape[0]):
-        uv[i, 0], uv[i, 1] = _pixel(xc[i, 0], xc[i, 1], xc[i, 2], k, d, distorted)
+    """``out = pts @ R.T + t`` for (N, 3) ``pts`` (``_transform`` per row)."""
+    m = _rows(R, t)
+    for i in range(pts.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = _transform(m, pts[i, 0], pts[i, 1], pts[i, 2])
 
 
 @nb.njit(nogil=True, cache=True, error_model="numpy")
@@ -104,18 +107,13 @@ def project_world_points(
     uv: NDArray[np.float64],
     depth: NDArray[np.float64],
 ) -> None:
-    """``rigid_transform`` then ``project_camera_points`` in one pass, without the
-    camera-frame array: pixels to ``uv`` (N, 2), depths to ``depth`` (N,), the same
-    numbers."""
+    """The (N, 3) world points ``pts`` through the camera (R, t, K, dist): pixels to ``uv``
+    (N, 2), NaN for points not in front of it, depths along its axis to ``depth`` (N,)."""
+    m = _rows(R, t)
     k, d = _intrinsics(K, dist)
-    r00, r01, r02, r10, r11, r12 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2]
-    r20, r21, r22, t0, t1, t2 = R[2, 0], R[2, 1], R[2, 2], t[0], t[1], t[2]
     for i in range(pts.shape[0]):
-        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
-        zc = r20 * x + r21 * y + r22 * z + t2
-        uv[i, 0], uv[i, 1] = _pixel(
-            r00 * x + r01 * y + r02 * z + t0, r10 * x + r11 * y + r12 * z + t1, zc, k, d, distorted
-        )
+        xc, yc, zc = _transform(m, pts[i, 0], pts[i, 1], pts[i, 2])
+        uv[i, 0], uv[i, 1] = _pixel(xc, yc, zc, k, d, distorted)
         depth[i] = zc
 
 
@@ -138,17 +136,13 @@ def nearest_pixels_world(
     """``project_world_points``, then whether each pixel lies in the image in front of the
     camera (``Camera.in_image``'s bounds) and its nearest pixel (rounded half to even,
     clipped into the image; (0, 0) for a point not inside), in the same pass."""
+    m = _rows(R, t)
     k, d = _intrinsics(K, dist)
-    r00, r01, r02, r10, r11, r12 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2]
-    r20, r21, r22, t0, t1, t2 = R[2, 0], R[2, 1], R[2, 2], t[0], t[1], t[2]
     hi_u = width - 0.5
     hi_v = height - 0.5
     for i in range(pts.shape[0]):
-        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
-        zc = r20 * x + r21 * y + r22 * z + t2
-        pu, pv = _pixel(
-            r00 * x + r01 * y + r02 * z + t0, r10 * x + r11 * y + r12 * z + t1, zc, k, d, distorted
-        )
+        xc, yc, zc = _transform(m, pts[i, 0], pts[i, 1], pts[i, 2])
+        pu, pv = _pixel(xc, yc, zc, k, d, distorted)
         uv[i, 0] = pu
         uv[i, 1] = pv
         depth[i] = zc
