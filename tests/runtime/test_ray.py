@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 
 import pytest
@@ -10,7 +12,7 @@ from edgerecon.io.dataset import open_dataset
 from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
 from edgerecon.runtime.engine import learn_scene_model
 from edgerecon.runtime.frontend import FixedController
-from edgerecon.runtime.ray_engine import RayEngine, connect, keep_on_loopback
+from edgerecon.runtime.ray_engine import RayEngine, connect, keep_on_loopback, normal_priority
 from edgerecon.types import EdgereconError
 
 keep_on_loopback()  # before Ray is imported: the cluster below listens on 127.0.0.1 only
@@ -99,6 +101,96 @@ def test_each_role_runs_on_the_node_with_its_resource(cluster, tiny, capfd):
     # The restartable back-end actor's constructor holds no object-store reference (an actor
     # handle counts): Ray cannot restart such an actor reliably and logs an error for it.
     assert "constructor arguments in the object store" not in capfd.readouterr().err
+
+
+def _in_thread(fn):
+    """``fn()`` on a thread of its own (niceness is per thread on Linux): its result."""
+    out = {}
+    th = threading.Thread(target=lambda: out.setdefault("v", fn()))
+    th.start()
+    th.join()
+    return out["v"]
+
+
+def _niced(nice):
+    os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+
+
+def _may_lower_niceness() -> bool:
+    def probe():
+        _niced(1)
+        try:
+            _niced(0)
+        except PermissionError:
+            return False
+        return True
+
+    return _in_thread(probe)
+
+
+linux_only = pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="Linux threads")
+
+
+@linux_only
+def test_normal_priority_gives_every_thread_niceness_0():
+    if not _may_lower_niceness():
+        pytest.skip("this user may not lower niceness")
+    release = threading.Event()
+    ready = threading.Event()
+    tid = {}
+
+    def other():  # another thread of the process, at Ray's niceness
+        tid["v"] = threading.get_native_id()
+        _niced(15)
+        ready.set()
+        release.wait(30)
+
+    th = threading.Thread(target=other)
+    th.start()
+    ready.wait(30)
+    try:
+        assert os.getpriority(os.PRIO_PROCESS, tid["v"]) == 15
+        assert _in_thread(lambda: (_niced(15), normal_priority())[1]) == 0
+        assert os.getpriority(os.PRIO_PROCESS, tid["v"]) == 0
+    finally:
+        release.set()
+        th.join()
+
+
+@linux_only
+def test_normal_priority_reports_what_it_could_not_lower(monkeypatch):
+    def refuse(which, who, prio):
+        raise PermissionError(1, "Operation not permitted")
+
+    def run():
+        _niced(7)
+        monkeypatch.setattr(os, "setpriority", refuse)
+        try:
+            return normal_priority()
+        finally:
+            monkeypatch.undo()
+
+    assert _in_thread(run) >= 7
+
+
+def test_the_frontend_runs_at_normal_priority(cluster, tiny):
+    # Ray starts its workers at niceness 15, the front-end actor included: the critical path
+    # below every process at the default priority (the driver, Ray's daemons) on its node.
+    @ray.remote(num_cpus=0)
+    def worker_niceness():
+        return os.nice(0)
+
+    assert ray.get(worker_niceness.remote()) == 15, "the cluster's workers run at niceness 15"
+    if not _may_lower_niceness():
+        pytest.skip("this user may not lower niceness")
+    ds, scene = tiny
+    engine = RayEngine(
+        ds, _config(), FixedController(0.8, (0, 1, 2, 3, 4)), scene, address=cluster.address
+    )
+    try:
+        assert engine.status()["frontend_niceness"] == 0
+    finally:
+        engine.close()
 
 
 def test_no_cluster_at_the_address_is_a_clear_error():
