@@ -158,6 +158,16 @@ def test_normal_priority_gives_every_thread_niceness_0():
 
 
 @linux_only
+def test_normal_priority_lowers_to_its_target_and_never_raises():
+    if not _may_lower_niceness():
+        pytest.skip("this user may not lower niceness")
+    # The driver run with `nice -n 5`: the front-end goes to 5, not to 0 ...
+    assert _in_thread(lambda: (_niced(15), normal_priority(5), os.nice(0))[2]) == 5
+    # ... and a thread already below the target stays there.
+    assert _in_thread(lambda: (_niced(3), normal_priority(5), os.nice(0))[2]) == 3
+
+
+@linux_only
 def test_normal_priority_reports_what_it_could_not_lower(monkeypatch):
     def refuse(which, who, prio):
         raise PermissionError(1, "Operation not permitted")

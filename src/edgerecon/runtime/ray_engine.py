@@ -81,30 +81,31 @@ def keep_on_loopback() -> None:
         ray_constants.ENABLE_RAY_CLUSTER = False
 
 
-def normal_priority() -> int:
-    """Give every thread of this process niceness 0; returns the largest niceness left.
+def normal_priority(target: int = 0) -> int:
+    """Lower every thread of this process to niceness ``target`` (never above it); returns
+    the largest niceness left.
 
-    Ray starts its worker processes, actors included, at niceness 15 (``worker_niceness``)
-    so that its daemons and the driver come first. For the front-end that is the critical
-    path at a lower priority than anything else on its node: with both roles and the driver
-    on a 2-core machine (caliscope_charuco at 40 %, docs/BENCHMARKS.md) the controller settled
-    at r 0.80 with 3.67 cameras against 1.03 with 3.99 at niceness 0. A private instance
-    starts its workers at 0 (:func:`connect`); on a cluster started without
-    ``RAY_worker_niceness=0`` the actor lowers its own niceness where the OS allows it (Linux
-    counts niceness per thread: every thread of the process; lowering it needs root or
-    ``CAP_SYS_NICE``), else it warns once and runs at Ray's niceness."""
+    Ray starts its worker processes, actors included, at niceness 15 more than its raylet
+    (``worker_niceness``) so that its daemons and the driver come first. For the front-end
+    that puts the critical path below everything else on its node: with both roles and the
+    driver on a 2-core machine (caliscope_charuco's whole capture at 40 %,
+    docs/BENCHMARKS.md) the controller kept 1.6x fewer foreground points per task. A private
+    instance starts its workers at the driver's niceness (:func:`connect`); on a cluster
+    started without ``RAY_worker_niceness=0`` the front-end actor lowers its own niceness to
+    the driver's where the OS allows it (Linux counts niceness per thread, so every thread
+    of the process; lowering it needs root or ``CAP_SYS_NICE``), else it warns once."""
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except (FileNotFoundError, NotADirectoryError):  # not Linux: the process as a whole
         tids = [0]
-    left = 0
+    left = target
     for tid in tids:
         try:
-            if os.getpriority(os.PRIO_PROCESS, tid) > 0:
-                os.setpriority(os.PRIO_PROCESS, tid, 0)
+            if os.getpriority(os.PRIO_PROCESS, tid) > target:
+                os.setpriority(os.PRIO_PROCESS, tid, target)
         except ProcessLookupError:  # the thread ended meanwhile
             continue
-        except (PermissionError, OSError):
+        except OSError:  # not allowed: it stays where Ray put it
             pass
         try:
             left = max(left, os.getpriority(os.PRIO_PROCESS, tid))
@@ -206,15 +207,16 @@ class _FrontendActor:
         scene: SceneModel,
         restored: Any,
         background: Any,
+        niceness: int = 0,
     ) -> None:
-        self.niceness = normal_priority()
-        if self.niceness > 0:
+        self.niceness = normal_priority(niceness)
+        if self.niceness > niceness:
             logger.warning(
-                "the Ray front-end (the critical path) runs at niceness %d, below the "
-                "processes at the default priority on its node: start that node with "
-                "RAY_worker_niceness=0 in its environment (or run as a user allowed to "
-                "lower niceness)",
+                "the Ray front-end (the critical path) runs at niceness %d, the driver at "
+                "%d: start the front-end's node with RAY_worker_niceness=0 in its "
+                "environment (or run as a user allowed to lower niceness)",
                 self.niceness,
+                niceness,
             )
         self.frontend = start_frontend(dataset, config, controller, scene, restored, background)
         self._initial_background: FrameSet | None = scene.initial_background
@@ -327,9 +329,19 @@ class RayEngine:
         # Named, so that the back-end actor finds it (on every restart) without a handle in
         # its constructor arguments (see _BackendActor).
         name = f"edgerecon-frontend-{uuid.uuid4().hex}"
+        # The last argument: the driver's niceness, the front-end's instead of the 15 more
+        # that Ray gives its workers (normal_priority).
         self.frontend = front_cls.options(
             name=name, num_cpus=0, resources={"frontend": 1}, max_concurrency=4
-        ).remote(dataset, config, controller, self._scene_ref, restored, background)
+        ).remote(
+            dataset,
+            config,
+            controller,
+            self._scene_ref,
+            restored,
+            background,
+            os.nice(0),
+        )
         self.backend = back_cls.options(
             num_cpus=0,
             resources={"backend": 1},
@@ -451,7 +463,7 @@ def connect(address: str | None, num_cpus: int | None = None) -> Any:
             raise EdgereconError(f"no Ray cluster at --address {address}: {hint} ({exc})") from None
     else:
         # A private local instance: both roles on this machine, loopback only; its workers
-        # at the driver's priority, not Ray's niceness 15 (normal_priority).
+        # at the driver's niceness, not 15 more (normal_priority).
         ray.init(
             num_cpus=num_cpus,
             resources={"frontend": 1, "backend": 1},
