@@ -188,6 +188,32 @@ def test_bad_frame_is_recorded_and_skipped(tiny_dataset, tmp_path_factory, tmp_p
     assert "usable camera" in metrics[1].error
 
 
+def test_tasks_without_foreground_are_not_observations(tiny_dataset, tmp_path_factory, tmp_path):
+    # The first two frames show the empty room (as in the first second of a stream without
+    # an empty-scene clip, or a room everyone left): those tasks measure no MVS, so the
+    # controller plans the golden task again until one has foreground, and neither the
+    # adjustment nor pi(N') learns from them.
+    import shutil
+
+    src = tmp_path_factory.mktemp("empty_start") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    for cam in sorted(p.name for p in (src / "frames").iterdir()):
+        for t in (0, 1):
+            shutil.copy(
+                src / "background" / cam / "000000.png", src / "frames" / cam / f"{t:06d}.png"
+            )
+    _, metrics = run_online(
+        open_dataset(src),
+        runtime_config(),  # everything on, background rebuilds included
+        SessionOptions(frames=FrameRange(start=0, stop=4)),
+        tmp_path / "run",
+    )
+    assert [m.status for m in metrics] == ["ok"] * 4
+    assert [m.num_fg_points for m in metrics[:2]] == [0, 0]
+    assert metrics[2].num_fg_points > 0
+    assert [m.phase for m in metrics] == ["golden", "golden", "golden", "adjust"]
+
+
 def test_background_updates_run_between_tasks_with_the_same_masks(tiny_dataset, tmp_path):
     # Updates every frame: tasks every third frame leave two updates between tasks, which
     # the session applies after a task's cloud instead of on the next task's critical path.

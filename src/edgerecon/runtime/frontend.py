@@ -594,7 +594,16 @@ class FrontEnd:
             self._learn_update(scene, frames, fg, defer_static=False)
             self._save_scene(scene)
         sparse = result.sparse
-        mapping = plan.phase == "golden" and not isinstance(self.controller, FixedController)
+        # A task without foreground in its cameras (the stream's first second without an
+        # empty-scene clip, an empty room) measures no MVS at its r: it is not an observation
+        # (the adjustment would climb on it, and a golden task's pi(N') would come from no
+        # foreground); the controller plans the same configuration again.
+        informative = mask_area(fg.masks, plan.camera_ids) != 0.0
+        mapping = (
+            informative
+            and plan.phase == "golden"
+            and not isinstance(self.controller, FixedController)
+        )
         if mapping and "sfm" not in timings.to_dict():
             # pi(N') needs the golden task's sparse visibility; its cloud did not (the hull
             # bounded the depth search): the SfM of the foreground runs after the task's
@@ -614,9 +623,10 @@ class FrontEnd:
                 # Every golden task refreshes pi(N') (a golden re-search included).
                 vis = sparse.visibility_matrix(len(self.rig))
                 self._set_mapping(vis, fg_rec.cloud, task, frames.time_index)
-            self.controller.observe(critical, quality)
-            if self.workload is not None:
-                self.workload.record(area, before_mvs, scale, critical - before_mvs)
+            if informative:
+                self.controller.observe(critical, quality)
+                if self.workload is not None:
+                    self.workload.record(area, before_mvs, scale, critical - before_mvs)
             guard.committed = True  # a late watchdog takes this result
         labels = fg_rec.labels
         return self._output(
