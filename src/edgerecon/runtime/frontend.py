@@ -594,11 +594,14 @@ class FrontEnd:
             self._learn_update(scene, frames, fg, defer_static=False)
             self._save_scene(scene)
         sparse = result.sparse
-        # A task without foreground in its cameras (the stream's first second without an
+        # A task without a foreground object (no mask pixel in its cameras, or masks that no
+        # two cameras agree on: an empty visual hull; the stream's first second without an
         # empty-scene clip, an empty room) measures no MVS at its r: it is not an observation
         # (the adjustment would climb on it, and a golden task's pi(N') would come from no
         # foreground); the controller plans the same configuration again.
-        informative = mask_area(fg.masks, plan.camera_ids) != 0.0
+        informative = mask_area(fg.masks, plan.camera_ids) != 0.0 and (
+            fg.hull is None or fg.hull.num_voxels > 0
+        )
         mapping = (
             informative
             and plan.phase == "golden"
