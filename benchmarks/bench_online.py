@@ -6,6 +6,7 @@ done-when numbers of the online system on real rigs (issue 11).
     python benchmarks/bench_online.py --datasets caliscope_charuco --fractions 0.3 0.4 0.6
     python benchmarks/bench_online.py --datasets /data/hd4 --tasks 40 --json online.json
     python benchmarks/bench_online.py --datasets /data/hd4 --split fg_noise_adaptive_ncc=false  # A/B
+    python benchmarks/bench_online.py --datasets caliscope_charuco --fractions 0.4 --engines embedded ray
 
 Per dataset (a name under ../shared/data, a synthetic preset name, or a dataset folder):
 
@@ -15,8 +16,9 @@ Per dataset (a name under ../shared/data, a synthetic preset name, or a dataset 
 2. the golden configuration of the foreground pipeline (``pipeline.reconstruct_task`` at
    r = 1 with all cameras) on every task's timestamp: the reference foreground of real data
    and the golden foreground point count;
-3. for each deadline = fraction x the original pipeline's time, ``edgerecon run`` (embedded
-   engine, optimizer on, background updates in the back-end's idle time) over ``--tasks``
+3. for each deadline = fraction x the original pipeline's time and each of ``--engines``,
+   ``edgerecon run`` (the embedded engine by default; ``ray``: a private Ray instance, the
+   two roles as actors, against the same golden time), optimizer on, background updates in the back-end's idle time) over ``--tasks``
    timestamps: average scale, cameras, average critical path (all tasks and after
    convergence), deadline misses after convergence, degraded tasks, tasks slower than the
    golden task, the online/original ratio, online F, the offline foreground F (against the
@@ -135,6 +137,7 @@ def run_deadline(
     original_s: float,
     sparse_scope: str = "hull",
     split: SplitPipelineConfig | None = None,
+    engine: str = "embedded",
 ) -> dict[str, Any]:
     ds = open_dataset(root)
     dist = median_camera_distance(ds.rig)
@@ -143,7 +146,7 @@ def run_deadline(
     )
     options = SessionOptions(frames=frames, overwrite=True)
     load = os.getloadavg()[0]
-    summary, metrics = run_online(ds, config, options, out)
+    summary, metrics = run_online(ds, config, options, out, engine=engine)
     gt = None
     if ds.ground_truth is not None:
         from edgerecon.synth import GroundTruth
@@ -208,6 +211,7 @@ def run_deadline(
     truth_mean = np.mean(vs_truth, axis=0) if vs_truth else [None, None, None]
     moving_mean = np.mean(vs_moving, axis=0) if vs_moving else [None, None, None]
     return {
+        "engine": engine,
         "deadline_s": deadline,
         "load": round(load, 1),
         "tasks": s["tasks"],
@@ -281,6 +285,13 @@ def main() -> None:
         help="a SplitPipelineConfig setting for the online runs and the golden foreground "
         "(read as the [runtime.split] table of a --config file)",
     )
+    ap.add_argument(
+        "--engines",
+        nargs="+",
+        default=["embedded"],
+        choices=("embedded", "ray"),
+        help="engines of the online runs, each at every deadline (ray: a private local instance)",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     split = with_settings(SplitPipelineConfig(), args.split, "runtime.split")
@@ -311,25 +322,28 @@ def main() -> None:
         label = Path(name).name
         for frac in args.fractions:
             deadline = round(frac * reference_s, 2)
-            out = work / "runs" / f"{label}-{args.relative_to}-{frac:g}"
-            row = run_deadline(
-                root,
-                deadline,
-                frames,
-                out,
-                golden_fg,
-                base["mean_total_s"],
-                args.sparse_scope,
-                split,
-            )
-            row["fraction"] = frac
-            runs.append(row)
-            print(
-                f"  deadline {deadline:.2f} s: avg {row['avg_time_s']:.2f} s, converged "
-                f"{row['avg_time_converged_s']}, r {row['avg_scale']:.2f}"
-            )
+            for engine in args.engines:
+                out = work / "runs" / f"{label}-{args.relative_to}-{frac:g}-{engine}"
+                row = run_deadline(
+                    root,
+                    deadline,
+                    frames,
+                    out,
+                    golden_fg,
+                    base["mean_total_s"],
+                    args.sparse_scope,
+                    split,
+                    engine,
+                )
+                row["fraction"] = frac
+                runs.append(row)
+                print(
+                    f"  deadline {deadline:.2f} s ({engine}): avg {row['avg_time_s']:.2f} s, "
+                    f"converged {row['avg_time_converged_s']}, r {row['avg_scale']:.2f}"
+                )
         cols = [
             "fraction",
+            *(["engine"] if len(args.engines) > 1 else []),
             "deadline_s",
             "load",
             "avg_scale",
@@ -362,7 +376,7 @@ def main() -> None:
         for r in runs:
             stage_rows.append(
                 {
-                    "stage": f"optimized @ {r['deadline_s']:.2f} s: critical path",
+                    "stage": f"optimized @ {r['deadline_s']:.2f} s ({r['engine']}): critical path",
                     "optimized": r["avg_time_s"],
                     "reduction": round(1 - r["avg_time_s"] / base["mean_total_s"], 3),
                 }
