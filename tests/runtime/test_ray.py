@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -12,7 +13,13 @@ from edgerecon.io.dataset import open_dataset
 from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
 from edgerecon.runtime.engine import learn_scene_model
 from edgerecon.runtime.frontend import FixedController
-from edgerecon.runtime.ray_engine import RayEngine, connect, keep_on_loopback, normal_priority
+from edgerecon.runtime.ray_engine import (
+    RayEngine,
+    connect,
+    keep_on_loopback,
+    normal_priority,
+    use_cluster_token,
+)
 from edgerecon.types import EdgereconError
 
 keep_on_loopback()  # before Ray is imported: the cluster below listens on 127.0.0.1 only
@@ -201,6 +208,72 @@ def test_the_frontend_runs_at_normal_priority(cluster, tiny):
         assert engine.status()["frontend_niceness"] == 0
     finally:
         engine.close()
+
+
+def test_a_driver_uses_the_ray_token_it_finds(tmp_path):
+    home = tmp_path / "home"
+    env: dict[str, str] = {}
+    assert not use_cluster_token(env, home) and env == {}  # no token: nothing to send
+    (home / ".ray").mkdir(parents=True)
+    (home / ".ray" / "auth_token").write_text("secret")
+    assert use_cluster_token(env, home) and env == {"RAY_AUTH_MODE": "token"}
+    env = {"RAY_AUTH_MODE": "disabled"}  # the user's choice stands
+    assert not use_cluster_token(env, home) and env == {"RAY_AUTH_MODE": "disabled"}
+    env = {"RAY_AUTH_TOKEN": "secret"}
+    assert use_cluster_token(env, tmp_path) and env["RAY_AUTH_MODE"] == "token"
+    env = {"RAY_AUTH_TOKEN_PATH": str(tmp_path / "missing")}
+    assert not use_cluster_token(env, home)
+
+
+def test_joining_a_cluster_started_by_ray_start(tmp_path):
+    # Ray 2.59+ starts `ray start --head` clusters with token authentication, and a driver
+    # joining by address defaults to none (Ray 2.60: refused, "Failed to connect"): the
+    # README's two-device commands must work as written.
+    import shutil
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    ray_cli = shutil.which("ray") or str(Path(sys.executable).with_name("ray"))
+    if not Path(ray_cli).exists():
+        pytest.skip("no ray command")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+    env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # stay on loopback (keep_on_loopback)
+    env["RAY_worker_niceness"] = "0"
+    head = subprocess.Popen(
+        [ray_cli, "start", "--head", "--block", "--node-ip-address=127.0.0.1", f"--port={port}",
+         "--include-dashboard=false", "--resources", '{"frontend": 1, "backend": 1}'],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                time.sleep(0.5)
+        code = (
+            "from edgerecon.runtime.ray_engine import connect\n"
+            f"connect('127.0.0.1:{port}')\n"
+            "import ray\n"
+            "print(ray.cluster_resources().get('frontend'))\n"
+            "ray.shutdown()\n"
+        )
+        out = subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+        )
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.strip().splitlines()[-1] == "1.0"
+    finally:
+        head.send_signal(signal.SIGTERM)
+        head.wait(60)
 
 
 def test_no_cluster_at_the_address_is_a_clear_error():

@@ -30,6 +30,7 @@ import os
 import socket
 import uuid
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from edgerecon.io.dataset import Dataset
@@ -112,6 +113,29 @@ def normal_priority(target: int = 0) -> int:
         except OSError:
             continue
     return left
+
+
+def use_cluster_token(environ: dict[str, str] | None = None, home: Path | None = None) -> bool:
+    """Before joining a cluster at an address: ask for Ray's token authentication when a
+    token is at hand and ``RAY_AUTH_MODE`` is not set; returns whether it did.
+
+    Ray 2.59 and later start ``ray start --head`` clusters with token authentication, while a
+    driver that joins one by address still defaults to ``RAY_AUTH_MODE=disabled`` and is
+    refused (Ray 2.60: "Failed to connect to Ray cluster"). A driver in token mode also joins
+    a cluster without authentication, so the token is used whenever one is found:
+    ``RAY_AUTH_TOKEN``, the file at ``RAY_AUTH_TOKEN_PATH``, or ``~/.ray/auth_token`` (where
+    ``ray start`` keeps it; ``ray get-auth-token`` prints it)."""
+    env = os.environ if environ is None else environ
+    if env.get("RAY_AUTH_MODE"):
+        return False
+    path = env.get("RAY_AUTH_TOKEN_PATH")
+    token_file = (
+        Path(path) if path else (Path.home() if home is None else home) / ".ray" / "auth_token"
+    )
+    if not env.get("RAY_AUTH_TOKEN") and not token_file.is_file():
+        return False
+    env["RAY_AUTH_MODE"] = "token"
+    return True
 
 
 def _ray() -> Any:
@@ -453,6 +477,11 @@ def connect(address: str | None, num_cpus: int | None = None) -> Any:
     )
     if address:
         _check_reachable(address, hint)
+        if use_cluster_token():
+            hint += (
+                "; this driver used the Ray token it found (RAY_AUTH_MODE=token): it must be "
+                "the cluster's (`ray get-auth-token` on the head node)"
+            )
     ray = _ray()
     if ray.is_initialized():
         return None
