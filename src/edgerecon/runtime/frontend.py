@@ -599,9 +599,8 @@ class FrontEnd:
         # empty-scene clip, an empty room) measures no MVS at its r: it is not an observation
         # (the adjustment would climb on it, and a golden task's pi(N') would come from no
         # foreground); the controller plans the same configuration again.
-        informative = mask_area(fg.masks, plan.camera_ids) != 0.0 and (
-            fg.hull is None or fg.hull.num_voxels > 0
-        )
+        task_area = area if area is not None else mask_area(fg.masks, plan.camera_ids)
+        informative = task_area != 0.0 and (fg.hull is None or fg.hull.num_voxels > 0)
         mapping = (
             informative
             and plan.phase == "golden"
