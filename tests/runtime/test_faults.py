@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import shutil
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -17,6 +18,7 @@ import edgerecon.scene.objects
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, frame_defect
 from edgerecon.runtime import RuntimeConfig
+from edgerecon.runtime.interrupt import ThreadAbandoned, stop_thread
 from edgerecon.scene.foreground import RigForeground
 from tests.runtime.conftest import run_frames, runtime_config
 
@@ -116,7 +118,7 @@ def test_a_stage_that_hangs_is_abandoned_by_the_watchdog(tiny, tmp_path, monkeyp
 
     monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", hang)
     try:
-        _, metrics = run_frames(
+        summary, metrics = run_frames(
             tiny, tmp_path, 0, 4, runtime_config(task_timeout_s=12.0), fixed=(0.8, None)
         )
     finally:
@@ -124,8 +126,57 @@ def test_a_stage_that_hangs_is_abandoned_by_the_watchdog(tiny, tmp_path, monkeyp
     assert [m.status for m in metrics] == ["ok", "failed", "ok", "ok"]
     assert metrics[1].error.startswith("watchdog: still running after 12.0 s")
     assert metrics[2].wall_time - metrics[1].wall_time < 60
+    # Blocked inside a native wait, its thread still runs at the end: the summary says so.
+    assert summary.abandoned_threads == ["task 1 (time 1) abandoned by the watchdog"]
     assert RuntimeConfig(deadline_s=2.0).watchdog_s == 30.0
     assert RuntimeConfig(deadline_s=5.0).watchdog_s == 50.0
+
+
+def test_a_stage_looping_for_ever_is_stopped_with_its_thread(tiny, tmp_path, monkeypatch):
+    # A stage that never reaches a stage boundary (a loop that does not end) kept its thread
+    # after the watchdog gave up on it: on a 2-core device a core lost for the whole run.
+    real = edgerecon.pipeline.reconstruct_foreground
+    calls = {"n": 0}
+    loop: dict[str, float] = {}
+
+    def spin(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            try:
+                while True:  # Python code that never returns
+                    time.sleep(0.005)
+            finally:
+                loop["ended"] = time.monotonic()
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", spin)
+    summary, metrics = run_frames(
+        tiny, tmp_path, 0, 4, runtime_config(task_timeout_s=12.0), fixed=(0.8, None)
+    )
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "ok"]
+    assert metrics[1].error.startswith("watchdog: still running after 12.0 s")
+    assert "ended" in loop, "the looping stage was stopped"
+    assert summary.abandoned_threads == []
+    assert not [t for t in threading.enumerate() if t.name == "task-1"]
+
+
+def test_stop_thread_raises_in_the_thread_at_its_next_instruction():
+    ended = threading.Event()
+
+    def loop() -> None:
+        try:
+            while True:
+                time.sleep(0.001)
+        except ThreadAbandoned:
+            ended.set()
+
+    th = threading.Thread(target=loop, daemon=True)
+    th.start()
+    assert stop_thread(th)
+    th.join(5.0)
+    assert ended.is_set() and not th.is_alive()
+    assert not stop_thread(th), "an ended thread is not stopped again"
+    assert not stop_thread(threading.Thread(target=loop)), "nor one never started"
 
 
 def test_two_object_crash_is_a_failed_record_also_after_resume(tiny, tmp_path, monkeypatch):

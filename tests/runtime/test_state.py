@@ -16,6 +16,7 @@ from edgerecon.dense import DenseConfig
 from edgerecon.io.ply import read_ply
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
 from edgerecon.runtime import FrameRange, SessionOptions, run_online
+from edgerecon.runtime.backend import BackEnd
 from edgerecon.runtime.engine import EmbeddedEngine
 from edgerecon.runtime.frontend import FixedController, FrontEnd
 from edgerecon.runtime.messages import BackgroundUpdate, BgVersion
@@ -113,6 +114,42 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
         out = engine.run_task(frames, engine.plan(3), 0, {})
         assert out.metrics.status == "ok" and out.metrics.submitted
         assert _wait(lambda: fe.bg_version.epoch == 2), "the new back-end's background is taken"
+    finally:
+        engine.close()
+
+
+def test_embedded_backend_stuck_in_a_loop_is_restarted_and_its_thread_stopped(tiny, monkeypatch):
+    # A back-end stuck past the watchdog is replaced; a task thread that loops in Python
+    # code for ever would have kept a core of this process busy for the rest of the run.
+    ds, scene = tiny
+    loop: dict[str, float] = {}
+
+    def spin(self, work):
+        try:
+            while True:
+                time.sleep(0.005)
+        finally:
+            loop["ended"] = time.monotonic()
+
+    monkeypatch.setattr(BackEnd, "_serve", spin)
+    engine = EmbeddedEngine(
+        ds,
+        runtime_config(backend_retry_s=0.1, task_timeout_s=2.0),
+        FixedController(0.6, (0, 1, 2, 3, 4)),
+        scene,
+    )
+    try:
+        stuck = engine.backend
+        with ds.open_frames() as src:
+            frames = src.read(3)
+        out = engine.run_task(frames, engine.plan(3), 0, {})
+        assert out.metrics.status == "ok" and out.metrics.submitted
+        assert _wait(lambda: stuck.ping()["task_age_s"] > 2.5, timeout=30)
+        engine.link._next_check = 0.0
+        assert not engine.link.usable()  # found stuck: restarted
+        assert engine.backend_restarts == 1 and engine.backend is not stuck
+        assert _wait(lambda: "ended" in loop and not stuck.task_thread.is_alive(), timeout=10)
+        assert engine.status()["abandoned_threads"] == []
     finally:
         engine.close()
 

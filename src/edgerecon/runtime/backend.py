@@ -37,6 +37,7 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.pipeline import prepare_task_views, reconstruct_static, task_sparse
 from edgerecon.runtime.config import RuntimeConfig
+from edgerecon.runtime.interrupt import ThreadAbandoned
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -119,6 +120,12 @@ class BackEnd:
         for th in self._threads:
             th.join(timeout)
 
+    @property
+    def task_thread(self) -> threading.Thread | None:
+        """The thread that serves the tasks (the one a back-end stuck on a task is stuck
+        in; None before :meth:`start`)."""
+        return self._threads[0] if self._threads else None
+
     # ------------------------------------------------------------------ requests
     def submit(self, work: TaskWork) -> None:
         """Queue a task; a task still waiting is replaced (only the newest matters)."""
@@ -191,6 +198,11 @@ class BackEnd:
             try:
                 self._serve(work)
             except BackendFault:
+                return
+            except ThreadAbandoned:  # stuck past the watchdog: the engine replaced this node
+                logger.warning(
+                    "back-end: task %d stopped (stuck past the watchdog)", work.frames.time_index
+                )
                 return
             except Exception as exc:  # a bug outside the stages must not kill the node either
                 logger.exception("back-end: task %d failed: %s", work.frames.time_index, exc)

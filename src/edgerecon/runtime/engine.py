@@ -354,6 +354,10 @@ class EmbeddedEngine:
             # The node is gone or stuck: bring up a fresh one (from the newest snapshot).
             logger.warning("embedded back-end %s: restarting it", reason)
             self.backend.stop(timeout=1.0)
+            stuck = self.backend.task_thread
+            if stuck is not None and stuck.is_alive():
+                # Stuck in its task: stopped (its rebuild thread ends after its rebuild).
+                self.frontend.abandoned.abandon(stuck, "the embedded back-end's stuck task")
             self.backend = self._new_backend()
             self.backend_restarts += 1
             return None
@@ -391,6 +395,7 @@ class EmbeddedEngine:
             "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,
+            "abandoned_threads": self.frontend.abandoned.running(),
             "backend": self.backend.ping(),
         }
 

@@ -53,6 +53,7 @@ from edgerecon.pipeline import (
 )
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
+from edgerecon.runtime.interrupt import AbandonedThreads
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -220,6 +221,8 @@ class FrontEnd:
         self._scene_saved = None if scene is None else scene.snapshot()
         self._lock = threading.Lock()
         self._commit = threading.Lock()
+        self.abandoned = AbandonedThreads()
+        """The threads of abandoned work (a task past the watchdog, updates that hung)."""
         self._background = PointCloud.empty() if background is None else background
         self._bg_version = BgVersion()
         self._bg_published = BgVersion()
@@ -416,6 +419,7 @@ class FrontEnd:
         if worker.is_alive():
             logger.error("background updates between tasks: still running after %.1f s", limit)
             self._restore_scene(worker, "background updates abandoned between tasks")
+            self.abandoned.abandon(worker, "background updates abandoned between tasks")
             return time.perf_counter() - start
         if "exc" in box:
             logger.warning(
@@ -485,7 +489,11 @@ class FrontEnd:
         with self._commit:
             if worker.is_alive() and not guard.committed:
                 guard.cancel.set()  # it stops at its next stage boundary, publishing nothing
-                self._restore_scene(worker, f"task {task} (time {frames.time_index})")
+                what = f"task {task} (time {frames.time_index})"
+                self._restore_scene(worker, what)
+                # A stage that never reaches a boundary (a loop that does not end) is
+                # stopped too: its thread would take a core from every later task.
+                self.abandoned.abandon(worker, f"{what} abandoned by the watchdog")
                 # The configuration took that long: the controller learns it.
                 self.controller.observe(limit, None)
                 error = f"watchdog: still running after {limit:.1f} s (abandoned)"

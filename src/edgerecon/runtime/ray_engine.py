@@ -312,6 +312,7 @@ class _FrontendActor:
             "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,
+            "abandoned_threads": self.frontend.abandoned.running(),
             "backend": self._ping(),
         }
 

@@ -183,6 +183,9 @@ class RunSummary:
     bg_version: list[int] = field(default_factory=lambda: [0, 0])
     """(back-end epoch, counter) of the newest background held at the end."""
     backend_restarts: int = 0
+    abandoned_threads: list[str] = field(default_factory=list)
+    """Abandoned work whose thread still runs at the end (stopped, but blocked inside a
+    native call since; ``runtime.interrupt``): empty when every one ended."""
     search_steps: int = 0
     stage_means_s: dict[str, float] = field(default_factory=dict)
     """Mean seconds per stage over the ok tasks (``wait_golden`` comes after the critical
@@ -341,6 +344,13 @@ class Session:
             summary.backgrounds_pushed = int(status.get("backgrounds_received", 0))
             summary.bg_version = list(status.get("bg_version", [0, 0]))
             summary.backend_restarts = int(status.get("backend_restarts", 0))
+            summary.abandoned_threads = [str(w) for w in status.get("abandoned_threads", [])]
+            if summary.abandoned_threads:
+                logger.warning(
+                    "%d abandoned thread(s) still running at the end: %s",
+                    len(summary.abandoned_threads),
+                    "; ".join(summary.abandoned_threads),
+                )
         except Exception as exc:  # the summary is written even when an engine is gone
             logger.warning("engine status unavailable for the summary: %s", exc)
         atomic_write_text(self.out / "summary.json", json.dumps(summary.to_dict(), indent=2) + "\n")
