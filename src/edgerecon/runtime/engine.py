@@ -357,7 +357,9 @@ class EmbeddedEngine:
             stuck = self.backend.task_thread
             if stuck is not None and stuck.is_alive():
                 # Stuck in its task: stopped (its rebuild thread ends after its rebuild).
-                self.frontend.abandoned.abandon(stuck, "the embedded back-end's stuck task")
+                self.frontend.abandoned.abandon(
+                    stuck, "the embedded back-end's stuck task", grace_s=0.0
+                )
             self.backend = self._new_backend()
             self.backend_restarts += 1
             return None

@@ -487,18 +487,22 @@ class FrontEnd:
         worker.start()
         worker.join(limit)
         with self._commit:
-            if worker.is_alive() and not guard.committed:
+            abandoned = worker.is_alive() and not guard.committed
+            if abandoned:
                 guard.cancel.set()  # it stops at its next stage boundary, publishing nothing
-                what = f"task {task} (time {frames.time_index})"
-                self._restore_scene(worker, what)
-                # A stage that never reaches a boundary (a loop that does not end) is
-                # stopped too: its thread would take a core from every later task.
-                self.abandoned.abandon(worker, f"{what} abandoned by the watchdog")
+                self._restore_scene(worker, f"task {task} (time {frames.time_index})")
                 # The configuration took that long: the controller learns it.
                 self.controller.observe(limit, None)
-                error = f"watchdog: still running after {limit:.1f} s (abandoned)"
-                logger.error("task %d (time %d): %s", task, frames.time_index, error)
-                return self._failed(frames, task, error)
+        if abandoned:
+            error = f"watchdog: still running after {limit:.1f} s (abandoned)"
+            logger.error("task %d (time %d): %s", task, frames.time_index, error)
+            # A stage that never reaches a boundary (a loop that does not end) is stopped
+            # too, once the commit lock is free and it had time to stop on its own: its
+            # thread would take a core from every later task.
+            self.abandoned.abandon(
+                worker, f"task {task} (time {frames.time_index}) abandoned by the watchdog"
+            )
+            return self._failed(frames, task, error)
         worker.join()  # committed: only the metrics are left to build
         if "exc" in box:
             exc = box["exc"]

@@ -20,6 +20,9 @@ import threading
 
 logger = logging.getLogger(__name__)
 
+#: Seconds an abandoned thread has to end on its own before it is stopped.
+GRACE_S = 2.0
+
 
 class ThreadAbandoned(BaseException):
     """Raised inside a thread whose work the runtime abandoned. A ``BaseException``: the
@@ -49,15 +52,19 @@ class AbandonedThreads:
         self._lock = threading.Lock()
         self._threads: list[tuple[threading.Thread, str]] = []
 
-    def abandon(self, thread: threading.Thread, what: str) -> None:
-        """Give up on ``thread`` (doing ``what``): stop it, and keep it to count."""
+    def abandon(self, thread: threading.Thread, what: str, grace_s: float = GRACE_S) -> None:
+        """Give up on ``thread`` (doing ``what``): unless it ends within ``grace_s`` (its
+        work was cancelled: it stops at its next check), stop it, and keep it to count.
+        Raising in a thread that is releasing a lock could leave the lock held: the grace
+        lets a thread on its way out finish, so the threads stopped are the ones stuck."""
+        thread.join(grace_s)
         stopped = stop_thread(thread)
         logger.warning(
             "%s: %s",
             what,
             "stopping its thread (an exception raised at its next Python instruction)"
             if stopped
-            else "its thread had already ended",
+            else "its thread ended on its own",
         )
         with self._lock:
             self._threads = [(t, w) for t, w in self._threads if t.is_alive()]
