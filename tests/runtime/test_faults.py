@@ -5,6 +5,7 @@ updates on."""
 from __future__ import annotations
 
 import logging
+import os
 import shutil
 import threading
 import time
@@ -18,6 +19,7 @@ import edgerecon.scene.objects
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, frame_defect
 from edgerecon.runtime import RuntimeConfig
+from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker
 from edgerecon.runtime.interrupt import ThreadAbandoned, stop_thread
 from edgerecon.scene.foreground import RigForeground
 from tests.runtime.conftest import run_frames, runtime_config
@@ -177,6 +179,48 @@ def test_stop_thread_raises_in_the_thread_at_its_next_instruction():
     assert ended.is_set() and not th.is_alive()
     assert not stop_thread(th), "an ended thread is not stopped again"
     assert not stop_thread(threading.Thread(target=loop)), "nor one never started"
+
+
+def _gone(pid: int, timeout: float = 10.0) -> bool:
+    """The process ``pid`` ended (gone, or a zombie not yet reaped) within ``timeout``."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    return True
+        except FileNotFoundError:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _sleep_for_ever() -> None:  # module level: the rebuild process imports it by name
+    while True:
+        time.sleep(1.0)
+
+
+def test_a_background_rebuild_that_hangs_has_its_process_killed():
+    # The back-end's thread waited for its rebuild process without a limit: one rebuild
+    # that hangs, and the background stayed as it was for the rest of the run.
+    worker = _RebuildWorker(nice=0)
+    try:
+        first = worker.call(os.getpid, timeout_s=120.0)  # the process starts (spawn)
+        t0 = time.monotonic()
+        with pytest.raises(RebuildTimeout, match="its process was killed"):
+            worker.call(_sleep_for_ever, timeout_s=1.0)
+        assert time.monotonic() - t0 < 10.0
+        assert _gone(first), "the hung rebuild's process was killed"
+        second = worker.call(os.getpid, timeout_s=120.0)
+        assert second != first, "the next rebuild runs in a new process"
+        assert worker.call(pow, 3, 3, timeout_s=60.0) == 27
+    finally:
+        worker.close()
+    assert RuntimeConfig(deadline_s=2.0).rebuild_limit_s == 300.0
+    assert RuntimeConfig(deadline_s=60.0).rebuild_limit_s == 6000.0
+    assert RuntimeConfig(deadline_s=2.0, rebuild_timeout_s=5.0).rebuild_limit_s == 5.0
+    with pytest.raises(ValueError, match="rebuild_timeout_s"):
+        RuntimeConfig(deadline_s=2.0, rebuild_timeout_s=0.0)
 
 
 def test_two_object_crash_is_a_failed_record_also_after_resume(tiny, tmp_path, monkeypatch):

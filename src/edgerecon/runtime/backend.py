@@ -29,7 +29,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -47,9 +47,11 @@ from edgerecon.runtime.messages import (
 )
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.split import split_sparse
-from edgerecon.types import FrameSet, Mask, PointCloud
+from edgerecon.types import EdgereconError, FrameSet, Mask, PointCloud
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 PushFn = Callable[[BackgroundUpdate], object]
 
@@ -286,6 +288,8 @@ class BackEnd:
                 self._last_bg_start = time.monotonic()
             try:
                 self._rebuild(*source)
+            except RebuildTimeout as exc:
+                logger.error("back-end: %s", exc)
             except Exception as exc:
                 logger.exception("back-end: background rebuild failed: %s", exc)
 
@@ -310,7 +314,14 @@ class BackEnd:
     def _rebuild(self, frames: FrameSet, masks: tuple[Mask | None, ...] | None) -> None:
         t0 = time.perf_counter()
         if self._worker is not None:
-            cloud = self._worker.run(self.rig, self.config, frames, masks)
+            cloud = self._worker.call(
+                rebuild_background,
+                self.rig,
+                self.config,
+                frames,
+                masks,
+                timeout_s=self.config.rebuild_limit_s,
+            )
         else:
             cloud = rebuild_background(self.rig, self.config, frames, masks)
         with self._lock:
@@ -365,6 +376,23 @@ def _lower_priority(nice: int, idle: bool = False) -> None:
             pass
 
 
+class RebuildTimeout(EdgereconError):
+    """A background rebuild ran past ``RuntimeConfig.rebuild_limit_s``; its process was
+    killed."""
+
+
+def _kill_pool(pool: ProcessPoolExecutor) -> None:
+    """Kill the processes of ``pool`` (a task running there cannot be cancelled) and let it
+    go."""
+    processes = getattr(pool, "_processes", None) or {}
+    for process in list(processes.values()):
+        try:
+            process.kill()
+        except (OSError, ValueError):  # already gone
+            pass
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
 class _RebuildWorker:
     """Background rebuilds in a process of their own, at a lower OS priority.
 
@@ -381,13 +409,11 @@ class _RebuildWorker:
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
 
-    def run(
-        self,
-        rig: Rig,
-        config: RuntimeConfig,
-        frames: FrameSet,
-        masks: tuple[Mask | None, ...] | None,
-    ) -> PointCloud:
+    def call(self, fn: Callable[..., T], *args: Any, timeout_s: float | None = None) -> T:
+        """``fn(*args)`` in the worker process. Still running after ``timeout_s``: the
+        process is killed and :class:`RebuildTimeout` raised (the next call starts a new
+        one), so a rebuild that hangs does not stop the backgrounds for the rest of the
+        run."""
         with self._lock:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
@@ -397,12 +423,22 @@ class _RebuildWorker:
                     initargs=(self._nice, self._idle),
                 )
             pool = self._pool
+        future = pool.submit(fn, *args)
         try:
-            return pool.submit(rebuild_background, rig, config, frames, masks).result()
+            return future.result(timeout=timeout_s)
         except BrokenProcessPool:
             with self._lock:
                 self._pool = None  # the next rebuild starts a new process
             raise
+        except TimeoutError:
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            _kill_pool(pool)
+            raise RebuildTimeout(
+                f"background rebuild still running after {timeout_s:.0f} s: its process "
+                "was killed (the next rebuild starts a new one from the newest frames)"
+            ) from None
 
     def close(self) -> None:
         with self._lock:

@@ -79,6 +79,11 @@ class RuntimeConfig:
     """Rebuild the background in a process of its own (a thread of the back-end's process
     holding the interpreter lock while descheduled stalls the front-end's critical path in
     the embedded engine)."""
+    rebuild_timeout_s: float | None = None
+    """A background rebuild (in its own process) still running after this many seconds has
+    its process killed; the next rebuild starts a new one from the newest frames. None =
+    max(10 x the watchdog, 300 s): a rebuild under the idle scheduling class waits for the
+    cores the two roles leave, and must not be killed for that."""
     background_nice: int = 10
     """OS niceness of the background-rebuild thread (Linux), so that the current task's
     work (and golden references) is served first."""
@@ -121,7 +126,7 @@ class RuntimeConfig:
                 f"RuntimeConfig.online_quality must be one of {ONLINE_QUALITIES}, "
                 f"got {self.online_quality!r}"
             )
-        for name in ("eval_threshold", "golden_timeout_s", "task_timeout_s"):
+        for name in ("eval_threshold", "golden_timeout_s", "task_timeout_s", "rebuild_timeout_s"):
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"RuntimeConfig.{name} must be > 0 or None, got {v!r}")
@@ -152,6 +157,14 @@ class RuntimeConfig:
         if self.task_timeout_s is not None:
             return self.task_timeout_s
         return max(self.watchdog_factor * self.deadline_s, self.watchdog_min_s)
+
+    @property
+    def rebuild_limit_s(self) -> float:
+        """Seconds after which a background rebuild's process is killed (see
+        ``rebuild_timeout_s``)."""
+        if self.rebuild_timeout_s is not None:
+            return self.rebuild_timeout_s
+        return max(10.0 * self.watchdog_s, 300.0)
 
     @property
     def golden_wait_s(self) -> float:
