@@ -9,17 +9,19 @@ import os
 import shutil
 import threading
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 import edgerecon.pipeline
+import edgerecon.runtime.backend
 import edgerecon.scene.objects
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, frame_defect
 from edgerecon.runtime import RuntimeConfig
-from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker
+from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker, rebuild_background
 from edgerecon.runtime.interrupt import ThreadAbandoned, stop_thread
 from edgerecon.scene.foreground import RigForeground
 from tests.runtime.conftest import run_frames, runtime_config
@@ -221,6 +223,50 @@ def test_a_background_rebuild_that_hangs_has_its_process_killed():
     assert RuntimeConfig(deadline_s=2.0, rebuild_timeout_s=5.0).rebuild_limit_s == 5.0
     with pytest.raises(ValueError, match="rebuild_timeout_s"):
         RuntimeConfig(deadline_s=2.0, rebuild_timeout_s=0.0)
+
+
+def _rebuild_hanging_once(rig, config, frames, masks):  # runs in the rebuild process
+    marker = Path(os.environ["EDGERECON_TEST_REBUILD_MARKER"])
+    if not marker.exists():
+        marker.touch()
+        _sleep_for_ever()
+    return rebuild_background(rig, config, frames, masks)
+
+
+def test_a_run_whose_first_background_rebuild_hangs_gets_its_backgrounds(
+    tiny, tmp_path, monkeypatch, caplog
+):
+    # Everything on: the back-end's first rebuild (the stream's first background) hangs in
+    # its process; it is killed, and the next rebuild, in a new process, reaches the tasks.
+    monkeypatch.setenv("EDGERECON_TEST_REBUILD_MARKER", str(tmp_path / "hung-once"))
+    monkeypatch.setattr(edgerecon.runtime.backend, "rebuild_background", _rebuild_hanging_once)
+    caplog.set_level(logging.ERROR)
+
+    def killed() -> bool:
+        return any("its process was killed" in r.getMessage() for r in caplog.records)
+
+    def pause(m) -> None:  # after task 3, idle time for the next rebuild once one was killed
+        if m.task == 3:
+            end = time.monotonic() + 60.0
+            while not killed() and time.monotonic() < end:
+                time.sleep(0.2)
+            time.sleep(20.0)
+
+    n = tiny[0].num_frames
+    summary, metrics = run_frames(
+        tiny,
+        tmp_path / "run",
+        0,
+        n,
+        runtime_config(rebuild_timeout_s=10.0),
+        fixed=(0.8, None),
+        on_task=pause,
+    )
+    assert [m.status for m in metrics] == ["ok"] * n
+    assert (tmp_path / "hung-once").exists(), "the first rebuild hung"
+    assert killed()
+    assert summary.backgrounds_pushed >= 1, "a background after the killed rebuild"
+    assert metrics[-1].background_version > metrics[0].background_version
 
 
 def test_two_object_crash_is_a_failed_record_also_after_resume(tiny, tmp_path, monkeypatch):

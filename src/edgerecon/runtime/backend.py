@@ -27,7 +27,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
@@ -376,6 +376,10 @@ def _lower_priority(nice: int, idle: bool = False) -> None:
             pass
 
 
+#: Seconds a new rebuild process has to start (spawn and imports) before it is killed.
+_START_S = 300.0
+
+
 class RebuildTimeout(EdgereconError):
     """A background rebuild ran past ``RuntimeConfig.rebuild_limit_s``; its process was
     killed."""
@@ -415,6 +419,7 @@ class _RebuildWorker:
         one), so a rebuild that hangs does not stop the backgrounds for the rest of the
         run."""
         with self._lock:
+            fresh = self._pool is None
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
                     max_workers=1,
@@ -423,12 +428,19 @@ class _RebuildWorker:
                     initargs=(self._nice, self._idle),
                 )
             pool = self._pool
-        future = pool.submit(fn, *args)
+        if fresh:  # the process's start (spawn, imports) is not the rebuild's time
+            self._wait(pool, pool.submit(os.getpid), _START_S, "did not start")
+        return self._wait(pool, pool.submit(fn, *args), timeout_s, "still running")
+
+    def _wait(
+        self, pool: ProcessPoolExecutor, future: Future[T], limit: float | None, what: str
+    ) -> T:
         try:
-            return future.result(timeout=timeout_s)
+            return future.result(timeout=limit)
         except BrokenProcessPool:
             with self._lock:
-                self._pool = None  # the next rebuild starts a new process
+                if self._pool is pool:
+                    self._pool = None  # the next rebuild starts a new process
             raise
         except TimeoutError:
             with self._lock:
@@ -436,8 +448,8 @@ class _RebuildWorker:
                     self._pool = None
             _kill_pool(pool)
             raise RebuildTimeout(
-                f"background rebuild still running after {timeout_s:.0f} s: its process "
-                "was killed (the next rebuild starts a new one from the newest frames)"
+                f"background rebuild {what} after {limit:.0f} s: its process was killed "
+                "(the next rebuild starts a new one from the newest frames)"
             ) from None
 
     def close(self) -> None:
