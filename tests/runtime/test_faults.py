@@ -18,6 +18,7 @@ import pytest
 import edgerecon.pipeline
 import edgerecon.runtime.backend
 import edgerecon.scene.objects
+from edgerecon.cli.run import parse_fault
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, frame_defect
 from edgerecon.runtime import RuntimeConfig
@@ -162,6 +163,23 @@ def test_a_stage_looping_for_ever_is_stopped_with_its_thread(tiny, tmp_path, mon
     assert "ended" in loop, "the looping stage was stopped"
     assert summary.abandoned_threads == []
     assert not [t for t in threading.enumerate() if t.name == "task-1"]
+
+
+def test_the_hang_drill_fails_one_task_and_the_run_goes_on(tiny, tmp_path):
+    # `--inject-fault TASK:hang`: the front-end's task loops for ever in Python code.
+    summary, metrics = run_frames(
+        tiny,
+        tmp_path,
+        0,
+        4,
+        runtime_config(task_timeout_s=8.0),
+        fixed=(0.8, None),
+        faults=((1, "hang", 0.0),),
+    )
+    assert [m.status for m in metrics] == ["ok", "failed", "ok", "ok"]
+    assert metrics[1].error.startswith("watchdog: still running after 8.0 s")
+    assert summary.abandoned_threads == []
+    assert parse_fault("3:hang") == (3, "hang", 30.0)
 
 
 def test_stop_thread_raises_in_the_thread_at_its_next_instruction():

@@ -139,7 +139,9 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="TASK:KIND[:SECONDS]",
         help="drill (repeatable): before task TASK, make the back-end stall for SECONDS "
-        "(KIND=stall, default 30 s), crash (crash) or, with Ray, kill its process (kill)",
+        "(KIND=stall, default 30 s), crash (crash) or, with Ray, kill its process (kill), "
+        "or make the front-end's task loop for ever (hang: the watchdog abandons it and "
+        "stops its thread)",
     )
     add_live_view_arguments(p)
 

@@ -171,6 +171,10 @@ class Engine(Protocol):
         """Drills: ``stall`` / ``crash`` (both engines), ``kill`` (Ray: the actor's process)."""
         ...
 
+    def inject_frontend_fault(self, kind: str) -> None:
+        """Drill: ``hang`` (the next task loops for ever; ``FrontEnd.inject_fault``)."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -403,6 +407,9 @@ class EmbeddedEngine:
 
     def inject_backend_fault(self, kind: str, seconds: float = 0.0) -> None:
         self.backend.inject_fault(kind, seconds)
+
+    def inject_frontend_fault(self, kind: str) -> None:
+        self.frontend.inject_fault(kind)
 
     def close(self) -> None:
         self.backend.stop(timeout=5.0)

@@ -166,6 +166,13 @@ class _Job:
     them; ``FrontEnd.pending_updates``)."""
 
 
+def _loop_for_ever() -> None:
+    """The ``hang`` drill: Python code that never returns."""
+    n = 0
+    while True:
+        n += 1
+
+
 class FixedController:
     """A controller that always returns one configuration (for baselines, e.g. the golden
     pipeline every task, and for comparing engines task by task)."""
@@ -222,6 +229,7 @@ class FrontEnd:
         self._lock = threading.Lock()
         self._commit = threading.Lock()
         self.abandoned = AbandonedThreads()
+        self._drill: str | None = None
         """The threads of abandoned work (a task past the watchdog, updates that hung)."""
         self._background = PointCloud.empty() if background is None else background
         self._bg_version = BgVersion()
@@ -519,8 +527,19 @@ class FrontEnd:
         )
         return TaskOutput(metrics=m, foreground=None)
 
+    def inject_fault(self, kind: str) -> None:
+        """Drill: ``"hang"`` makes the next task loop for ever in Python code (the watchdog
+        abandons it and stops its thread; ``runtime.interrupt``)."""
+        if kind != "hang":
+            raise ValueError(f"unknown front-end fault {kind!r}: use 'hang'")
+        self._drill = kind
+
     def _process(self, job: _Job, defects: dict[str, str], guard: TaskGuard) -> TaskOutput:
         frames, plan, golden, task = job.frames, job.plan, job.golden, job.task
+        if self._drill == "hang":
+            self._drill = None
+            logger.warning("drill: task %d loops for ever (until the watchdog stops it)", task)
+            _loop_for_ever()
         if defects and too_few_cameras(frames):
             return self._empty(job, defects)
         start = time.perf_counter()

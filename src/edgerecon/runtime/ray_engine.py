@@ -285,6 +285,9 @@ class _FrontendActor:
     def learn_updates(self, updates: list[FrameSet]) -> float:
         return self.frontend.learn_updates(updates)
 
+    def inject_fault(self, kind: str) -> None:
+        self.frontend.inject_fault(kind)
+
     def run_task(
         self,
         frames_ref: list[Any],
@@ -435,6 +438,9 @@ class RayEngine:
             ray.kill(self.backend, no_restart=False)
         else:
             ray.get(self.backend.inject_fault.remote(kind, seconds))
+
+    def inject_frontend_fault(self, kind: str) -> None:
+        _ray().get(self.frontend.inject_fault.remote(kind))
 
     def close(self) -> None:
         ray = _ray()

@@ -126,8 +126,8 @@ class SessionOptions:
     overwrite: bool = False
     """Replace the run files of a non-empty output folder (refused otherwise)."""
     faults: tuple[tuple[int, str, float], ...] = ()
-    """Drills: (task number, fault kind, seconds) injected into the back-end before that
-    task."""
+    """Drills: (task number, fault kind, seconds) injected before that task (``hang``: into
+    the front-end, the others into the back-end)."""
 
     def __post_init__(self) -> None:
         if self.policy not in ("all", "newest"):
@@ -144,8 +144,9 @@ class SessionOptions:
                 )
 
 
-#: Back-end faults a drill can inject (``kill``: the Ray engine only).
-FAULT_KINDS = ("stall", "crash", "kill")
+#: Faults a drill can inject: the back-end's (``kill``: the Ray engine only) and the
+#: front-end's ``hang`` (the task loops for ever).
+FAULT_KINDS = ("stall", "crash", "kill", "hang")
 
 
 def offline_fscore_label(threshold: float | None, unit: str = "") -> str:
@@ -359,9 +360,13 @@ class Session:
     def _task(self, source: FrameSource, t: int, task: int) -> None:
         for when, kind, seconds in self.options.faults:
             if when == task:
-                logger.warning("drill: injecting back-end fault %r before task %d", kind, task)
+                role = "front-end" if kind == "hang" else "back-end"
+                logger.warning("drill: injecting %s fault %r before task %d", role, kind, task)
                 try:
-                    self.engine.inject_backend_fault(kind, seconds)
+                    if kind == "hang":
+                        self.engine.inject_frontend_fault(kind)
+                    else:
+                        self.engine.inject_backend_fault(kind, seconds)
                 except Exception as exc:  # a drill must not end the run either
                     logger.error("drill: injecting %r failed: %s", kind, exc)
         out = self._run_one(source, t, task)
