@@ -251,17 +251,21 @@ def _rebuild_hanging_once(rig, config, frames, masks):  # runs in the rebuild pr
     return rebuild_background(rig, config, frames, masks)
 
 
+@pytest.mark.parametrize("in_process", [True, False], ids=["process", "thread"])
 def test_a_run_whose_first_background_rebuild_hangs_gets_its_backgrounds(
-    tiny, tmp_path, monkeypatch, caplog
+    tiny, tmp_path, monkeypatch, caplog, in_process
 ):
     # Everything on: the back-end's first rebuild (the stream's first background) hangs in
     # its process; it is killed, and the next rebuild, in a new process, reaches the tasks.
+    # With background_process = false the rebuild's thread is stopped instead (it waited
+    # without a limit).
     monkeypatch.setenv("EDGERECON_TEST_REBUILD_MARKER", str(tmp_path / "hung-once"))
     monkeypatch.setattr(edgerecon.runtime.backend, "rebuild_background", _rebuild_hanging_once)
     caplog.set_level(logging.ERROR)
+    stopped = "its process was killed" if in_process else "its thread was stopped"
 
     def killed() -> bool:
-        return any("its process was killed" in r.getMessage() for r in caplog.records)
+        return any(stopped in r.getMessage() for r in caplog.records)
 
     def pause(m) -> None:  # after task 3, idle time for the next rebuild once one was killed
         if m.task == 3:
@@ -276,13 +280,14 @@ def test_a_run_whose_first_background_rebuild_hangs_gets_its_backgrounds(
         tmp_path / "run",
         0,
         n,
-        runtime_config(rebuild_timeout_s=10.0),
+        runtime_config(rebuild_timeout_s=10.0, background_process=in_process),
         fixed=(0.8, None),
         on_task=pause,
     )
     assert [m.status for m in metrics] == ["ok"] * n
     assert (tmp_path / "hung-once").exists(), "the first rebuild hung"
     assert killed()
+    assert summary.abandoned_threads == [], "the hung rebuild's thread ended"
     assert summary.backgrounds_pushed >= 1, "a background after the killed rebuild"
     assert metrics[-1].background_version > metrics[0].background_version
 

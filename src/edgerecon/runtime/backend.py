@@ -37,7 +37,7 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.pipeline import prepare_task_views, reconstruct_static, task_sparse
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.interrupt import ThreadAbandoned
+from edgerecon.runtime.interrupt import AbandonedThreads, ThreadAbandoned
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -93,6 +93,9 @@ class BackEnd:
         self._stall_until = 0.0
         self._crashed: str | None = None
         self._threads: list[threading.Thread] = []
+        self.abandoned = AbandonedThreads()
+        """Threads of rebuilds stopped past ``rebuild_limit_s`` (``background_process =
+        false``) that still run (blocked in a native call)."""
         self._worker = (
             _RebuildWorker(config.background_nice, config.background_idle)
             if config.background_updates and config.background_process
@@ -152,6 +155,7 @@ class BackEnd:
                 "stalled": time.monotonic() < self._stall_until,
                 "bg_version": [self.epoch, self._bg_version],
                 "error": self._crashed,
+                "abandoned_threads": self.abandoned.running(),
                 **self.stats,
             }
 
@@ -323,7 +327,7 @@ class BackEnd:
                 timeout_s=self.config.rebuild_limit_s,
             )
         else:
-            cloud = rebuild_background(self.rig, self.config, frames, masks)
+            cloud = self._rebuild_in_thread(frames, masks)
         with self._lock:
             self._bg_version += 1
             version = BgVersion(self.epoch, self._bg_version)
@@ -343,6 +347,38 @@ class BackEnd:
                 self._push(update)
             except Exception as exc:  # the front-end may be gone; keep serving
                 logger.warning("back-end: pushing background %s failed: %s", version, exc)
+
+    def _rebuild_in_thread(
+        self, frames: FrameSet, masks: tuple[Mask | None, ...] | None
+    ) -> PointCloud:
+        """A rebuild in this process (``background_process = false``), in a thread of its
+        own: still running after ``rebuild_limit_s``, the thread is stopped (Python code
+        ends at once, a native call when it returns; ``runtime.interrupt``) and
+        :class:`RebuildTimeout` raised, so that the next rebuild can start."""
+        box: dict[str, Any] = {}
+
+        def rebuild() -> None:
+            try:
+                box["cloud"] = rebuild_background(self.rig, self.config, frames, masks)
+            except ThreadAbandoned:
+                pass
+            except Exception as exc:
+                box["error"] = exc
+
+        limit = self.config.rebuild_limit_s
+        thread = threading.Thread(target=rebuild, name="backend-rebuild", daemon=True)
+        thread.start()  # inherits this thread's niceness
+        thread.join(limit)
+        if thread.is_alive():
+            self.abandoned.abandon(thread, "a background rebuild past its limit", grace_s=0.0)
+            raise RebuildTimeout(
+                f"background rebuild still running after {limit:.0f} s: its thread was "
+                "stopped (the next rebuild starts from the newest frames)"
+            )
+        if "error" in box:
+            raise box["error"]
+        cloud: PointCloud = box["cloud"]
+        return cloud
 
 
 def rebuild_background(

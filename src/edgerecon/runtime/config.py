@@ -80,8 +80,9 @@ class RuntimeConfig:
     holding the interpreter lock while descheduled stalls the front-end's critical path in
     the embedded engine)."""
     rebuild_timeout_s: float | None = None
-    """A background rebuild (in its own process) still running after this many seconds has
-    its process killed; the next rebuild starts a new one from the newest frames. None =
+    """A background rebuild still running after this many seconds has its process killed
+    (``background_process = false``: its thread stopped, ``runtime.interrupt``); the next
+    rebuild starts a new one from the newest frames. None =
     max(10 x the watchdog, 300 s): a rebuild under the idle scheduling class waits for the
     cores the two roles leave, and must not be killed for that."""
     background_nice: int = 10

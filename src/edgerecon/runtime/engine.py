@@ -395,14 +395,16 @@ class EmbeddedEngine:
         return self.frontend.state()
 
     def status(self) -> dict[str, Any]:
+        backend = self.backend.ping()
         return {
             "engine": self.name,
             "backgrounds_received": self.frontend.backgrounds_received,
             "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,
-            "abandoned_threads": self.frontend.abandoned.running(),
-            "backend": self.backend.ping(),
+            "abandoned_threads": self.frontend.abandoned.running()
+            + list(backend.get("abandoned_threads", [])),
+            "backend": backend,
         }
 
     def inject_backend_fault(self, kind: str, seconds: float = 0.0) -> None:

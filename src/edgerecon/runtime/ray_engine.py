@@ -309,14 +309,16 @@ class _FrontendActor:
         return str(_ray().get_runtime_context().get_node_id())
 
     def status(self) -> dict[str, Any]:
+        backend = self._ping()
         return {
             "frontend_niceness": self.niceness,
             "backgrounds_received": self.frontend.backgrounds_received,
             "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,
-            "abandoned_threads": self.frontend.abandoned.running(),
-            "backend": self._ping(),
+            "abandoned_threads": self.frontend.abandoned.running()
+            + list((backend or {}).get("abandoned_threads", [])),
+            "backend": backend,
         }
 
 
