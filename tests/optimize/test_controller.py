@@ -614,6 +614,15 @@ def test_a_floor_that_misses_on_average_searches_fewer_cameras_despite_a_lucky_t
             break
     assert ctrl.num_searches == searches + 1, "no search with fewer cameras"
     assert i < 12
+    # The search starts below the floor's camera count: r_min with 4 cameras (and more)
+    # is known too slow from the adjusted tasks, it is not measured again.
+    probed = []
+    while ctrl.phase == "search":
+        c = ctrl.next_config()
+        probed.append(c.num_cameras)
+        ctrl.observe(0.7 if c.num_cameras <= 3 and c.scale <= 0.5 else 1.4, 0.5)
+    assert probed and max(probed) == 3, probed
+    assert ctrl.next_config().num_cameras == 3
 
 
 def test_set_deadline_and_cameras_restart_the_search():

@@ -499,6 +499,11 @@ class BisectionController:
             s.suppress_faster = False  # something else changed: spare time is worth a look again
         measured = None
         c = self.config
+        # A floor that misses on average: r_min with N'* cameras is too slow, and so is every
+        # larger camera count (T grows with N'), the paper's rule 1 from the adjusted tasks'
+        # own times; the search starts below it instead of measuring them again (arc7 at a
+        # third of its golden task: two more tasks at r_min with all 7 cameras).
+        top = s.n_star - 1 if reason == "saturation_low" else self.num_available
         pairs = list(zip(s.recent_scales, s.recent, strict=False))  # (none from old states)
         if s.phase == "adjust" and s.n_star == self.num_available and len(pairs) >= 3:
             # What the recent adjusted tasks (every camera) say fits: the median over them
@@ -526,7 +531,7 @@ class BisectionController:
             s.level = self.num_available
         else:
             s.phase = "search"
-            self._start_level(self.num_available, top_known_infeasible=False, measured=measured)
+            self._start_level(top, top_known_infeasible=False, measured=measured)
 
     def _observe_golden(self, t: float, q: float) -> None:
         s = self.s
