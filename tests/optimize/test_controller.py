@@ -625,6 +625,27 @@ def test_a_floor_that_misses_on_average_searches_fewer_cameras_despite_a_lucky_t
     assert ctrl.next_config().num_cameras == 3
 
 
+def test_a_jump_at_r_min_re_searches_below_its_camera_count():
+    # Settled on the fastest scale with 4 cameras; then the workload doubles (tasks at 2x
+    # the deadline): the "slower" re-search does not measure r_min with 4 cameras again.
+    ctrl = BisectionController(ControllerConfig(deadline_s=1.0, research_drift=0.0), LOWEST, 4)
+    for _ in range(40):
+        c = ctrl.next_config()
+        ctrl.observe(0.9 if c.scale <= 0.3 + 1e-9 else 2.0, 0.5)
+        if ctrl.phase == "adjust":
+            break
+    assert ctrl.next_config().num_cameras == 4 and ctrl.next_config().scale == pytest.approx(0.3)
+    searches = ctrl.num_searches
+    for _ in range(10):
+        ctrl.next_config()
+        ctrl.observe(2.0, 0.5)
+        if ctrl.num_searches > searches:
+            break
+    assert ctrl.num_searches == searches + 1
+    assert ctrl.s.last_trigger == "slower"
+    assert ctrl.next_config().num_cameras == 3
+
+
 def test_set_deadline_and_cameras_restart_the_search():
     ctrl = BisectionController(ControllerConfig(deadline_s=10), LOWEST, 7)
     ctrl.next_config()

@@ -499,11 +499,15 @@ class BisectionController:
             s.suppress_faster = False  # something else changed: spare time is worth a look again
         measured = None
         c = self.config
-        # A floor that misses on average: r_min with N'* cameras is too slow, and so is every
-        # larger camera count (T grows with N'), the paper's rule 1 from the adjusted tasks'
-        # own times; the search starts below it instead of measuring them again (arc7 at a
-        # third of its golden task: two more tasks at r_min with all 7 cameras).
-        top = s.n_star - 1 if reason == "saturation_low" else self.num_available
+        # A floor that misses on average (or whose median jumped above the deadline while r
+        # sat at r_min): r_min with N'* cameras is too slow, and so is every larger camera
+        # count (T grows with N'), the paper's rule 1 from the adjusted tasks' own times; the
+        # search starts below it instead of measuring them again (arc7 at a third of its
+        # golden task: two more tasks at r_min with all 7 cameras, one per larger count).
+        floor = reason == "saturation_low" or (reason == "slower" and s.r_star <= c.r_min + _EPS)
+        top = self.num_available
+        if floor and s.phase == "adjust" and s.n_star > c.min_cameras:
+            top = s.n_star - 1
         pairs = list(zip(s.recent_scales, s.recent, strict=False))  # (none from old states)
         if s.phase == "adjust" and s.n_star == self.num_available and len(pairs) >= 3:
             # What the recent adjusted tasks (every camera) say fits: the median over them
