@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import threading
 import time
@@ -616,11 +617,23 @@ class SplitReconstructionResult:
     background: PointCloud
     """Background cloud (label 0) merged into ``merged``."""
     bg_version: int
-    merged: PointCloud
     timings: StageTimings
     bg_dropped: NDArray[np.int64]
     """Indices of the ``background`` points the foreground overrides (left out of
     ``merged``: ``scene.merge.overridden``)."""
+
+    @functools.cached_property
+    def merged(self) -> PointCloud:
+        """The merged cloud: the foreground, then the background without ``bg_dropped``
+        (``scene.merge.compose``). Composed when first read, off the task's critical path:
+        copying a room-sized background (939,117 points on a 7-camera 1080p rig) took
+        33-184 ms, and the online system stores the foreground and ``bg_dropped`` alone."""
+        return compose(
+            self.foreground.cloud,
+            self.background,
+            bg_version=self.bg_version,
+            dropped=self.bg_dropped,
+        )
 
     def summary(self) -> dict[str, Any]:
         labels = self.foreground.labels
@@ -742,7 +755,6 @@ def reconstruct_task(
             merge_radius(None, rig.scene_scale()),
             fg.hull,
         )
-        merged = compose(fg_rec.cloud, background, bg_version=bg_version, dropped=dropped)
     return SplitReconstructionResult(
         time_index=frames.time_index,
         config=cfg,
@@ -752,7 +764,6 @@ def reconstruct_task(
         foreground=fg_rec,
         background=background,
         bg_version=bg_version,
-        merged=merged,
         bg_dropped=dropped,
         timings=timings,
     )
