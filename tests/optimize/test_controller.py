@@ -24,7 +24,7 @@ from edgerecon.optimize import (
 LOWEST = {n: tuple(range(n)) for n in range(1, 12)}
 #: The paper's search: a level starts at r_min even after a measured time (the rules'
 #: tests; ``start_from_measurement`` has its own).
-PAPER_START = {"start_from_measurement": None}
+PAPER_START = {"start_from_measurement": None, "guided_probes": False}
 
 
 def run_search(ctrl: BisectionController, model: PipelineModel, rng, max_tasks: int = 300):
@@ -297,7 +297,7 @@ def test_a_search_after_a_near_miss_starts_from_the_measured_time():
 
 
 def test_predicted_probes_that_miss_fall_back_to_r_min():
-    ctrl = BisectionController(ControllerConfig(deadline_s=5), LOWEST, 4)
+    ctrl = BisectionController(ControllerConfig(deadline_s=5, guided_probes=False), LOWEST, 4)
     ctrl.next_config()
     ctrl.observe(8.0, 1.0)  # golden too slow: first probe (5 / 8) x 0.95
     cfg = ctrl.next_config()
@@ -316,6 +316,47 @@ def test_predicted_probes_that_miss_fall_back_to_r_min():
     assert ctrl.next_config().scale == 0.3
     with pytest.raises(ValueError, match="start_from_measurement"):
         ControllerConfig(deadline_s=1.0, start_from_measurement=1.5)
+
+
+def test_guided_probes_search_fewer_tasks_and_end_where_the_bisection_does():
+    # Seven cameras, a fixed part that grows with the cameras (the scene stage) and the
+    # depth maps ~ N' r^2: the paper's bisection probes each camera count ~7 times at
+    # tau = 0.01; probes that solve the level's own times for the deadline take fewer, and
+    # the search ends at a configuration as good (its quality within tau's worth).
+    def time_s(r: float, n: int) -> float:
+        return 0.2 + 0.05 * n + 0.12 * n * r * r
+
+    def search(**kw) -> tuple[int, tuple[float, int]]:
+        ctrl = BisectionController(ControllerConfig(deadline_s=0.85, **kw), LOWEST, 7)
+        for steps in range(1, 80):
+            cfg = ctrl.next_config()
+            ctrl.observe(time_s(cfg.scale, cfg.num_cameras), cfg.scale * cfg.num_cameras / 7)
+            if ctrl.phase == "adjust":
+                end = ctrl.next_config()
+                return steps, (end.scale, end.num_cameras)
+        raise AssertionError("the search did not end")
+
+    guided, (r_g, n_g) = search()
+    paper, (r_p, n_p) = search(guided_probes=False)
+    assert guided < paper
+    assert r_g * n_g / 7 >= r_p * n_p / 7 - 0.01
+    assert time_s(r_g, n_g) <= 0.85 * 1.0001
+
+    # Times no model fits (a step in T): the safeguard's bisection steps still end each
+    # level, within twice the paper's probes.
+    def steps_of(**kw) -> int:
+        ctrl = BisectionController(ControllerConfig(deadline_s=1.0, **kw), LOWEST, 4)
+        for steps in range(1, 200):
+            cfg = ctrl.next_config()
+            ctrl.observe(0.5 if cfg.scale < 0.71 else 3.0, cfg.scale)
+            if ctrl.phase == "adjust":
+                assert ctrl.next_config().scale == pytest.approx(0.71, abs=0.011)
+                return steps
+        raise AssertionError("the search did not end")
+
+    assert steps_of() <= 2 * steps_of(guided_probes=False)
+    with pytest.raises(ValueError, match="guide_margin"):
+        ControllerConfig(deadline_s=1.0, guide_margin=0.0)
 
 
 def test_a_re_search_probes_from_the_adjusted_tasks_time():

@@ -127,6 +127,16 @@ class ControllerConfig:
     research_saturation: bool = True
     """Re-search when the adjustment wants to leave [r_min, r_max] for ``research_window``
     tasks in a row and a different N' could help."""
+    guided_probes: bool = True
+    """Beyond the paper (False: its bisection). Within a camera count, the next probe
+    solves the level's own measured times for the accepted time (T = a + b r^2 through its
+    two latest probes, or through the origin from one) instead of halving [lo, hi]; it stays
+    at least ``guide_margin`` of the interval inside it, and a guided probe that did not at
+    least halve the interval is followed by a plain bisection step (so a level never takes
+    more than twice the paper's probes). On 7 cameras at 1080p the paper's search probed
+    each camera count about seven times at tau = 0.01 (27 tasks to search 5 counts)."""
+    guide_margin: float = 0.1
+    """Least distance of a guided probe from the interval's ends, as a share of it."""
     start_from_measurement: float | None = 0.95
     """Beyond the paper (None: off, the paper's search from r_min). A search whose first
     level (every available camera) starts with nothing known feasible but with a measured
@@ -191,6 +201,8 @@ class ControllerConfig:
             )
         if not 0 < self.adjust_target <= 1.5:
             raise ValueError(f"adjust_target must be in (0, 1.5], got {self.adjust_target}")
+        if not 0 < self.guide_margin <= 0.5:
+            raise ValueError(f"guide_margin must be in (0, 0.5], got {self.guide_margin}")
         if self.research_jump >= 1.0:
             raise ValueError(f"research_jump must be < 1, got {self.research_jump}")
 
@@ -238,6 +250,24 @@ class Solution:
         return (q, self.num_cameras, self.scale)
 
 
+def _solve_time(probes: Sequence[Sequence[float]], limit: float) -> float | None:
+    """The r at which T(r) = a + b r^2, through the two latest probes (r, seconds) of
+    different r, reaches ``limit`` (through the origin, a = 0, from one probe); None
+    without a usable probe."""
+    pts = [(float(r), float(t)) for r, t in probes if r > 0 and t > 0]
+    if not pts:
+        return None
+    r1, t1 = pts[-1]
+    second = next(((r, t) for r, t in reversed(pts[:-1]) if abs(r - r1) > _EPS), None)
+    if second is not None:
+        r2, t2 = second
+        b = (t1 - t2) / (r1 * r1 - r2 * r2)
+        if b > 0:
+            a = t1 - b * r1 * r1
+            return math.sqrt(max(limit - a, 0.0) / b)
+    return r1 * math.sqrt(limit / t1)
+
+
 @dataclass
 class _State:
     phase: Phase = "golden"
@@ -273,6 +303,10 @@ class _State:
     """Too-slow golden tasks in this search (``baseline_confirm``)."""
     predicted_misses: int = 0
     """Too-slow predicted probes at the current level (``start_from_measurement``)."""
+    level_probes: list[list[float]] = field(default_factory=list)
+    """(r, seconds) of the current level's probes (``guided_probes``)."""
+    guided: bool = False
+    """The probe being measured was a guided one (``guided_probes``)."""
     search_steps: int = 0
     total_search_steps: int = 0
     num_searches: int = 1
@@ -597,6 +631,8 @@ class BisectionController:
         s.level = level
         s.hi = c.r_max
         s.baseline_misses = 0
+        s.level_probes = []
+        s.guided = False
         lo = self._implied_feasible(level)
         if lo is None:
             # Nothing known feasible: start at r_min (paper, line 3); the baseline check skips
@@ -647,6 +683,8 @@ class BisectionController:
         r = s.r
         ok = t <= c.accept_limit_s
         best = self._best()
+        width = s.hi - s.lo
+        s.level_probes = [*s.level_probes[-3:], [r, t]]
         if ok:
             s.solutions.append(Solution(scale=r, num_cameras=s.level, quality=q, time_s=t))
         probe = s.probe
@@ -699,7 +737,26 @@ class BisectionController:
             self._start_level(s.level - 1)
         else:
             s.probe = "bisect"
-            s.r = 0.5 * (s.lo + s.hi)
+            s.r = self._next_probe(width)
+
+    def _next_probe(self, width_before: float) -> float:
+        """The next r in (lo, hi): the midpoint (the paper), or with ``guided_probes`` the
+        r at which this level's measured times reach the accepted time, kept
+        ``guide_margin`` inside the interval; after a guided probe that did not halve the
+        interval, the midpoint."""
+        s = self.s
+        c = self.config
+        lo, hi = s.lo, s.hi
+        mid = 0.5 * (lo + hi)
+        was_guided, s.guided = s.guided, False
+        if not c.guided_probes or (was_guided and hi - lo > 0.5 * width_before + _EPS):
+            return mid
+        guess = _solve_time(s.level_probes, c.accept_limit_s)
+        if guess is None:
+            return mid
+        s.guided = True
+        margin = c.guide_margin * (hi - lo)
+        return round(min(max(guess, lo + margin), hi - margin), 6)
 
     def _finish_search(self, why: str) -> None:
         s = self.s
