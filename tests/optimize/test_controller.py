@@ -355,6 +355,26 @@ def test_guided_probes_search_fewer_tasks_and_end_where_the_bisection_does():
         raise AssertionError("the search did not end")
 
     assert steps_of() <= 2 * steps_of(guided_probes=False)
+
+    # A camera count where nothing above the larger count's r fits (its fixed part is
+    # larger): its times say so after two probes, the bisection halves down to tau.
+    def level3(**kw) -> list[float]:
+        ctrl = BisectionController(ControllerConfig(deadline_s=1.0, **PAPER_START | kw), LOWEST, 4)
+        probes = []
+        for _ in range(60):
+            cfg = ctrl.next_config()
+            if ctrl.phase == "adjust":
+                assert (cfg.num_cameras, cfg.scale) == (4, pytest.approx(0.577, abs=0.011))
+                return probes
+            r, n = cfg.scale, cfg.num_cameras
+            t = 0.9 + 0.3 * r * r if n == 4 else 0.8 + 0.7 * r * r
+            if n == 3:
+                probes.append(r)
+            ctrl.observe(t, r)  # fewer cameras no worse: rules 2 and 3 do not end level 3
+        raise AssertionError("the search did not end")
+
+    guided_level3, paper_level3 = level3(guided_probes=True), level3()
+    assert len(guided_level3) == 2 and len(paper_level3) >= 5, (guided_level3, paper_level3)
     with pytest.raises(ValueError, match="guide_margin"):
         ControllerConfig(deadline_s=1.0, guide_margin=0.0)
 

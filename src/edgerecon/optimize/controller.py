@@ -133,8 +133,9 @@ class ControllerConfig:
     two latest probes, or through the origin from one) instead of halving [lo, hi]; it stays
     at least ``guide_margin`` of the interval inside it, and a guided probe that did not at
     least halve the interval is followed by a plain bisection step (so a level never takes
-    more than twice the paper's probes). On 7 cameras at 1080p the paper's search probed
-    each camera count about seven times at tau = 0.01 (27 tasks to search 5 counts)."""
+    more than twice the paper's probes). When the level's times (its last two probes too
+    slow) put that r within tau of lo, the level ends there: lo is already a solution. On 7 cameras at 1080p the paper's search probed each camera count about seven
+    times at tau = 0.01 (27 tasks to search 5 counts)."""
     guide_margin: float = 0.1
     """Least distance of a guided probe from the interval's ends, as a share of it."""
     start_from_measurement: float | None = 0.95
@@ -733,26 +734,37 @@ class BisectionController:
                     logger.debug("N'=%d abandoned at r=%.3f (rule 3)", s.level, r)
                     self._start_level(s.level - 1)
                     return
-        if s.hi - s.lo <= c.tau + _EPS:
+        nxt = None if s.hi - s.lo <= c.tau + _EPS else self._next_probe(width)
+        if nxt is None:
             self._start_level(s.level - 1)
         else:
             s.probe = "bisect"
-            s.r = self._next_probe(width)
+            s.r = nxt
 
-    def _next_probe(self, width_before: float) -> float:
+    def _next_probe(self, width_before: float) -> float | None:
         """The next r in (lo, hi): the midpoint (the paper), or with ``guided_probes`` the
         r at which this level's measured times reach the accepted time, kept
         ``guide_margin`` inside the interval; after a guided probe that did not halve the
-        interval, the midpoint."""
+        interval, the midpoint. None: the level's times (its last two probes too slow) put
+        that r within tau of lo, the level ends."""
         s = self.s
         c = self.config
         lo, hi = s.lo, s.hi
         mid = 0.5 * (lo + hi)
         was_guided, s.guided = s.guided, False
-        if not c.guided_probes or (was_guided and hi - lo > 0.5 * width_before + _EPS):
+        if not c.guided_probes:
             return mid
         guess = _solve_time(s.level_probes, c.accept_limit_s)
-        if guess is None:
+        if (
+            guess is not None
+            and guess <= lo + c.tau
+            and len(s.level_probes) >= 2
+            and min(t for _, t in s.level_probes[-2:]) > c.accept_limit_s
+        ):
+            # The level's own times, the last two too slow, say nothing above lo fits: lo is
+            # already a solution (of this or a larger camera count); the level ends.
+            return None
+        if guess is None or (was_guided and hi - lo > 0.5 * width_before + _EPS):
             return mid
         s.guided = True
         margin = c.guide_margin * (hi - lo)
