@@ -23,7 +23,7 @@ from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, frame_defect
 from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker, rebuild_background
-from edgerecon.runtime.interrupt import ThreadAbandoned, stop_thread
+from edgerecon.runtime.interrupt import ThreadAbandoned, call_bounded, stop_thread
 from edgerecon.scene.foreground import RigForeground
 from tests.runtime.conftest import run_frames, runtime_config
 
@@ -199,6 +199,20 @@ def test_stop_thread_raises_in_the_thread_at_its_next_instruction():
     assert ended.is_set() and not th.is_alive()
     assert not stop_thread(th), "an ended thread is not stopped again"
     assert not stop_thread(threading.Thread(target=loop)), "nor one never started"
+
+
+def test_call_bounded_returns_raises_or_leaves_the_thread_to_the_caller():
+    done = call_bounded(lambda: 7, 10.0, "t")
+    assert (done.timed_out, done.value, done.error) == (False, 7, None)
+    failed = call_bounded(lambda: 1 / 0, 10.0, "t")
+    assert not failed.timed_out and isinstance(failed.error, ZeroDivisionError)
+    release = threading.Event()
+    slow = call_bounded(lambda: release.wait(30.0), 0.2, "slow")
+    assert slow.timed_out and slow.value is None and slow.error is None
+    assert slow.thread.name == "slow" and slow.thread.daemon
+    release.set()
+    slow.thread.join(5.0)
+    assert not slow.thread.is_alive()
 
 
 def _gone(pid: int, timeout: float = 10.0) -> bool:

@@ -134,8 +134,9 @@ class ControllerConfig:
     at least ``guide_margin`` of the interval inside it, and a guided probe that did not at
     least halve the interval is followed by a plain bisection step (so a level never takes
     more than twice the paper's probes). When the level's times (its last two probes too
-    slow) put that r within tau of lo, the level ends there: lo is already a solution. On 7 cameras at 1080p the paper's search probed each camera count about seven
-    times at tau = 0.01 (27 tasks to search 5 counts)."""
+    slow) put that r within tau of lo, the level ends there: lo is already a solution. On 7
+    cameras at 1080p the paper's search probed each camera count about seven times at tau =
+    0.01 (27 tasks to search 5 counts)."""
     guide_margin: float = 0.1
     """Least distance of a guided probe from the interval's ends, as a share of it."""
     start_from_measurement: float | None = 0.95

@@ -37,7 +37,7 @@ from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.pipeline import prepare_task_views, reconstruct_static, task_sparse
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.interrupt import AbandonedThreads, ThreadAbandoned
+from edgerecon.runtime.interrupt import AbandonedThreads, ThreadAbandoned, call_bounded
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -355,30 +355,22 @@ class BackEnd:
         own: still running after ``rebuild_limit_s``, the thread is stopped (Python code
         ends at once, a native call when it returns; ``runtime.interrupt``) and
         :class:`RebuildTimeout` raised, so that the next rebuild can start."""
-        box: dict[str, Any] = {}
-
-        def rebuild() -> None:
-            try:
-                box["cloud"] = rebuild_background(self.rig, self.config, frames, masks)
-            except ThreadAbandoned:
-                pass
-            except Exception as exc:
-                box["error"] = exc
-
         limit = self.config.rebuild_limit_s
-        thread = threading.Thread(target=rebuild, name="backend-rebuild", daemon=True)
-        thread.start()  # inherits this thread's niceness
-        thread.join(limit)
-        if thread.is_alive():
-            self.abandoned.abandon(thread, "a background rebuild past its limit", grace_s=0.0)
+        run = call_bounded(
+            lambda: rebuild_background(self.rig, self.config, frames, masks),
+            limit,
+            "backend-rebuild",
+        )
+        if run.timed_out:
+            self.abandoned.abandon(run.thread, "a background rebuild past its limit", grace_s=0.0)
             raise RebuildTimeout(
                 f"background rebuild still running after {limit:.0f} s: its thread was "
                 "stopped (the next rebuild starts from the newest frames)"
             )
-        if "error" in box:
-            raise box["error"]
-        cloud: PointCloud = box["cloud"]
-        return cloud
+        if run.error is not None:
+            raise run.error
+        assert run.value is not None
+        return run.value
 
 
 def rebuild_background(

@@ -53,7 +53,7 @@ from edgerecon.pipeline import (
 )
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.interrupt import AbandonedThreads
+from edgerecon.runtime.interrupt import AbandonedThreads, call_bounded
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -229,8 +229,8 @@ class FrontEnd:
         self._lock = threading.Lock()
         self._commit = threading.Lock()
         self.abandoned = AbandonedThreads()
-        self._drill: str | None = None
         """The threads of abandoned work (a task past the watchdog, updates that hung)."""
+        self._drill: str | None = None
         self._background = PointCloud.empty() if background is None else background
         self._bg_version = BgVersion()
         self._bg_published = BgVersion()
@@ -405,37 +405,31 @@ class FrontEnd:
         seconds spent."""
         if not updates or self.scene is None:
             return 0.0
-        box: dict[str, Any] = {}
 
-        def work() -> None:
-            try:
-                t0 = time.perf_counter()
-                with self._holding_scene() as scene:
-                    for u in updates:
-                        self._learn_update(scene, u)
-                    scene.settle()
-                    self._save_scene(scene)
-                box["seconds"] = time.perf_counter() - t0
-            except BaseException as exc:  # logged below: the next task retries it
-                box["exc"] = exc
+        def work() -> float:
+            t0 = time.perf_counter()
+            with self._holding_scene() as scene:
+                for u in updates:
+                    self._learn_update(scene, u)
+                scene.settle()
+                self._save_scene(scene)
+            return time.perf_counter() - t0
 
         limit = self.config.watchdog_s
-        worker = threading.Thread(target=work, name="scene-updates", daemon=True)
         start = time.perf_counter()
-        worker.start()
-        worker.join(limit)
-        if worker.is_alive():
+        run = call_bounded(work, limit, "scene-updates")
+        if run.timed_out:
             logger.error("background updates between tasks: still running after %.1f s", limit)
-            self._restore_scene(worker, "background updates abandoned between tasks")
-            self.abandoned.abandon(worker, "background updates abandoned between tasks")
+            self._restore_scene(run.thread, "background updates abandoned between tasks")
+            self.abandoned.abandon(run.thread, "background updates abandoned between tasks")
             return time.perf_counter() - start
-        if "exc" in box:
+        if run.error is not None:  # the next task retries it
             logger.warning(
                 "background updates between tasks failed (%s); the next task applies what is left",
-                describe_exception(box["exc"]),
+                describe_exception(run.error),
             )
             return time.perf_counter() - start
-        return float(box["seconds"])
+        return float(run.value or 0.0)
 
     def obtain_foreground(
         self,

@@ -17,6 +17,11 @@ from __future__ import annotations
 import ctypes
 import logging
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar, cast
+
+T = TypeVar("T")
 
 logger = logging.getLogger(__name__)
 
@@ -78,4 +83,43 @@ class AbandonedThreads:
             return [w for _, w in self._threads]
 
 
-__all__ = ["AbandonedThreads", "ThreadAbandoned", "stop_thread"]
+@dataclass(frozen=True)
+class Bounded(Generic[T]):
+    """What :func:`call_bounded` saw: ``value`` when ``fn`` returned, ``error`` when it
+    raised, neither while its ``thread`` still runs (``timed_out``)."""
+
+    thread: threading.Thread
+    value: T | None = None
+    error: BaseException | None = None
+
+    @property
+    def timed_out(self) -> bool:
+        return self.thread.is_alive()
+
+
+def call_bounded(fn: Callable[[], T], limit_s: float, name: str) -> Bounded[T]:
+    """``fn()`` in a daemon thread of its own (it inherits the caller's niceness), waited
+    for ``limit_s`` seconds. Still running then: the caller decides (``_restore_scene``,
+    :meth:`AbandonedThreads.abandon`); what it returns or raises later is dropped."""
+    box: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # ThreadAbandoned included: nobody reads it then
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name=name, daemon=True)
+    thread.start()
+    thread.join(limit_s)
+    if thread.is_alive():
+        return Bounded(thread)
+    error = box.get("error")
+    return Bounded(
+        thread,
+        value=cast("T | None", box.get("value")),
+        error=error if isinstance(error, BaseException) else None,
+    )
+
+
+__all__ = ["AbandonedThreads", "Bounded", "ThreadAbandoned", "call_bounded", "stop_thread"]
