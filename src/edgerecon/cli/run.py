@@ -27,6 +27,7 @@ from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetric
 from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.messages import AFTER_CRITICAL_PATH
 from edgerecon.runtime.online import run_online
+from edgerecon.runtime.retention import RetentionConfig
 from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted, offline_fscore_label
 
 #: Exit codes of ``run`` (and ``demo``), documented in the README and ``run --help``.
@@ -122,6 +123,23 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "points against the back-end's golden reference)",
     )
     p.add_argument("--no-clouds", action="store_true", help="do not write per-task clouds")
+    p.add_argument(
+        "--keep-clouds",
+        type=int,
+        default=None,
+        metavar="N",
+        help="keep only the newest N tasks' clouds on disk (older ones are removed as the "
+        "run goes on; their metrics stay); default: all",
+    )
+    p.add_argument(
+        "--min-free-mb",
+        type=float,
+        default=RetentionConfig.min_free_mb,
+        metavar="MB",
+        help="free space (MiB) the run leaves on the disk of --out: the oldest task clouds "
+        "are removed, then new ones are not written, before it goes under (default "
+        "%(default)g; 0: no check)",
+    )
     p.add_argument(
         "--resume",
         action="store_true",
@@ -252,6 +270,10 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("tasks / failed / degraded / empty", f"{s.tasks} / {s.failed} / {s.degraded} / {s.empty}"),
         ("background at the end (epoch.counter)", f"v{s.bg_version[0]}.{s.bg_version[1]}"),
         ("frames dropped (newest policy)", s.frames_dropped),
+        (
+            "task clouds written / kept / not written (disk)",
+            f"{s.clouds_written} / {s.clouds_kept} / {s.clouds_skipped}",
+        ),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
     if s.stream:
@@ -290,6 +312,7 @@ def build_options(
         policy=args.policy or ("newest" if dataset.is_live else "all"),
         duration_s=args.duration,
         write_clouds=not args.no_clouds,
+        retention=RetentionConfig(keep_clouds=args.keep_clouds, min_free_mb=args.min_free_mb),
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,
         resume=args.resume,
         overwrite=args.overwrite or (overwrite and not args.resume),
@@ -327,6 +350,10 @@ def resume_command(args: argparse.Namespace) -> str:
         words += ["--background-scale", f"{args.background_scale:g}"]
     words += ["--no-background-updates"] if args.no_background_updates else []
     words += ["--no-clouds"] if args.no_clouds else []
+    if args.keep_clouds is not None:
+        words += ["--keep-clouds", str(args.keep_clouds)]
+    if args.min_free_mb != RetentionConfig.min_free_mb:
+        words += ["--min-free-mb", f"{args.min_free_mb:g}"]
     return shlex.join([*words, "--resume"])
 
 

@@ -166,6 +166,11 @@ class TaskMetrics:
     """Configuration-search steps taken by the controller so far."""
     sync_spread_s: float | None = None
     """Live streams: newest minus oldest capture time of the task's frames, seconds."""
+    cloud_written: bool = False
+    """The task's cloud files were written (``tasks/<time>/``; a later task may remove them:
+    ``runtime.retention``)."""
+    cloud_skipped: bool = False
+    """The task's cloud was not written: the output's disk was under ``--min-free-mb``."""
     error: str = ""
     """Why the task failed (status "failed"): the stage's exception, or the watchdog."""
     wall_time: float = 0.0

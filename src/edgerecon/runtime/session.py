@@ -32,6 +32,11 @@ Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn 
 * ``summary.json``: the run's summary (the paper's Table III), also after Ctrl-C;
 * ``.lock``: held while the run lives (who holds it).
 
+A long run keeps the newest task clouds within ``--keep-clouds`` and leaves ``--min-free-mb``
+free on the disk (:mod:`edgerecon.runtime.retention`): older clouds and the background
+versions only they refer to are removed after a task's commit; on a disk that is still too
+full a task's cloud is not written (its metrics line is). Every metrics line stays.
+
 Frames are checked before a task starts (:mod:`edgerecon.quality.frames`): a black,
 saturated or textureless frame's camera is left out of the task; a task left with fewer than
 3 cameras gives an empty result (no foreground, the background alone). One warning when
@@ -64,6 +69,7 @@ from edgerecon.quality.metrics import fscore
 from edgerecon.runtime.engine import Engine
 from edgerecon.runtime.frontend import TaskOutput
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
+from edgerecon.runtime.retention import CloudRetention, RetentionConfig
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
 from edgerecon.scene.merge import foreground_part
 from edgerecon.types import EdgereconError, FrameSet
@@ -115,6 +121,9 @@ class SessionOptions:
     write_clouds: bool = True
     """Write each task's cloud (``tasks/<time>/fg.ply`` and ``bg_dropped.npy``; the background
     versions are written either way: ``--resume`` needs the newest)."""
+    retention: RetentionConfig = field(default_factory=RetentionConfig)
+    """How many task clouds the run keeps and the free space it leaves on the disk
+    (``runtime.retention``: ``--keep-clouds``, ``--min-free-mb``)."""
     ground_truth_threshold: float | None = None
     """When the dataset has ground truth: score each task's foreground against it at this
     distance (rig units) — the offline F-score. None = no offline scoring."""
@@ -181,6 +190,13 @@ class RunSummary:
     """The rig's unit of length (that of ``offline_threshold``)."""
     backgrounds_pushed: int = 0
     """Backgrounds the front-end took over the whole run (resumes included)."""
+    clouds_written: int = 0
+    """Tasks whose cloud was written (``tasks/<time>/``) over the whole run."""
+    clouds_kept: int = 0
+    """Of them, those still on disk at the end (``--keep-clouds``, ``--min-free-mb``:
+    ``runtime.retention``)."""
+    clouds_skipped: int = 0
+    """Tasks whose cloud was not written: the disk was under ``--min-free-mb``."""
     bg_version: list[int] = field(default_factory=lambda: [0, 0])
     """(back-end epoch, counter) of the newest background held at the end."""
     backend_restarts: int = 0
@@ -253,6 +269,11 @@ class Session:
         self._next_bound: Callable[[], int | None] = functools.partial(_same, None)
         self._gt: Any = None
         self._stream: dict[str, Any] = {}
+        self.retention = CloudRetention(
+            self.out,
+            options.retention,
+            ((m.time_index, (m.bg_epoch, m.bg_version)) for m in self.metrics if m.status == "ok"),
+        )
         if options.ground_truth_threshold is not None and dataset.ground_truth is not None:
             from edgerecon.synth import GroundTruth
 
@@ -377,9 +398,14 @@ class Session:
                 self._score(m, t, out)
                 rig = self.dataset.rig
                 version = (m.bg_epoch, m.bg_version)
+                cloud = self.options.write_clouds and out.foreground is not None
+                bg_points = None if out.background is None else len(out.background)
+                room = self.retention.make_room(version, bg_points, cloud=cloud)
+                m.cloud_skipped = cloud and not room
                 if out.background is not None:  # before the task that refers to it
                     self.folder.write_background(out.background, version, unit=rig.unit, up=rig.up)
-                if self.options.write_clouds and out.foreground is not None:
+                    self.retention.background_written(version, len(out.background))
+                if cloud and room and out.foreground is not None:
                     self.folder.write_task_cloud(
                         t,
                         foreground_part(out.foreground, m.bg_version),
@@ -388,6 +414,8 @@ class Session:
                         unit=rig.unit,
                         up=rig.up,
                     )
+                    self.retention.cloud_written(t, version)
+                    m.cloud_written = True
             # Background, cloud, metrics line, then the run state: the commit point.
             self.folder.append_metrics(m)
             self.metrics.append(m)
@@ -403,6 +431,8 @@ class Session:
                 tasks_done=len(self.metrics),
                 frontend=self.engine.state(),
             ).save(self.out)
+            if m.status == "ok":  # after the commit point: older clouds beyond --keep-clouds
+                self.retention.committed((m.bg_epoch, m.bg_version))
         except OSError as exc:  # disk full, folder removed: stop with what is committed
             raise EdgereconError(
                 f"cannot write the outputs of task {task} to {self.out} ({exc}); the run "
@@ -502,6 +532,9 @@ class Session:
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
             stream=dict(self._stream),
+            clouds_written=sum(m.cloud_written for m in self.metrics),
+            clouds_kept=len(self.retention.kept),
+            clouds_skipped=sum(m.cloud_skipped for m in self.metrics),
         )
         skip = {id(m) for m in empty}
         ok = [m for m in ok if id(m) not in skip]  # averages over the tasks that reconstructed

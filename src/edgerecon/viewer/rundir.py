@@ -145,7 +145,8 @@ class RunFolder:
         return self._rig
 
     def cloud(self, time_index: int) -> PointCloud | None:
-        """The merged cloud of the task at ``time_index``, None when it was not written:
+        """The merged cloud of the task at ``time_index``, None when it was not written (or
+        was removed since: ``runtime.retention``):
         the task's foreground, then its background version without the points the
         foreground overrode (``scene.merge.compose``; the session writes the parts,
         ``runtime.state.OutputFolder.write_task_cloud``), or a run's older ``merged.ply``."""
@@ -162,7 +163,10 @@ class RunFolder:
             dropped = np.load(d / TASK_DROPPED)
             background = self._background_version(version)
         except (EdgereconError, OSError, ValueError) as exc:
-            logger.warning("%s: task %d: %s", self.path, time_index, exc)
+            if not (d / TASK_FOREGROUND).exists():  # removed meanwhile (runtime.retention)
+                logger.debug("%s: task %d: %s", self.path, time_index, exc)
+            else:
+                logger.warning("%s: task %d: %s", self.path, time_index, exc)
             return None
         return compose(foreground, background, bg_version=version[1], dropped=dropped)
 
