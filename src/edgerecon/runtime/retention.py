@@ -11,8 +11,9 @@ two limits at each task's commit (:class:`CloudRetention`):
 * **the free space** (``min_free_mb``, ``--min-free-mb``, default 256 MiB): before a task's
   files are written, when the output's file system would be left with less than that, the
   background versions no kept task refers to and then the oldest task clouds are removed
-  (never the newest one) until it would not; when that is not enough the task's cloud is not
-  written (counted, one warning per stretch). Its metrics line and the run state, a few kB,
+  (never the newest one) until it would not (one warning, again every ten minutes while it
+  goes on); when that is not enough the task's cloud is not written (counted; said the
+  same way). Its metrics line and the run state, a few kB,
   are written either way, and a background the task took is written too (``--resume``
   needs the newest): should that fail, the run stops as before, every committed task kept.
 
@@ -26,9 +27,11 @@ it is not there. The run's summary counts the clouds removed and the clouds not 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import shutil
+import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -51,6 +54,8 @@ Version = tuple[int, int]
 _BACKGROUND_BYTES_PER_POINT = 32.0
 #: Tasks whose written bytes estimate the next one's (the largest of them).
 _RECENT_TASKS = 8
+#: A run that keeps removing clouds for space says so at most this often (seconds).
+_SAY_EVERY_S = 600.0
 _VERSION_FILE = re.compile(r"^v(\d+)\.(\d+)\.ply$")
 
 
@@ -100,6 +105,8 @@ class CloudRetention:
         self._task_bytes: deque[int] = deque(maxlen=_RECENT_TASKS)
         self._bytes_per_point = _BACKGROUND_BYTES_PER_POINT
         self._short = False  # in a stretch of tasks whose cloud was not written
+        self._pruned_said = -math.inf  # when the removals were last said (monotonic)
+        self._short_said = -math.inf  # when a cloud not written was last said
         self.pruned = 0
         """Task clouds removed (either limit)."""
         self.skipped = 0
@@ -125,7 +132,7 @@ class CloudRetention:
         free = self._free()
         if free is None or free >= need:
             if self._short:
-                logger.warning("disk: %s has room again; task clouds are written", self.root)
+                logger.info("disk: %s has room again; task clouds are written", self.root)
                 self._short = False
             return cloud
         before = self.pruned
@@ -134,20 +141,26 @@ class CloudRetention:
             self._remove_task(*self._kept.popleft())
             free = self._prune_backgrounds(version, self._free() or 0)
         if self.pruned > before:
-            logger.warning(
-                "disk: under %.0f MiB free on %s: removed the %d oldest task cloud(s) (%d "
-                "kept; --min-free-mb sets the floor)",
+            now = time.monotonic()
+            quiet = now - self._pruned_said < _SAY_EVERY_S
+            (logger.debug if quiet else logger.warning)(
+                "disk: under %.0f MiB free on %s: the oldest task clouds are removed (%d so "
+                "far, %d kept; --min-free-mb sets the floor)",
                 self.config.min_free_mb,
                 self.root,
-                self.pruned - before,
+                self.pruned,
                 len(self._kept),
             )
+            if not quiet:
+                self._pruned_said = now
         if not cloud:
             return False
         if free >= need:
             return True
         self.skipped += 1
-        if not self._short:
+        now = time.monotonic()
+        if not self._short and now - self._short_said >= _SAY_EVERY_S:
+            self._short_said = now
             logger.warning(
                 "disk: %s has %.0f MiB free, under --min-free-mb %.0f with this task's files: "
                 "task clouds are not written until there is room (metrics go on)",
@@ -155,7 +168,7 @@ class CloudRetention:
                 free / 2**20,
                 self.config.min_free_mb,
             )
-            self._short = True
+        self._short = True
         return False
 
     def cloud_written(self, time_index: int, version: Version) -> None:
