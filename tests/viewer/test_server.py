@@ -84,3 +84,29 @@ def test_initial_view_is_in_metres_for_a_millimetre_rig():
     rig_mm = dataclasses.replace(rig_m, cameras=tuple(cams), unit="mm")
     a, b = initial_view(rig_m), initial_view(rig_mm)
     assert np.allclose(a.position, b.position) and np.allclose(a.look_at, b.look_at)
+
+
+def test_a_long_runs_chart_shows_its_newest_tasks_and_removed_clouds_are_not_drawn(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=6, finished=False)
+    config = ViewerConfig(port=0, poll_s=3600.0, point_budget=4000, chart_tasks=3)
+    with RunViewer(run, config) as viewer:
+        viewer.refresh()
+        x = viewer._gui["chart"].data[0]
+        np.testing.assert_array_equal(x, [3, 4, 5])
+        assert viewer._shown.task == 5
+        # The run removed its older clouds (--keep-clouds): replaying one of them shows
+        # nothing new and says so; a kept one is drawn.
+        import shutil
+
+        from edgerecon.runtime.state import task_dir
+
+        for m in viewer.run.tasks[:4]:
+            shutil.rmtree(task_dir(run, m.time_index))
+        assert not viewer.replay(2)
+        assert viewer._shown.task == 5
+        assert viewer.replay(4) and viewer._shown.task == 4
+        append_task(run, task_metrics(6), scene_cloud(shift=0.6))
+        assert viewer.refresh() == 1
+        np.testing.assert_array_equal(viewer._gui["chart"].data[0], [4, 5, 6])
+    with pytest.raises(ValueError, match="chart_tasks"):
+        ViewerConfig(chart_tasks=1)

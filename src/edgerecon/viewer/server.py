@@ -8,7 +8,7 @@ own thread and shows, in any browser that opens its URL:
 * the rig's cameras as frusta, the task's chosen subset pi(N') highlighted (orange);
 * a panel with the task's time index, r, N', latency against the deadline, online (and,
   on synthetic scenes, offline) F-score, background version and degraded / failed state;
-* a chart of latency, deadline and quality over the tasks so far;
+* a chart of latency, deadline and quality over the newest tasks (``chart_tasks``);
 * a task slider that replays finished tasks ("follow live" returns to the newest).
 
 It never talks to the running session: it reads the files the session writes atomically, so
@@ -71,6 +71,9 @@ class ViewerConfig:
     """Initial colouring (a key of ``viewer.colors.COLORINGS``)."""
     point_size_m: float | None = None
     """Drawn point size in metres; None = 1.5 x the first cloud's median point spacing."""
+    chart_tasks: int = 1000
+    """The chart shows the newest this many tasks (every update sends its data to every
+    client: a live run of hours would send ever more; the slider reaches every task)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.port <= 65535:
@@ -83,6 +86,8 @@ class ViewerConfig:
             raise ValueError(
                 f"ViewerConfig.coloring must be one of {list(COLORINGS)}, got {self.coloring!r}"
             )
+        if self.chart_tasks < 2:
+            raise ValueError(f"ViewerConfig.chart_tasks must be >= 2, got {self.chart_tasks}")
         if self.point_size_m is not None and not self.point_size_m > 0:
             raise ValueError(f"ViewerConfig.point_size_m must be > 0, got {self.point_size_m}")
 
@@ -393,7 +398,7 @@ class RunViewer:
         tasks = self.run.tasks
         if not tasks:
             return
-        x, lat, dl, fon, foff = timeline(tasks)
+        x, lat, dl, fon, foff = timeline(tasks[-self.config.chart_tasks :])
         self._gui["chart"].data = (x, lat, dl, fon, foff)
         slider = self._gui["slider"]
         slider.max = max(1, len(tasks) - 1)
