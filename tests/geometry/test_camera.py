@@ -171,3 +171,22 @@ def test_nearest_pixels_are_project_in_image_and_rounding(dist):
         v, np.clip(np.rint(safe[:, 1]), 0, cam.height - 1).astype(np.intp)
     )
     assert inside.any() and not inside.all()
+
+
+def test_undistortion_maps_are_cached_within_a_byte_budget(monkeypatch):
+    from edgerecon.geometry import camera as camera_module
+
+    cam = ring_rig(3, dist=(-0.2, 0.05, 0, 0, 0))[0]
+    monkeypatch.setattr(camera_module, "_maps_cache", camera_module.OrderedDict())
+    first = cam.undistort_maps(0.5)
+    assert cam.undistort_maps(0.5)[0] is first[0]  # a hit
+    assert not first[0].flags.writeable  # shared by every caller
+    one = first[0].nbytes + first[1].nbytes
+    monkeypatch.setattr(camera_module, "UNDISTORT_CACHE_BYTES", 3 * one)
+    for k in range(10):  # the controller's r in small steps: never more than the budget
+        cam.undistort_maps(0.5 + 0.001 * (k + 1))
+        held = sum(a.nbytes + b.nbytes for a, b in camera_module._maps_cache.values())
+        assert held <= 3 * one + 2 * one // 10
+    assert (cam, 0.5) not in camera_module._maps_cache  # the least recently used went
+    again = cam.undistort_maps(0.5)
+    np.testing.assert_array_equal(again[0], first[0])

@@ -228,3 +228,66 @@ def test_a_run_on_a_full_disk_goes_on_and_keeps_the_newest_cloud(tiny, tmp_path,
     assert (out / "summary.json").exists() and (out / "background.ply").exists()
     held = max((m.bg_epoch, m.bg_version) for m in metrics)
     assert held[1] >= 1 and f"v{held[0]}.{held[1]}.ply" in _backgrounds(out)
+
+
+def test_run_totals_are_the_summary_of_every_record():
+    from edgerecon.runtime.messages import TaskMetrics
+    from edgerecon.runtime.session import RunTotals
+
+    rng = np.random.default_rng(3)
+    records = []
+    for k in range(40):
+        status = "failed" if k % 11 == 5 else "ok"
+        m = TaskMetrics(task=k, time_index=k, status=status)
+        if status == "ok":
+            m.phase = "search" if k < 8 else "adjust"
+            m.scale = float(rng.uniform(0.3, 1.5))
+            m.num_cameras = 2 if k == 20 else int(rng.integers(3, 5))
+            m.frame_defects = {"cam0": "black"} if k == 20 else {}
+            m.camera_ids = list(range(m.num_cameras))
+            m.critical_path_s = float(rng.uniform(0.2, 0.8))
+            m.deadline_met = m.critical_path_s < 0.5
+            m.online_fscore = None if k % 7 == 0 else float(rng.uniform())
+            m.search_steps = min(k, 6)
+            m.stages = {"scene": 0.1 + 0.01 * k, "dense": 0.2}
+            m.degraded = k == 30
+            m.cloud_written = k % 3 != 0
+        m.sync_spread_s = 0.001 * k
+        records.append(m)
+    totals = RunTotals()
+    for m in records:
+        totals.add(m)
+    ok = [m for m in records if m.status == "ok"]
+    rec = [m for m in ok if not (m.frame_defects and m.num_cameras < 3)]
+    adjust = [m for m in rec if m.phase == "adjust"]
+    assert (totals.tasks, totals.failed, totals.empty, totals.degraded) == (40, 4, 1, 1)
+    assert totals.scale.value == pytest.approx(np.mean([m.scale for m in rec]))
+    assert totals.time.value == pytest.approx(np.mean([m.critical_path_s for m in rec]))
+    assert totals.adjust_time.value == pytest.approx(np.mean([m.critical_path_s for m in adjust]))
+    assert totals.adjust_misses == sum(not m.deadline_met for m in adjust)
+    on = [m.online_fscore for m in rec if m.online_fscore is not None]
+    assert totals.online.value == pytest.approx(np.mean(on))
+    assert totals.cameras_used == rec[-1].camera_ids and totals.search_steps == 6
+    assert totals.stages["scene"] == pytest.approx(sum(m.stages["scene"] for m in rec))
+    assert totals.clouds_written == sum(m.cloud_written for m in records)
+    assert totals.spread_max == pytest.approx(0.039)
+
+
+def test_a_run_keeps_the_newest_records_in_memory_and_counts_every_one(tiny, tmp_path):
+    fixed = (0.8, None)
+    whole, _ = run_frames(tiny, tmp_path / "whole", 0, 5, runtime_config(), fixed=fixed)
+    summary, metrics = run_frames(
+        tiny, tmp_path / "part", 0, 3, runtime_config(), fixed=fixed, keep_metrics=2
+    )
+    assert [m.time_index for m in metrics] == [1, 2] and summary.tasks == 3
+    summary, metrics = run_frames(
+        tiny, tmp_path / "part", 0, 5, runtime_config(), fixed=fixed, keep_metrics=2, resume=True
+    )
+    assert [m.time_index for m in metrics] == [3, 4]
+    assert summary.tasks == 5 and summary.failed == 0
+    assert summary.clouds_written == whole.clouds_written == 5
+    lines = (tmp_path / "part" / "metrics.jsonl").read_text().splitlines()
+    assert len(lines) == 5
+    assert summary.avg_scale == pytest.approx(whole.avg_scale)
+    assert summary.avg_cameras == pytest.approx(whole.avg_cameras)
+    assert {"scene", "merge"} <= set(summary.stage_means_s)

@@ -304,6 +304,11 @@ def print_summary(title: str, s: RunSummary) -> None:
         )
 
 
+#: Task records a live stream's run keeps in memory (``SessionOptions.keep_metrics``) and
+#: prints with ``--json``: the newest.
+LIVE_RECORDS = 1000
+
+
 def build_options(
     args: argparse.Namespace, dataset: Any, gt_threshold: float | None, *, overwrite: bool = False
 ) -> SessionOptions:
@@ -311,6 +316,8 @@ def build_options(
         frames=FrameRange.parse(args.frames) if args.frames else FrameRange(),
         policy=args.policy or ("newest" if dataset.is_live else "all"),
         duration_s=args.duration,
+        # A live stream runs for hours: its records stay in metrics.jsonl, not in memory.
+        keep_metrics=LIVE_RECORDS if dataset.is_live else None,
         write_clouds=not args.no_clouds,
         retention=RetentionConfig(keep_clouds=args.keep_clouds, min_free_mb=args.min_free_mb),
         ground_truth_threshold=gt_threshold if dataset.ground_truth is not None else None,

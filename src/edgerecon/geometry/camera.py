@@ -17,7 +17,8 @@ Conventions (used everywhere in edgerecon):
 from __future__ import annotations
 
 import dataclasses
-import functools
+import threading
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -368,15 +369,41 @@ class Camera:
             ) from None
 
 
-@functools.lru_cache(maxsize=64)
+#: Bytes of undistortion maps kept (the newest used first): the online controller moves r in
+#: small steps, and each (camera, scale) pair's maps are 8 bytes per target pixel (16.6 MB
+#: for one 1080p camera at r = 1; 64 of them, the old count limit, were 1 GB).
+UNDISTORT_CACHE_BYTES = 256 * 2**20
+_maps_cache: OrderedDict[tuple[Camera, float], tuple[NDArray[np.float32], NDArray[np.float32]]]
+_maps_cache = OrderedDict()
+_maps_lock = threading.Lock()
+
+
 def _undistort_maps_cached(
     camera: Camera, scale: float
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """The maps of ``camera`` at ``scale``, from the cache when there (the least recently
+    used go once the cache holds more than ``UNDISTORT_CACHE_BYTES``; the newest stays)."""
+    key = (camera, scale)
+    with _maps_lock:
+        hit = _maps_cache.get(key)
+        if hit is not None:
+            _maps_cache.move_to_end(key)
+            return hit
     target = camera.scaled(scale).undistorted()
     mx, my = cv2.initUndistortRectifyMap(
         camera.K, camera.dist, None, target.K, target.size, cv2.CV_32FC1
     )
-    return np.asarray(mx, np.float32), np.asarray(my, np.float32)
+    maps = np.asarray(mx, np.float32), np.asarray(my, np.float32)
+    for m in maps:
+        m.flags.writeable = False  # shared by every caller
+    with _maps_lock:
+        _maps_cache[key] = maps
+        _maps_cache.move_to_end(key)
+        total = sum(a.nbytes + b.nbytes for a, b in _maps_cache.values())
+        while total > UNDISTORT_CACHE_BYTES and len(_maps_cache) > 1:
+            _, (a, b) = _maps_cache.popitem(last=False)
+            total -= a.nbytes + b.nbytes
+    return maps
 
 
 def _refine_undistortion(

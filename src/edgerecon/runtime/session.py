@@ -134,6 +134,10 @@ class SessionOptions:
     stop, or Ctrl-C)."""
     overwrite: bool = False
     """Replace the run files of a non-empty output folder (refused otherwise)."""
+    keep_metrics: int | None = None
+    """The task records the session keeps in memory and returns, the newest (None: every
+    one; ``metrics.jsonl`` has every one, and the summary counts every one either way). A
+    live stream's run keeps 1000 (``cli.run``): its records would grow for hours."""
     faults: tuple[tuple[int, str, float], ...] = ()
     """Drills: (task number, fault kind, seconds) injected before that task (``hang``: into
     the front-end, the others into the back-end)."""
@@ -143,6 +147,8 @@ class SessionOptions:
             raise ValueError(f"policy must be 'all' or 'newest', got {self.policy!r}")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError(f"duration must be > 0 seconds, got {self.duration_s}")
+        if self.keep_metrics is not None and self.keep_metrics < 1:
+            raise ValueError(f"keep_metrics must be >= 1 (or None), got {self.keep_metrics}")
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
         for task, kind, seconds in self.faults:
@@ -236,6 +242,81 @@ def _same(value: int | None) -> int | None:
     return value
 
 
+@dataclass
+class _Mean:
+    total: float = 0.0
+    count: int = 0
+
+    def add(self, value: float) -> None:
+        self.total += float(value)
+        self.count += 1
+
+    @property
+    def value(self) -> float:
+        return self.total / self.count if self.count else math.nan
+
+
+@dataclass
+class RunTotals:
+    """What the summary needs of every task, added up as tasks are committed: a run's
+    memory does not grow with its tasks (a live stream runs for hours; the records
+    themselves are in ``metrics.jsonl`` and, up to ``SessionOptions.keep_metrics``, in
+    ``Session.metrics``)."""
+
+    tasks: int = 0
+    failed: int = 0
+    degraded: int = 0
+    empty: int = 0
+    clouds_written: int = 0
+    clouds_skipped: int = 0
+    scale: _Mean = field(default_factory=_Mean)
+    cameras: _Mean = field(default_factory=_Mean)
+    cameras_used: list[int] = field(default_factory=list)
+    time: _Mean = field(default_factory=_Mean)
+    adjust_time: _Mean = field(default_factory=_Mean)
+    adjust_misses: int = 0
+    fixed_time: _Mean = field(default_factory=_Mean)
+    fixed_misses: int = 0
+    online: _Mean = field(default_factory=_Mean)
+    offline: _Mean = field(default_factory=_Mean)
+    search_steps: int = 0
+    stages: dict[str, float] = field(default_factory=dict)
+    spread: _Mean = field(default_factory=_Mean)
+    spread_max: float | None = None
+
+    def add(self, m: TaskMetrics) -> None:
+        self.tasks += 1
+        self.clouds_written += bool(m.cloud_written)
+        self.clouds_skipped += bool(m.cloud_skipped)
+        if m.sync_spread_s is not None:
+            self.spread.add(m.sync_spread_s)
+            self.spread_max = max(self.spread_max or 0.0, m.sync_spread_s)
+        if m.status != "ok":
+            self.failed += 1
+            return
+        self.degraded += bool(m.degraded)
+        if m.frame_defects and m.num_cameras < MIN_CAMERAS:
+            self.empty += 1
+            return  # averages over the tasks that reconstructed
+        self.scale.add(m.scale)
+        self.cameras.add(m.num_cameras)
+        self.cameras_used = list(m.camera_ids)
+        self.time.add(m.critical_path_s)
+        if m.phase == "adjust":
+            self.adjust_time.add(m.critical_path_s)
+            self.adjust_misses += not m.deadline_met
+        elif m.phase == "fixed":
+            self.fixed_time.add(m.critical_path_s)
+            self.fixed_misses += not m.deadline_met
+        if m.online_fscore is not None:
+            self.online.add(m.online_fscore)
+        if m.offline_fscore is not None:
+            self.offline.add(m.offline_fscore)
+        self.search_steps = max(self.search_steps, m.search_steps)
+        for k, v in m.stages.items():
+            self.stages[k] = self.stages.get(k, 0.0) + float(v)
+
+
 class Session:
     """Runs tasks on an engine and keeps the run's files (see module docstring)."""
 
@@ -259,7 +340,15 @@ class Session:
         self.deadline_s = deadline_s
         self.frame_check = frame_check or FrameCheckConfig()
         self.on_task = on_task
-        self.metrics: list[TaskMetrics] = list(previous or [])
+        previous = list(previous or [])
+        self.totals = RunTotals()
+        for m in previous:
+            self.totals.add(m)
+        keep = options.keep_metrics
+        self.metrics: list[TaskMetrics] = previous if keep is None else previous[-keep:]
+        """The task records in memory, oldest first: every one, or the newest
+        ``keep_metrics`` (``metrics.jsonl`` has every one)."""
+        self._done = {m.time_index for m in previous}
         self.identity = DatasetIdentity.of(dataset)
         self.frames_dropped = 0
         self._defects: dict[str, str] = {}
@@ -272,7 +361,7 @@ class Session:
         self.retention = CloudRetention(
             self.out,
             options.retention,
-            ((m.time_index, (m.bg_epoch, m.bg_version)) for m in self.metrics if m.status == "ok"),
+            ((m.time_index, (m.bg_epoch, m.bg_version)) for m in previous if m.status == "ok"),
         )
         if options.ground_truth_threshold is not None and dataset.ground_truth is not None:
             from edgerecon.synth import GroundTruth
@@ -325,11 +414,11 @@ class Session:
     def _stream_stats(self, source: Any) -> None:
         stats = source.stats()
         self.frames_dropped = int(stats["frames_dropped"])
-        spread = [m.sync_spread_s for m in self.metrics if m.sync_spread_s is not None]
+        spread = self.totals.spread
         self._stream = {
             **stats,
-            "sync_spread_mean_s": float(np.mean(spread)) if spread else None,
-            "sync_spread_max_s": float(np.max(spread)) if spread else None,
+            "sync_spread_mean_s": spread.value if spread.count else None,
+            "sync_spread_max_s": self.totals.spread_max,
         }
 
     def run(self) -> RunSummary:
@@ -337,7 +426,7 @@ class Session:
         :class:`RunInterrupted`."""
         wall0 = time.perf_counter()
         save_rig(self.out / "rig.json", self.dataset.rig)
-        done = {m.time_index for m in self.metrics}
+        done = self._done
         if self.dataset.is_live:
             if self.options.policy != "newest":
                 raise EdgereconError("live streams take the newest frames: use --policy newest")
@@ -348,7 +437,7 @@ class Session:
             with self.dataset.open_frames(missing="skip_camera") as source:
                 try:
                     for t in schedule:
-                        self._task(source, t, len(self.metrics))
+                        self._task(source, t, self.totals.tasks)
                 finally:
                     if self.dataset.is_live:
                         self._stream_stats(source)
@@ -418,7 +507,7 @@ class Session:
                     m.cloud_written = True
             # Background, cloud, metrics line, then the run state: the commit point.
             self.folder.append_metrics(m)
-            self.metrics.append(m)
+            self._keep(m)
             RunState(
                 dataset=self.identity,
                 frames=(
@@ -428,7 +517,7 @@ class Session:
                 ),
                 policy=self.options.policy,
                 deadline_s=self.deadline_s,
-                tasks_done=len(self.metrics),
+                tasks_done=self.totals.tasks,
                 frontend=self.engine.state(),
             ).save(self.out)
             if m.status == "ok":  # after the commit point: older clouds beyond --keep-clouds
@@ -436,7 +525,7 @@ class Session:
         except OSError as exc:  # disk full, folder removed: stop with what is committed
             raise EdgereconError(
                 f"cannot write the outputs of task {task} to {self.out} ({exc}); the run "
-                f"stopped after {len(self.metrics)} committed tasks: fix it and --resume"
+                f"stopped after {self.totals.tasks} committed tasks: fix it and --resume"
             ) from None
         if self.on_task is not None:
             self.on_task(m)
@@ -519,44 +608,47 @@ class Session:
         if len(ref) and out.foreground is not None:
             m.offline_fscore = fscore(out.foreground, ref, self.options.ground_truth_threshold)
 
+    def _keep(self, m: TaskMetrics) -> None:
+        self.metrics.append(m)
+        keep = self.options.keep_metrics
+        if keep is not None and len(self.metrics) > keep:
+            del self.metrics[: len(self.metrics) - keep]
+        self.totals.add(m)
+
     # ------------------------------------------------------------------ summary
     def summarise(self) -> RunSummary:
-        ok = [m for m in self.metrics if m.status == "ok"]
-        empty = [m for m in ok if m.frame_defects and m.num_cameras < MIN_CAMERAS]
+        t = self.totals
         s = RunSummary(
-            tasks=len(self.metrics),
-            failed=len(self.metrics) - len(ok),
-            degraded=sum(m.degraded for m in ok),
-            empty=len(empty),
+            tasks=t.tasks,
+            failed=t.failed,
+            degraded=t.degraded,
+            empty=t.empty,
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
             engine=getattr(self.engine, "name", ""),
             stream=dict(self._stream),
-            clouds_written=sum(m.cloud_written for m in self.metrics),
+            clouds_written=t.clouds_written,
             clouds_kept=len(self.retention.kept),
-            clouds_skipped=sum(m.cloud_skipped for m in self.metrics),
+            clouds_skipped=t.clouds_skipped,
         )
-        skip = {id(m) for m in empty}
-        ok = [m for m in ok if id(m) not in skip]  # averages over the tasks that reconstructed
-        if ok:
-            s.avg_scale = float(np.mean([m.scale for m in ok]))
-            s.avg_cameras = float(np.mean([m.num_cameras for m in ok]))
-            s.cameras_used = ok[-1].camera_ids
-            s.avg_time_s = float(np.mean([m.critical_path_s for m in ok]))
-            conv = [m for m in ok if m.phase == "adjust"] or [m for m in ok if m.phase == "fixed"]
-            if conv:
-                s.avg_time_converged_s = float(np.mean([m.critical_path_s for m in conv]))
-                s.deadline_misses_converged = sum(not m.deadline_met for m in conv)
-            on = [m.online_fscore for m in ok if m.online_fscore is not None]
-            off = [m.offline_fscore for m in ok if m.offline_fscore is not None]
-            s.avg_online_fscore = float(np.mean(on)) if on else None
-            s.avg_offline_fscore = float(np.mean(off)) if off else None
-            s.offline_threshold = self.options.ground_truth_threshold if off else None
+        reconstructed = t.time.count  # averages over the tasks that reconstructed
+        if reconstructed:
+            s.avg_scale = t.scale.value
+            s.avg_cameras = t.cameras.value
+            s.cameras_used = list(t.cameras_used)
+            s.avg_time_s = t.time.value
+            conv, misses = (
+                (t.adjust_time, t.adjust_misses)
+                if t.adjust_time.count
+                else (t.fixed_time, t.fixed_misses)
+            )
+            if conv.count:
+                s.avg_time_converged_s = conv.value
+                s.deadline_misses_converged = misses
+            s.avg_online_fscore = t.online.value if t.online.count else None
+            s.avg_offline_fscore = t.offline.value if t.offline.count else None
+            s.offline_threshold = self.options.ground_truth_threshold if t.offline.count else None
             s.unit = self.dataset.rig.unit
-            s.search_steps = max(m.search_steps for m in ok)
-            stages: dict[str, list[float]] = {}
-            for m in ok:
-                for k, v in m.stages.items():
-                    stages.setdefault(k, []).append(v)
-            s.stage_means_s = {k: round(float(np.sum(v)) / len(ok), 4) for k, v in stages.items()}
+            s.search_steps = t.search_steps
+            s.stage_means_s = {k: round(v / reconstructed, 4) for k, v in t.stages.items()}
         return s
