@@ -393,6 +393,9 @@ def rebuild_background(
 
 
 def _lower_priority(nice: int, idle: bool = False) -> None:
+    from edgerecon.runtime.memory import limit_malloc_arenas
+
+    limit_malloc_arenas()  # the parent's MALLOC_ARENA_MAX, or the default
     try:
         os.nice(nice)
     except OSError:  # not allowed: run at the same priority

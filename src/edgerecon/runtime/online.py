@@ -34,6 +34,7 @@ from edgerecon.runtime.engine import (
     learn_scene_model,
 )
 from edgerecon.runtime.frontend import FixedController
+from edgerecon.runtime.memory import limit_malloc_arenas
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder
@@ -136,6 +137,7 @@ def run_online(
     """Run the online system on ``dataset`` and return its summary and per-task metrics
     (:class:`~edgerecon.runtime.session.RunInterrupted` after Ctrl-C, summary written)."""
     check_options(dataset, options, engine=engine, fixed=fixed)
+    limit_malloc_arenas()  # before the roles' threads and processes start (runtime.memory)
     fr = options.frames
     with OutputFolder(out_dir).acquire(command) as folder:
         saved = folder.prepare(

@@ -160,6 +160,9 @@ class _BackendActor:
 
     def __init__(self, dataset: Dataset, config: RuntimeConfig, frontend_name: str) -> None:
         from edgerecon.runtime.backend import BackEnd
+        from edgerecon.runtime.memory import limit_malloc_arenas
+
+        limit_malloc_arenas()  # a worker process of a cluster the driver did not start
 
         ray = _ray()
         frontend = ray.get_actor(frontend_name)
@@ -233,6 +236,9 @@ class _FrontendActor:
         background: Any,
         niceness: int = 0,
     ) -> None:
+        from edgerecon.runtime.memory import limit_malloc_arenas
+
+        limit_malloc_arenas()  # a worker process of a cluster the driver did not start
         self.niceness = normal_priority(niceness)
         if self.niceness > niceness:
             logger.warning(

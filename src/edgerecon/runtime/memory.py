@@ -1,0 +1,66 @@
+"""The C heap of a long run: few malloc arenas, so that memory does not creep up for hours.
+
+glibc's malloc gives each thread that allocates an arena of its own, up to 8 per core (16 on
+a 2-core device). A task's stages run in several threads (the watchdog's worker, OpenCV's
+and numba's pools, the back-end's, the stream readers'), each allocating and freeing image-
+and cloud-sized blocks; the arenas fragment and the resident memory steps up and stays. On
+caliscope_charuco served as a live stream (``benchmarks/bench_soak.py``, 4 x 1280x720,
+~1.9 tasks per second) the run's main process grew from 1.55 GB to 2.63 GB over 900 s
+(about 1 GB per 1000 tasks, in steps); with two arenas it stayed at 1.31-1.51 GB from the
+fourth minute to the tenth, and the tasks were no slower (0.513 s against 0.522 s on
+average). See docs/BENCHMARKS.md.
+
+:func:`limit_malloc_arenas` sets the limit for this process (``mallopt(M_ARENA_MAX)``, for
+the arenas still to be created: call it before the work starts) and, through the
+``MALLOC_ARENA_MAX`` environment variable, for the processes it starts (the background
+rebuild's, a private Ray instance's workers). A value the user put in ``MALLOC_ARENA_MAX``
+wins. Other C libraries (musl, macOS) are left as they are.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import logging
+import os
+import sys
+
+logger = logging.getLogger(__name__)
+
+#: glibc's ``mallopt`` parameter for the arena count (malloc.h).
+_M_ARENA_MAX = -8
+#: Arenas a run uses (one per core of the 2-core devices it targets).
+ARENAS = 2
+_done: int | None = None
+
+
+def limit_malloc_arenas(arenas: int = ARENAS) -> int | None:
+    """Limit glibc's malloc to ``arenas`` arenas (``MALLOC_ARENA_MAX`` when the user set
+    it) in this process and the ones it starts. Returns the limit set, None where the C
+    library is not glibc (nothing done but the environment variable)."""
+    global _done
+    value = os.environ.setdefault("MALLOC_ARENA_MAX", str(int(arenas)))
+    try:
+        limit = int(value)
+    except ValueError:
+        logger.warning("MALLOC_ARENA_MAX=%r is not a number: malloc's arenas not limited", value)
+        return None
+    if _done == limit:
+        return limit
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc
+        return None
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    mallopt.restype = ctypes.c_int
+    if not mallopt(_M_ARENA_MAX, limit):
+        logger.debug("mallopt(M_ARENA_MAX, %d) refused", limit)
+        return None
+    _done = limit
+    return limit
+
+
+__all__ = ["ARENAS", "limit_malloc_arenas"]
