@@ -6,9 +6,9 @@ and numba's pools, the back-end's, the stream readers'), each allocating and fre
 and cloud-sized blocks; the arenas fragment and the resident memory steps up and stays. On
 caliscope_charuco served as a live stream (``benchmarks/bench_soak.py``, 4 x 1280x720,
 ~1.9 tasks per second) the run's main process grew from 1.55 GB to 2.63 GB over 900 s
-(about 1 GB per 1000 tasks, in steps); with two arenas it stayed at 1.31-1.51 GB from the
-fourth minute to the tenth, and the tasks were no slower (0.513 s against 0.522 s on
-average). See docs/BENCHMARKS.md.
+(about 1 GB per 1000 tasks, in steps); with two arenas set when the command starts it held
+1.08-1.26 GB from the fifth minute to the thirtieth (3,364 tasks), and the tasks were no
+slower (0.519 s against 0.522 s on average). See docs/BENCHMARKS.md.
 
 :func:`limit_malloc_arenas` sets the limit for this process (``mallopt(M_ARENA_MAX)``, for
 the arenas still to be created: call it before the work starts) and, through the
