@@ -4,6 +4,8 @@ at half scale (recovery is tested with everything on)."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from edgerecon.io.dataset import open_dataset
@@ -35,3 +37,13 @@ def run_frames(tiny, out, start, stop, config=None, **kw):
     rest = {k: v for k, v in kw.items() if k not in names}
     rest.setdefault("scene", scene)
     return run_online(ds, config or runtime_config(), opts, out, **rest)
+
+
+def wait_until(predicate, timeout=120.0):
+    """Whether ``predicate()`` became true within ``timeout`` seconds (polled)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False

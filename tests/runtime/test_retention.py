@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ from edgerecon.runtime.frontend import FrontEnd
 from edgerecon.runtime.retention import CloudRetention, RetentionConfig
 from edgerecon.runtime.state import BACKGROUNDS, TASK_DROPPED, TASK_FOREGROUND, task_dir
 from edgerecon.viewer.rundir import RunFolder, has_task_cloud
-from tests.runtime.conftest import run_frames, runtime_config
+from tests.runtime.conftest import run_frames, runtime_config, wait_until
 
 
 def _task(root: Path, t: int, size: int = 1000) -> None:
@@ -57,7 +56,7 @@ def test_the_count_keeps_the_newest_clouds_and_their_backgrounds(tmp_path):
     assert again.kept == [3, 4]
 
 
-def test_low_disk_removes_old_clouds_then_skips_new_ones_never_the_newest(tmp_path):
+def test_low_disk_removes_old_clouds_then_skips_new_ones_never_the_newest(tmp_path, caplog):
     capacity = [0]
 
     def free(path):
@@ -94,6 +93,10 @@ def test_low_disk_removes_old_clouds_then_skips_new_ones_never_the_newest(tmp_pa
         assert not room
         kept.committed((1, 4))
     assert kept.kept == [19] and _tasks(tmp_path) == [19] and kept.skipped == 4
+    # Said once each, not every task.
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert sum("oldest task clouds are removed" in w for w in warned) == 1
+    assert sum("not written until there is room" in w for w in warned) == 1
     # Room again: written again.
     capacity[0] = 10 * mib
     assert kept.make_room((1, 4), None, cloud=True)
@@ -106,31 +109,28 @@ def test_retention_settings_are_checked():
         RetentionConfig(min_free_mb=-1)
 
 
-def _wait(cond, timeout=120.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.05)
-    return False
-
-
-def test_a_run_keeps_the_newest_clouds_across_a_resume(tiny, tmp_path, monkeypatch):
-    # Everything on (background rebuilds included): backgrounds arrive between tasks, tasks
-    # refer to several versions, and only the newest clouds and what they refer to stay.
-    pushes = []
+@pytest.fixture
+def pushes(monkeypatch):
+    """The versions of the backgrounds the front-end takes, as it takes them."""
+    taken = []
     real_push = FrontEnd.push_background
 
     def push(self, update):
-        pushes.append(update.version)
+        taken.append(update.version)
         return real_push(self, update)
 
     monkeypatch.setattr(FrontEnd, "push_background", push)
+    return taken
+
+
+def test_a_run_keeps_the_newest_clouds_across_a_resume(tiny, tmp_path, pushes):
+    # Everything on (background rebuilds included): backgrounds arrive between tasks, tasks
+    # refer to several versions, and only the newest clouds and what they refer to stay.
 
     def slow(m):  # frames arrive slowly after these tasks: the back-end pushes a background
         if m.task in (0, 3):
             count = len(pushes)
-            assert _wait(lambda: len(pushes) > count or (m.task == 0 and pushes))
+            assert wait_until(lambda: len(pushes) > count or (m.task == 0 and pushes))
 
     fixed = (0.8, None)
     summary, metrics = run_frames(
@@ -179,7 +179,9 @@ def test_a_run_keeps_the_newest_clouds_across_a_resume(tiny, tmp_path, monkeypat
         assert RunFolder(tmp_path).cloud(m.time_index) is not None
 
 
-def test_a_run_on_a_full_disk_goes_on_and_keeps_the_newest_cloud(tiny, tmp_path, monkeypatch):
+def test_a_run_on_a_full_disk_goes_on_and_keeps_the_newest_cloud(
+    tiny, tmp_path, monkeypatch, pushes
+):
     # A disk that fills up: the run ends with every task recorded, the newest cloud on disk.
     import edgerecon.runtime.retention as retention
 
@@ -191,21 +193,13 @@ def test_a_run_on_a_full_disk_goes_on_and_keeps_the_newest_cloud(tiny, tmp_path,
         return capacity[0] - used
 
     monkeypatch.setattr(retention, "free_bytes", free)
-    pushes = []
-    real_push = FrontEnd.push_background
-
-    def push(self, update):
-        pushes.append(update.version)
-        return real_push(self, update)
-
-    monkeypatch.setattr(FrontEnd, "push_background", push)
 
     def fill(m):
         if m.task == 1:  # from now on the disk holds the floor and little else
             used = 2**30 * 10 - free(out)
             capacity[0] = used + 2**20 + 1000
             # A background arrives while the disk is short: it is written (--resume).
-            assert _wait(lambda: bool(pushes))
+            assert wait_until(lambda: bool(pushes))
 
     summary, metrics = run_frames(
         tiny,

@@ -30,21 +30,12 @@ from edgerecon.runtime.state import (
 )
 from edgerecon.types import EdgereconError, PointCloud
 from edgerecon.viewer.rundir import RunFolder
-from tests.runtime.conftest import run_frames, runtime_config
+from tests.runtime.conftest import run_frames, runtime_config, wait_until
 
 
 def _cloud(n):
     rng = np.random.default_rng(n)
     return PointCloud(points3D=rng.normal(size=(n, 3)), colors=np.zeros((n, 3), np.uint8))
-
-
-def _wait(predicate, timeout=120.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def test_background_versions_order_by_epoch_then_counter():
@@ -101,7 +92,7 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
     )
     try:
         fe = engine.frontend
-        assert _wait(lambda: fe.bg_version.counter >= 1), "first background (from the clip)"
+        assert wait_until(lambda: fe.bg_version.counter >= 1), "first background (from the clip)"
         assert fe.bg_version.epoch == 1
         engine.inject_backend_fault("crash")
         engine.link.mark_lost("test")
@@ -113,7 +104,9 @@ def test_embedded_backend_restart_keeps_backgrounds_advancing(tiny):
         engine.link._next_check = 0.0
         out = engine.run_task(frames, engine.plan(3), 0, {})
         assert out.metrics.status == "ok" and out.metrics.submitted
-        assert _wait(lambda: fe.bg_version.epoch == 2), "the new back-end's background is taken"
+        assert wait_until(lambda: fe.bg_version.epoch == 2), (
+            "the new back-end's background is taken"
+        )
     finally:
         engine.close()
 
@@ -144,11 +137,11 @@ def test_embedded_backend_stuck_in_a_loop_is_restarted_and_its_thread_stopped(ti
             frames = src.read(3)
         out = engine.run_task(frames, engine.plan(3), 0, {})
         assert out.metrics.status == "ok" and out.metrics.submitted
-        assert _wait(lambda: stuck.ping()["task_age_s"] > 2.5, timeout=30)
+        assert wait_until(lambda: stuck.ping()["task_age_s"] > 2.5, timeout=30)
         engine.link._next_check = 0.0
         assert not engine.link.usable()  # found stuck: restarted
         assert engine.backend_restarts == 1 and engine.backend is not stuck
-        assert _wait(lambda: "ended" in loop and not stuck.task_thread.is_alive(), timeout=10)
+        assert wait_until(lambda: "ended" in loop and not stuck.task_thread.is_alive(), timeout=10)
         assert engine.status()["abandoned_threads"] == []
     finally:
         engine.close()
@@ -179,7 +172,7 @@ def test_resume_restores_state_background_and_equals_uninterrupted_run(tiny, tmp
         if m.task in (0, 4):
             epoch = 1 if m.task == 0 else 2
             pushed = lambda: any(fe is current[-1] and v.epoch == epoch for fe, v in taken)  # noqa: E731
-            assert _wait(pushed, timeout=180)
+            assert wait_until(pushed, timeout=180)
 
     whole = tmp_path / "whole"
     _, uninterrupted = run_frames(tiny, whole, 0, 7, config, fixed=fixed)

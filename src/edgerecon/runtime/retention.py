@@ -105,8 +105,7 @@ class CloudRetention:
         self._task_bytes: deque[int] = deque(maxlen=_RECENT_TASKS)
         self._bytes_per_point = _BACKGROUND_BYTES_PER_POINT
         self._short = False  # in a stretch of tasks whose cloud was not written
-        self._pruned_said = -math.inf  # when the removals were last said (monotonic)
-        self._short_said = -math.inf  # when a cloud not written was last said
+        self._said: dict[str, float] = {}  # when each warning was last given (monotonic)
         self.pruned = 0
         """Task clouds removed (either limit)."""
         self.skipped = 0
@@ -141,9 +140,8 @@ class CloudRetention:
             self._remove_task(*self._kept.popleft())
             free = self._prune_backgrounds(version, self._free() or 0)
         if self.pruned > before:
-            now = time.monotonic()
-            quiet = now - self._pruned_said < _SAY_EVERY_S
-            (logger.debug if quiet else logger.warning)(
+            self._say(
+                "pruned",
                 "disk: under %.0f MiB free on %s: the oldest task clouds are removed (%d so "
                 "far, %d kept; --min-free-mb sets the floor)",
                 self.config.min_free_mb,
@@ -151,17 +149,14 @@ class CloudRetention:
                 self.pruned,
                 len(self._kept),
             )
-            if not quiet:
-                self._pruned_said = now
         if not cloud:
             return False
         if free >= need:
             return True
         self.skipped += 1
-        now = time.monotonic()
-        if not self._short and now - self._short_said >= _SAY_EVERY_S:
-            self._short_said = now
-            logger.warning(
+        if not self._short:
+            self._say(
+                "short",
                 "disk: %s has %.0f MiB free, under --min-free-mb %.0f with this task's files: "
                 "task clouds are not written until there is room (metrics go on)",
                 self.root,
@@ -170,6 +165,15 @@ class CloudRetention:
             )
         self._short = True
         return False
+
+    def _say(self, what: str, message: str, *args: object) -> None:
+        """A warning, or a debug line when the same ``what`` was warned of within
+        ``_SAY_EVERY_S``."""
+        now = time.monotonic()
+        quiet = now - self._said.get(what, -math.inf) < _SAY_EVERY_S
+        (logger.debug if quiet else logger.warning)(message, *args)
+        if not quiet:
+            self._said[what] = now
 
     def cloud_written(self, time_index: int, version: Version) -> None:
         """A task's cloud is on disk (its bytes estimate the next tasks')."""
