@@ -311,3 +311,162 @@ def test_import_offsets_explicit_names_and_checks(scene, tmp_path):
         import_dataset(tmp_path / "x", calibration=calib, frames=[f"cam9={frames / 'cam0'}"])
     with pytest.raises(DataError, match="exists"):
         import_dataset(tmp_path / "d", calibration=calib, frames=items)
+
+
+# ----------------------------------------------------------------------------- people-capture rigs
+def _yaml_matrix(key: str, m) -> list[str]:
+    m = np.atleast_2d(np.asarray(m, np.float64))
+    data = ", ".join(f"{v:.10f}" for v in m.ravel())
+    return [
+        f"{key}: !!opencv-matrix",
+        f"  rows: {m.shape[0]}",
+        f"  cols: {m.shape[1]}",
+        "  dt: d",
+        f"  data: [{data}]",
+    ]
+
+
+def easymocap_files(rig: Rig, folder, names, sizes: bool = True) -> None:
+    """``intri.yml`` + ``extri.yml`` as EasyMocap writes them (its own YAML writer: quoted
+    names, ``!!opencv-matrix``, CRLF line ends), with or without ``H_`` / ``W_``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    head = ["%YAML:1.0", "---", "names:", *[f'  - "{n}"' for n in names]]
+    intri, extri = list(head), list(head)
+    for name, cam in zip(names, rig, strict=True):
+        intri += _yaml_matrix(f"K_{name}", cam.K) + _yaml_matrix(f"dist_{name}", cam.dist[None])
+        if sizes:
+            intri += [f"H_{name}: {cam.height}", f"W_{name}: {cam.width}"]
+        rvec = cv2.Rodrigues(cam.R)[0]
+        extri += _yaml_matrix(f"R_{name}", rvec) + _yaml_matrix(f"Rot_{name}", cam.R)
+        extri += _yaml_matrix(f"T_{name}", cam.t[:, None])
+    (folder / "intri.yml").write_bytes("\r\n".join(intri).encode() + b"\r\n")
+    (folder / "extri.yml").write_bytes("\r\n".join(extri).encode() + b"\r\n")
+
+
+def panoptic_json(rig: Rig, names, extra: int = 0, scale: float = 100.0) -> str:
+    """A Panoptic Studio ``calibration_<seq>.json`` (centimetres) of ``rig`` plus ``extra``
+    VGA cameras that were not filmed."""
+    cams = [
+        {
+            "name": name,
+            "type": "hd",
+            "resolution": [cam.width, cam.height],
+            "panel": 0,
+            "node": k,
+            "K": cam.K.tolist(),
+            "distCoef": cam.dist.tolist(),
+            "R": cam.R.tolist(),
+            "t": (cam.t[:, None] * scale).tolist(),
+        }
+        for k, (name, cam) in enumerate(zip(names, rig, strict=True))
+    ]
+    for k in range(extra):
+        cam = rig[k]
+        cams.append(
+            {
+                "name": f"01_{k + 1:02d}",
+                "type": "vga",
+                "resolution": [640, 480],
+                "panel": 1,
+                "node": k + 1,
+                "K": cam.K.tolist(),
+                "distCoef": [0.0] * 5,
+                "R": cam.R.tolist(),
+                "t": ((cam.t + 0.1 * (k + 1))[:, None] * scale).tolist(),
+            }
+        )
+    return json.dumps({"calibDataSource": "160422_ultimatum1_calib", "cameras": cams})
+
+
+def test_easymocap_and_panoptic_readers_known_answers(tmp_path):
+    rig = ring_rig(4, dist=(-0.1, 0.02, 0.001, -0.002, 0.005))
+    names = ["01", "02", "03", "04"]
+    easymocap_files(rig, tmp_path / "em", names)
+    for path in (tmp_path / "em", tmp_path / "em" / "intri.yml", tmp_path / "em" / "extri.yml"):
+        got = load_rig(path)
+        assert got.names == names and got.unit == "m"
+        _assert_same_rig(got, rig, atol=1e-8)
+    # No image sizes in the file: from image_sizes, else from the frames in EasyMocap's layout.
+    easymocap_files(rig, tmp_path / "ns", names, sizes=False)
+    with pytest.raises(CalibrationError, match=r"camera '01' has no image size.*images/01/"):
+        load_rig(tmp_path / "ns")
+    assert (
+        load_rig(tmp_path / "ns", image_sizes=(rig[0].width, rig[0].height))[3].size == rig[3].size
+    )
+    for name in names:
+        (tmp_path / "ns" / "images" / name).mkdir(parents=True)
+        cv2.imwrite(
+            str(tmp_path / "ns" / "images" / name / "000000.jpg"), np.zeros((240, 320, 3), np.uint8)
+        )
+    assert [c.size for c in load_rig(tmp_path / "ns")] == [(320, 240)] * 4
+    (tmp_path / "half").mkdir()
+    shutil.copy(tmp_path / "em" / "intri.yml", tmp_path / "half" / "intri.yml")
+    with pytest.raises(CalibrationError, match="extri.yml is missing"):
+        load_rig(tmp_path / "half" / "intri.yml")
+
+    pan = tmp_path / "calibration_160422_ultimatum1.json"
+    pan.write_text(panoptic_json(rig, ["00_00", "00_01", "00_02", "00_03"], extra=2))
+    got = load_rig(pan)
+    assert got.names == ["00_00", "00_01", "00_02", "00_03", "01_01", "01_02"]
+    assert got.unit == "cm" and got.up == (0.0, -1.0, 0.0) and got[4].size == (640, 480)
+    _assert_same_rig(Rig(cameras=got.cameras[:4]), rig, scale=100.0, atol=1e-8)
+    assert load_rig(tmp_path).names == got.names  # the folder holding one calibration_*.json
+    bad = json.loads(pan.read_text())
+    bad["cameras"][2]["t"] = [1.0, 2.0]
+    pan.write_text(json.dumps(bad))
+    with pytest.raises(CalibrationError, match=r"camera '00_02': t must have 3 values"):
+        load_rig(pan)
+
+
+def test_import_easymocap_layout(scene, tmp_path, capsys):
+    ds, gt = scene
+    # EasyMocap's layout: intri.yml, extri.yml and images/<name>/ (here, names 1..5).
+    root = tmp_path / "zju"
+    names = [str(k + 1) for k in range(len(ds.rig))]
+    easymocap_files(ds.rig, root, names, sizes=False)
+    for name, cam in zip(names, ds.rig.names, strict=True):
+        (root / "images").mkdir(exist_ok=True)
+        (root / "images" / name).symlink_to(ds.root / "frames" / cam)
+    out = tmp_path / "em"
+    assert main(["import", str(root), str(root / "images"), "--out", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["calibration_format"] == "easymocap"
+    assert [c["matched_by"] for c in report["cameras"]] == ["name"] * 5
+    imported = open_dataset(out)
+    assert imported.rig.names == names and imported.rig.up == (0.0, 0.0, 1.0)
+    _assert_same_rig(imported.rig, ds.rig, atol=1e-8)
+    score = _reconstruct_score(out, tmp_path, gt, 1.0)
+    assert score.precision > 0.85 and score.num_pred > 150, score
+
+
+def test_import_panoptic_keeps_the_filmed_cameras(scene, tmp_path):
+    ds, gt = scene
+    names = [f"00_{k:02d}" for k in range(len(ds.rig))]
+    calib = tmp_path / "calibration_seq.json"
+    calib.write_text(panoptic_json(ds.rig, names, extra=3))
+    # Panoptic names its HD frames hd_00_03 (videos hdVideos/hd_00_03.mp4): four of the five
+    # HD cameras were filmed here, none of the VGA ones.
+    frames = tmp_path / "hdImgs"
+    frames.mkdir()
+    for name, cam in list(zip(names, ds.rig.names, strict=True))[:4]:
+        (frames / f"hd_{name}").symlink_to(ds.root / "frames" / cam)
+    report = import_dataset(tmp_path / "pan", calibration=calib, frames=[str(frames)], up="+z")
+    assert report.calibration_format == "panoptic" and report.unit_note.startswith("cm")
+    assert report.dataset.rig.names == names[:4]
+    assert any("4 of the calibration's 8 cameras have no frames" in n for n in report.notes)
+    assert "00_04, 01_01, 01_02, 01_03" in " ".join(report.notes)
+    _assert_same_rig(report.dataset.rig, Rig(cameras=ds.rig.cameras[:4]), scale=100.0, atol=1e-8)
+    assert import_dataset(
+        tmp_path / "p2", calibration=calib, frames=[str(frames)]
+    ).dataset.rig.up == (
+        0.0,
+        -1.0,
+        0.0,
+    )
+    score = _reconstruct_score(tmp_path / "pan", tmp_path, gt, 100.0)
+    assert score.precision > 0.85 and score.num_pred > 100, score
+    # Fewer than three filmed cameras, or frames that names do not tell: errors, as before.
+    for extra in sorted(frames.iterdir())[2:]:
+        extra.unlink()
+    with pytest.raises(DataError, match=r"only 2 of the calibration's cameras .*00_00, 00_01"):
+        import_dataset(tmp_path / "p3", calibration=calib, frames=[str(frames)])

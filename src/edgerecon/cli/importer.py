@@ -13,13 +13,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         "import",
         help="make a dataset from a calibration and per-camera videos or image folders",
         description="Read a calibration (edgerecon rig JSON, COLMAP text or binary model, "
-        "anipose / Pose2Sim / caliscope TOML, openMVG sfm_data, OpenCV XML, Middlebury), find "
-        "each camera's frames, check every camera (frames readable, counts, sizes) and write "
-        "OUT/dataset.json + OUT/rig.json. Frames are referenced where they are, not copied.",
+        "anipose / Pose2Sim / caliscope TOML, EasyMocap intri.yml + extri.yml, CMU Panoptic "
+        "calibration_*.json, openMVG sfm_data, OpenCV XML, Middlebury), find each camera's "
+        "frames, check every camera (frames readable, counts, sizes) and write "
+        "OUT/dataset.json + OUT/rig.json. Frames are referenced where they are, not copied. "
+        "A calibration of more cameras than were filmed (a dome's) keeps the cameras whose "
+        "frames are named after them.",
         epilog="examples:\n"
         "  edgerecon import camera_array.toml videos/ --out data/session1\n"
         "  edgerecon import Calib.toml cam1=v/c1.mp4 cam2=v/c2.mp4 cam3=v/c3.mp4 --out d\n"
         "  edgerecon import colmap/sparse/0 --images colmap/images --out data/scene\n"
+        "  edgerecon import zju/ zju/videos --out d                  # EasyMocap layout\n"
+        "  edgerecon import calibration_seq.json seq/hdVideos --out d  # Panoptic HD cameras\n"
         "  edgerecon import calibration.toml videos/ --offset B=2 --unit mm --out d",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

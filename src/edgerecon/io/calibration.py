@@ -32,6 +32,8 @@ Formats (``load_rig`` detects them from a file or a folder):
   comment that the reader understands (COLMAP ignores comments).
 * **anipose / Pose2Sim / caliscope TOML** (``calibration.toml``, ``Calib*.toml``,
   ``camera_array.toml``; ``edgerecon.io.calib_toml``): OpenCV cameras, world->camera.
+* **EasyMocap** ``intri.yml`` + ``extri.yml`` (ZJU-MoCap's layout too) and **CMU Panoptic
+  Studio** ``calibration_<sequence>.json`` (``edgerecon.io.calib_mocap``).
 
 Every malformed or inconsistent input raises ``CalibrationError`` naming the file, the camera
 when there is one, and the problem.
@@ -52,6 +54,15 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.io._errors import in_file as _in_file
+from edgerecon.io.calib_mocap import (
+    easymocap_camera_names,
+    easymocap_files,
+    is_easymocap_file,
+    is_panoptic,
+    panoptic_files,
+    read_easymocap,
+    read_panoptic,
+)
 from edgerecon.io.calib_toml import (
     load_toml,
     read_toml_calibration,
@@ -79,7 +90,16 @@ ImageSizes = Mapping[str, tuple[int, int]] | tuple[int, int]
 """Image sizes ``(width, height)`` per camera name, or one size for every camera."""
 
 #: Names of the calibration formats ``detect_calibration_format`` returns.
-FORMATS = ("edgerecon", "openmvg", "opencv-xml", "middlebury", "colmap", "toml")
+FORMATS = (
+    "edgerecon",
+    "openmvg",
+    "opencv-xml",
+    "middlebury",
+    "colmap",
+    "toml",
+    "easymocap",
+    "panoptic",
+)
 
 
 def _size_for(image_sizes: ImageSizes | None, name: str) -> tuple[int, int] | None:
@@ -469,7 +489,8 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
 
     Folders: ``rig.json`` > COLMAP (``cameras`` + ``images`` .txt or .bin, also under
     ``sparse/`` or ``sparse/0``) > one calibration ``*.toml`` (also under ``calibration/``) >
-    ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json``.
+    ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json`` > EasyMocap's ``intri.yml`` +
+    ``extri.yml`` > one Panoptic ``calibration_*.json``.
     """
     path = Path(path)
     if not path.exists():
@@ -481,6 +502,10 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
         return "middlebury"
     if name in ("cameras.txt", "images.txt", "cameras.bin", "images.bin"):
         return "colmap"
+    if path.suffix.lower() in (".yml", ".yaml") and (
+        name in ("intri.yml", "extri.yml") or is_easymocap_file(path)
+    ):
+        return "easymocap"
     if path.suffix.lower() in (".xml", ".yml", ".yaml"):
         return "opencv-xml"
     if path.suffix.lower() == ".toml":
@@ -495,9 +520,11 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
             return "edgerecon"
         if isinstance(data, dict) and "views" in data and "sfm_data_version" in data:
             return "openmvg"
+        if is_panoptic(data):
+            return "panoptic"
         raise CalibrationError(
-            f"{path}: JSON file is neither an edgerecon rig (format: edgerecon-rig) nor an "
-            "openMVG sfm_data file"
+            f"{path}: JSON file is neither an edgerecon rig (format: edgerecon-rig), an "
+            "openMVG sfm_data file nor a Panoptic calibration"
         )
     raise CalibrationError(f"{path}: unknown calibration format (supported: {', '.join(FORMATS)})")
 
@@ -523,9 +550,21 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     sfm = sorted(folder.glob("sfm_data*.json"))
     if len(sfm) == 1:
         return "openmvg", sfm[0]
+    mocap = easymocap_files(folder)
+    if mocap is not None:
+        return "easymocap", mocap[0]
+    panoptic = panoptic_files(folder)
+    if len(panoptic) > 1:
+        raise CalibrationError(
+            f"{folder}: several Panoptic calibrations ({', '.join(p.name for p in panoptic)}); "
+            "pass one of them"
+        )
+    if panoptic:
+        return "panoptic", panoptic[0]
     raise CalibrationError(
         f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
-        "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json)"
+        "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
+        "intri.yml + extri.yml, a Panoptic calibration_*.json)"
     )
 
 
@@ -533,8 +572,8 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
     """Read a rig from any supported calibration file or folder (format auto-detected).
 
     ``image_sizes`` ((width, height) per camera name, or one for all) is needed only by
-    formats that do not store sizes and have no frames next to them (OpenCV XML); for other
-    formats it is checked against the stored sizes.
+    formats that do not store sizes and have no frames next to them (OpenCV XML, EasyMocap
+    without ``H_`` / ``W_``); for other formats it is checked against the stored sizes.
     """
     path = Path(path)
     fmt = detect_calibration_format(path)
@@ -549,6 +588,15 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
         rig = read_colmap_text(target)
     elif fmt == "toml":
         rig = read_toml_calibration(target)
+    elif fmt == "easymocap":
+        sizes = (
+            None
+            if image_sizes is None
+            else {n: s for n in easymocap_camera_names(target) if (s := _size_for(image_sizes, n))}
+        )
+        rig = read_easymocap(target, sizes)
+    elif fmt == "panoptic":
+        rig = read_panoptic(target)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:
@@ -556,7 +604,7 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
             f"{target}: a single OpenCV XML file holds one camera; pass the folder of camN/ "
             "sub-folders (or use read_opencv_camera_xml)"
         )
-    if image_sizes is not None and fmt not in ("middlebury", "opencv-xml"):
+    if image_sizes is not None and fmt not in ("middlebury", "opencv-xml", "easymocap"):
         check_image_sizes(rig, image_sizes, str(target))
     return rig
 

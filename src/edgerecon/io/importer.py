@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from edgerecon.geometry.camera import Rig
+from edgerecon.io.calib_mocap import easymocap_camera_names, read_easymocap
 from edgerecon.io.calibration import detect_calibration_format, load_rig
 from edgerecon.io.colmap import find_colmap_model, read_colmap_model, rig_from_colmap
 from edgerecon.io.dataset import DESCRIPTOR, Dataset, open_dataset, write_dataset_descriptor
@@ -229,10 +230,25 @@ def _is_container(path: Path) -> bool:
     return len(subs) >= 2 or sum(p.suffix.lower() in VIDEO_EXTENSIONS for p in files) >= 2
 
 
+def _name_in_label(name: str, label: str) -> bool:
+    """Whether camera ``name`` is a word, or a run of words, of a file's ``label``
+    (camera ``A`` in ``vid-cam-A``, Panoptic's ``00_03`` in ``hd_00_03``)."""
+    words, label_words = _tokens(name), _tokens(label)
+    if _norm(name) in label_words:
+        return True
+    k = len(words)
+    return k > 0 and any(label_words[i : i + k] == words for i in range(len(label_words) - k + 1))
+
+
 def match_sources(
-    names: Sequence[str], sources: Sequence[_Source]
+    names: Sequence[str], sources: Sequence[_Source], subset_min: int | None = None
 ) -> dict[str, tuple[_Source, str]]:
-    """Camera name -> (source, how it was matched); see the module docstring."""
+    """Camera name -> (source, how it was matched); see the module docstring. With
+    ``subset_min``, a calibration may hold more cameras than there are sources when every
+    source is one camera's, explicitly or by name, and at least ``subset_min`` cameras have
+    one: the others are not in the result."""
+    if subset_min is None:
+        subset_min = len(names) + 1
     result: dict[str, tuple[_Source, str]] = {}
     rest = []
     for s in sources:
@@ -247,19 +263,35 @@ def match_sources(
             rest.append(s)
     todo = [n for n in names if n not in result]
     if not rest:
-        if todo:
+        if todo and len(result) < subset_min:
             raise DataError(f"no frames for cameras {todo}")
         return result
     by_name: dict[str, _Source] = {}
     for n in todo:
         exact = [s for s in rest if _norm(s.label) == _norm(n)]
-        cands = exact or [s for s in rest if _norm(n) in _tokens(s.label)]
+        cands = exact or [s for s in rest if _name_in_label(n, s.label)]
         if len(cands) == 1:
             by_name[n] = cands[0]
     used = [id(s) for s in by_name.values()]
-    if len(by_name) == len(todo) and len(set(used)) == len(used):
+    if len(set(used)) == len(used) and (
+        len(by_name) == len(todo)
+        # A calibration of more cameras than were filmed (a dome's): every source is one
+        # camera's by name, the others are left out (``import_dataset`` says which).
+        or (len(by_name) == len(rest) and len(result) + len(by_name) >= subset_min)
+    ):
         result.update({n: (s, "name") for n, s in by_name.items()})
         return result
+    subset = subset_min <= len(names)
+    if (
+        subset
+        and len(by_name) == len(rest) == len(set(used))
+        and len(result) + len(by_name) < subset_min
+    ):
+        have = sorted([*result, *by_name])
+        raise DataError(
+            f"only {len(have)} of the calibration's cameras have frames ({', '.join(have)}); "
+            f"a rig needs at least {subset_min}"
+        )
     if len(rest) == len(todo):
         ordered = sorted(rest, key=lambda s: natural_key(s.label))
         result.update({n: (s, "order") for n, s in zip(todo, ordered, strict=True)})
@@ -340,7 +372,19 @@ def import_dataset(
     if (out / DESCRIPTOR).exists() and not overwrite:
         raise DataError(f"{out / DESCRIPTOR} exists; pass overwrite=True (--force) to replace it")
     fmt = detect_calibration_format(calib)
-    rig = load_rig(calib)
+    if images is not None and fmt != "colmap":
+        raise DataError("--images goes with a COLMAP model (its image names are the frames)")
+    if images is None and not frames:
+        raise DataError("no frames given: pass per-camera videos / image folders (or --images)")
+    sources = collect_sources(frames) if images is None else []
+    matched: dict[str, tuple[_Source, str]] = {}
+    if fmt == "easymocap":
+        # intri.yml may record no image size: the frames' own, before the cameras are read.
+        matched = match_sources(easymocap_camera_names(calib), sources, subset_min=3)
+        sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
+        rig = read_easymocap(calib, sizes, only=matched.keys())
+    else:
+        rig = load_rig(calib)
     notes: list[str] = []
     unit_note = f"{rig.unit} (from the calibration)"
     if unit is not None:
@@ -355,19 +399,28 @@ def import_dataset(
         )
     elif fmt in ("openmvg", "colmap") and rig.unit == "m":
         unit_note = "m (assumed: the format stores no unit; SfM scales are arbitrary)"
-    rig, up_note = _apply_up(rig, up, fmt)
+    elif fmt == "easymocap":
+        unit_note = "m (EasyMocap calibrations are in metres)"
+    elif fmt == "panoptic":
+        unit_note = "cm (Panoptic Studio calibrations are in centimetres)"
 
     out.mkdir(parents=True, exist_ok=True)
     if images is not None:
-        if fmt != "colmap":
-            raise DataError("--images goes with a COLMAP model (its image names are the frames)")
         model_dir = find_colmap_model(calib)
         assert model_dir is not None
         matched = _colmap_frames(model_dir, Path(images), out, rig)
-    elif frames:
-        matched = match_sources(rig.names, collect_sources(frames))
     else:
-        raise DataError("no frames given: pass per-camera videos / image folders (or --images)")
+        matched = matched or match_sources(rig.names, sources, subset_min=rig.min_cameras)
+        left_out = [n for n in rig.names if n not in matched]
+        if left_out:
+            rig = dataclasses.replace(rig, cameras=tuple(c for c in rig if c.name in matched))
+            shown = ", ".join(left_out[:8])
+            more = f" and {len(left_out) - 8} more" if len(left_out) > 8 else ""
+            notes.append(
+                f"{len(left_out)} of the calibration's {len(left_out) + len(rig)} cameras have "
+                f"no frames and are left out: {shown}{more}"
+            )
+    rig, up_note = _apply_up(rig, up, fmt)
     kinds = {src.kind for src, _ in matched.values()}
     if len(kinds) > 1:
         raise DataError(
@@ -490,7 +543,7 @@ def _apply_up(rig: Rig, up: str | tuple[float, float, float], fmt: str) -> tuple
         return dataclasses.replace(rig, up=up), f"{_fmt_vec(up)} (given)"
     if (
         up == "keep"
-        or fmt in ("edgerecon", "opencv-xml", "middlebury")
+        or fmt in ("edgerecon", "opencv-xml", "middlebury", "panoptic")
         or (fmt == "colmap" and tuple(rig.up) != (0.0, 0.0, 1.0))
     ):
         return rig, f"{_fmt_vec(rig.up)} (from the calibration)"
