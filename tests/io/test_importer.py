@@ -450,19 +450,23 @@ def test_import_panoptic_keeps_the_filmed_cameras(scene, tmp_path):
     frames.mkdir()
     for name, cam in list(zip(names, ds.rig.names, strict=True))[:4]:
         (frames / f"hd_{name}").symlink_to(ds.root / "frames" / cam)
-    report = import_dataset(tmp_path / "pan", calibration=calib, frames=[str(frames)], up="+z")
+    report = import_dataset(tmp_path / "pan", calibration=calib, frames=[str(frames)])
     assert report.calibration_format == "panoptic" and report.unit_note.startswith("cm")
     assert report.dataset.rig.names == names[:4]
     assert any("4 of the calibration's 8 cameras have no frames" in n for n in report.notes)
     assert "00_04, 01_01, 01_02, 01_03" in " ".join(report.notes)
     _assert_same_rig(report.dataset.rig, Rig(cameras=ds.rig.cameras[:4]), scale=100.0, atol=1e-8)
-    assert import_dataset(
-        tmp_path / "p2", calibration=calib, frames=[str(frames)]
-    ).dataset.rig.up == (
-        0.0,
-        -1.0,
-        0.0,
-    )
+    # The reader says -y (Panoptic's world); the cameras' level horizons here say +z.
+    assert load_rig(calib).up == (0.0, -1.0, 0.0)
+    auto = import_dataset(tmp_path / "p2", calibration=calib, frames=[str(frames)])
+    assert auto.dataset.rig.up == (0.0, 0.0, 1.0) and "level horizons" in auto.up_note
+    # The format written in metres by another tool: the rig's size tells.
+    metres = tmp_path / "m" / "calibration_m.json"
+    metres.parent.mkdir()
+    metres.write_text(panoptic_json(ds.rig, names, scale=1.0))
+    assert load_rig(metres).unit == "m"
+    report_m = import_dataset(tmp_path / "p4", calibration=metres, frames=[str(frames)])
+    assert report_m.dataset.rig.unit == "m" and "guessed from the rig's size" in report_m.unit_note
     score = _reconstruct_score(tmp_path / "pan", tmp_path, gt, 100.0)
     assert score.precision > 0.85 and score.num_pred > 100, score
     # Fewer than three filmed cameras, or frames that names do not tell: errors, as before.

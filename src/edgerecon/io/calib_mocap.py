@@ -13,7 +13,9 @@ Panoptic Studio.
 * **CMU Panoptic Studio** ``calibration_<sequence>.json``: ``cameras``, a list of ``name``
   (``"00_03"``: panel 00 is the HD cameras, 01-20 the VGA ones, 50 the Kinects), ``type``,
   ``resolution`` [width, height], ``K`` (3x3), ``distCoef`` (k1 k2 p1 p2 k3), ``R`` (3x3) and
-  ``t`` (3x1), world->camera, in centimetres; the world's y axis points down (up is -y). The
+  ``t`` (3x1), world->camera, in centimetres (other tools write the format in metres or
+  millimetres: ``panoptic_unit`` reads the rig's size); the world's y axis points down (up
+  is -y; ``edgerecon import`` checks it against the cameras' horizons). The
   file lists every camera of the dome (31 HD, 480 VGA, 10 Kinect): ``edgerecon import``
   keeps those whose frames it is given (``hdVideos/hd_00_03.mp4`` is camera ``00_03``).
 
@@ -23,7 +25,9 @@ inconsistent file raises ``CalibrationError`` naming the file, the camera and th
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import os
 from collections.abc import Collection, Mapping
 from pathlib import Path
@@ -37,6 +41,8 @@ from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.io._errors import in_file
 from edgerecon.io.frames import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key
 from edgerecon.types import CalibrationError
+
+logger = logging.getLogger(__name__)
 
 #: File names of an EasyMocap calibration.
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
@@ -328,4 +334,24 @@ def read_panoptic(path: str | os.PathLike[str]) -> Rig:
                 raise CalibrationError(f"camera {name!r}: {exc}") from None
         cameras.append(camera)
     with in_file(path):
-        return Rig(cameras=tuple(cameras), unit="cm", up=(0.0, -1.0, 0.0))
+        rig = Rig(cameras=tuple(cameras), unit="cm", up=(0.0, -1.0, 0.0))
+    unit = panoptic_unit(rig)
+    if unit != "cm":
+        logger.info(
+            "%s: the cameras are too %s the scene for centimetres: read as %s (Panoptic's "
+            "own files are in centimetres)",
+            path,
+            "near" if unit == "m" else "far from",
+            unit,
+        )
+    return dataclasses.replace(rig, unit=unit)
+
+
+def panoptic_unit(rig: Rig) -> str:
+    """The unit of a calibration in Panoptic's format: centimetres (the Panoptic Studio's),
+    unless the cameras' distance from the scene says otherwise (other tools write the format
+    too): under 20 units "m", over 3000 "mm"."""
+    from edgerecon.runtime.config import median_camera_distance
+
+    d = median_camera_distance(rig)
+    return "m" if d < 20 else "mm" if d > 3000 else "cm"

@@ -402,7 +402,12 @@ def import_dataset(
     elif fmt == "easymocap":
         unit_note = "m (EasyMocap calibrations are in metres)"
     elif fmt == "panoptic":
-        unit_note = "cm (Panoptic Studio calibrations are in centimetres)"
+        unit_note = (
+            "cm (Panoptic Studio calibrations are in centimetres)"
+            if rig.unit == "cm"
+            else f"{rig.unit} (guessed from the rig's size: Panoptic's own files are in "
+            "centimetres; give --unit)"
+        )
 
     out.mkdir(parents=True, exist_ok=True)
     if images is not None:
@@ -543,7 +548,7 @@ def _apply_up(rig: Rig, up: str | tuple[float, float, float], fmt: str) -> tuple
         return dataclasses.replace(rig, up=up), f"{_fmt_vec(up)} (given)"
     if (
         up == "keep"
-        or fmt in ("edgerecon", "opencv-xml", "middlebury", "panoptic")
+        or fmt in ("edgerecon", "opencv-xml", "middlebury")
         or (fmt == "colmap" and tuple(rig.up) != (0.0, 0.0, 1.0))
     ):
         return rig, f"{_fmt_vec(rig.up)} (from the calibration)"
