@@ -4,6 +4,7 @@ or against a synthetic scene's ground truth."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -223,7 +224,12 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     pred, inferred = read_pred(args.pred, args.measured_only)
     ref = read_ply(args.ref)
-    unit = read_ply_meta(args.ref).unit or read_ply_meta(args.pred).unit
+    ref_meta, pred_meta = read_ply_meta(args.ref), read_ply_meta(args.pred)
+    unit = ref_meta.unit or pred_meta.unit
+    # Clouds of a localised rig are read relative to their origin (io.ply): PRED into REF's.
+    shift = np.subtract(pred_meta.origin or (0.0, 0.0, 0.0), ref_meta.origin or (0.0, 0.0, 0.0))
+    if shift.any():
+        pred = dataclasses.replace(pred, points3D=pred.points3D + shift)
     th = resolve_thresholds(args.threshold, _dataset_rig(args.dataset), ref, args.max_distance)
     [scores] = evaluate_against(pred, [ref], th.values, max_distance=th.max_distance)
     seconds = time.perf_counter() - t0

@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from edgerecon.cli._common import add_json_flag, console, emit_json
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.export import export_colmap, z_up_metres
@@ -229,6 +231,7 @@ def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -
         cloud, dropped = crop_range(cloud, dataset.rig, args.max_range)
     unit = dataset.rig.unit if dataset else meta.unit
     up = tuple(dataset.rig.up) if dataset else meta.up
+    origin = np.asarray(dataset.rig.origin if dataset else meta.origin or (0.0, 0.0, 0.0))
     note = ""
     if args.z_up_metres:
         if unit is None or up is None:
@@ -237,6 +240,7 @@ def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -
             )
         sim = z_up_metres(unit, up)
         cloud = sim.cloud(cloud)
+        origin = sim.points(origin[None])[0]
         unit, up, note = sim.unit, sim.up, sim.describe()
     out = Path(args.out)
     if out.suffix.lower() != ".ply":
@@ -244,7 +248,7 @@ def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -
     comments = [f"exported by edgerecon from {cloud_path.name}"]
     if note:
         comments.append(f"world frame {note}")
-    write_ply(out, cloud, unit=unit, up=up, comments=comments)
+    write_ply(out, cloud, unit=unit, up=up, origin=tuple(origin), comments=comments)
     if args.json:
         emit_json(
             {"ply": str(out), "points": len(cloud), "unit": unit, "up": up, "note": note,

@@ -74,9 +74,11 @@ def describe(ds: Dataset) -> dict[str, Any]:
         with ds.background.open(rig) as bg:
             background_frames = bg.num_frames
     target = convergence_point(rig)
+    o = np.asarray(rig.origin)  # world coordinates below (a localised rig works near zero)
     return {
         **ds.to_dict(),
         "up": list(rig.up),
+        "origin": list(rig.origin),
         "scene_scale": rig.scene_scale(),
         "duration_s": None if ds.fps is None or ds.is_live else ds.num_frames / ds.fps,
         "background_frames": background_frames,
@@ -90,12 +92,12 @@ def describe(ds: Dataset) -> dict[str, Any]:
                 "fy": float(cam.K[1, 1]),
                 "cx": float(cam.K[0, 2]),
                 "cy": float(cam.K[1, 2]),
-                "center": cam.center.tolist(),
+                "center": (cam.center + o).tolist(),
                 "dist": cam.dist.tolist(),
             }
             for i, cam in enumerate(rig)
         ],
-        "convergence_point": None if target is None else target.tolist(),
+        "convergence_point": None if target is None else (target + o).tolist(),
         "baseline_angles_deg": np.round(baseline_angles_deg(rig), 3).tolist(),
     }
 
@@ -154,6 +156,11 @@ def run(args: argparse.Namespace) -> int:
         f"({ds.frames.kind}), fps {fps}, "
         f"unit {unit}, up {tuple(ds.rig.up)}, scene scale {info['scene_scale']:.4g} {unit}"
     )
+    if any(ds.rig.origin):
+        console.print(
+            f"far from the world's origin: computed in a frame at {tuple(ds.rig.origin)}, "
+            "clouds written in world coordinates (float64)"
+        )
     bg = info["background_frames"]
     console.print(
         "background clip: "

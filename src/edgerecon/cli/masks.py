@@ -199,6 +199,7 @@ def run(args: argparse.Namespace) -> int:
             hull_cloud(hull, rig.cameras, frames.images),
             unit=rig.unit,
             up=rig.up,
+            origin=rig.origin,
         )
     atomic_write_text(out / "masks.json", to_json(summary) + "\n")
     if args.json:

@@ -179,9 +179,13 @@ def _run_whole(
         result = reconstruct(frames, rig, config)
     out = Path(args.out)
     with progress.phase("write the outputs"):
-        write_ply(out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up)
+        write_ply(
+            out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up, origin=rig.origin
+        )
         if result.dense is not None:
-            write_ply(out / "dense.ply", result.dense.cloud, unit=rig.unit, up=rig.up)
+            write_ply(
+                out / "dense.ply", result.dense.cloud, unit=rig.unit, up=rig.up, origin=rig.origin
+            )
         write_effective(out, "reconstruct", {"reconstruction": config})
     summary = {
         "dataset": str(dataset.root),
@@ -233,8 +237,10 @@ def _run_split(
         )
     out = Path(args.out)
     with progress.phase("write the outputs"):
-        write_merged(out, result.merged, unit=rig.unit, up=rig.up)
-        write_ply(out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up)
+        write_merged(out, result.merged, unit=rig.unit, up=rig.up, origin=rig.origin)
+        write_ply(
+            out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up, origin=rig.origin
+        )
         write_effective(
             out,
             "reconstruct --split",

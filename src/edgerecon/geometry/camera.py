@@ -461,6 +461,10 @@ class Rig:
     """World 'up' direction (utrecht4cam's board frame has up = -Z), for viewers and floors."""
     min_cameras: int = 3
     """Smallest rig accepted (3 for reconstruction; sub-rigs may lower it explicitly)."""
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """World position of the frame the cameras are given in: a point's world coordinates are
+    its coordinates in this frame plus ``origin``. Zero unless the rig was ``localised`` (a
+    rig far from its world's origin, in georeferenced UTM or ECEF coordinates)."""
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -482,6 +486,10 @@ class Rig:
                         f"cameras {cams[i].name!r} and {cams[j].name!r} have the same centre"
                     )
         object.__setattr__(self, "up", tuple(float(x) for x in self.up))
+        origin = tuple(float(x) for x in self.origin)
+        if len(origin) != 3 or not all(np.isfinite(origin)):
+            raise CalibrationError(f"a rig's origin must be 3 finite numbers, got {self.origin}")
+        object.__setattr__(self, "origin", origin)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -540,14 +548,46 @@ class Rig:
         d = np.linalg.norm(c[:, None] - c[None], axis=2)
         return float(np.median(d[np.triu_indices(len(c), 1)]))
 
+    def localised(self, max_offset: float = 100.0) -> Rig:
+        """The rig in a frame near its cameras (``origin`` set) when their mean centre is
+        more than ``max_offset`` times the rig's size from the world's origin, else itself.
+
+        Georeferenced rigs (UTM: millions of metres; ECEF) lose millimetres to metres in
+        float32 arithmetic (depth maps, fusion, voxel grids, PLY coordinates); in the local
+        frame the same arithmetic is as exact as for any rig. The origin is the mean centre
+        rounded to a power of ten below the rig's size; poses are moved in float64."""
+        if any(self.origin):
+            return self
+        mean = self.centers.mean(axis=0)
+        size = self.scene_scale()
+        if not size > 0 or float(np.linalg.norm(mean)) <= max_offset * size:
+            return self
+        step = 10.0 ** np.floor(np.log10(size))
+        o = np.round(mean / step) * step
+        cams = tuple(dataclasses.replace(c, t=c.t + c.R @ o) for c in self.cameras)
+        return dataclasses.replace(
+            self, cameras=cams, origin=(float(o[0]), float(o[1]), float(o[2]))
+        )
+
+    def in_world(self) -> Rig:
+        """The rig with its cameras in world coordinates (``origin`` zero)."""
+        if not any(self.origin):
+            return self
+        o = np.asarray(self.origin, np.float64)
+        cams = tuple(dataclasses.replace(c, t=c.t - c.R @ o) for c in self.cameras)
+        return dataclasses.replace(self, cameras=cams, origin=(0.0, 0.0, 0.0))
+
     def to_dict(self) -> dict[str, Any]:
-        return {
+        d = {
             "format": "edgerecon-rig",
             "version": 1,
             "unit": self.unit,
             "up": list(self.up),
             "cameras": [c.to_dict() for c in self.cameras],
         }
+        if any(self.origin):
+            d["origin"] = list(self.origin)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Rig:
@@ -555,7 +595,10 @@ class Rig:
             raise CalibrationError("not an edgerecon rig file (missing format: edgerecon-rig)")
         cams = tuple(Camera.from_dict(c) for c in d.get("cameras", []))
         return cls(
-            cameras=cams, unit=str(d.get("unit", "m")), up=tuple(d.get("up", (0.0, 0.0, 1.0)))
+            cameras=cams,
+            unit=str(d.get("unit", "m")),
+            up=tuple(d.get("up", (0.0, 0.0, 1.0))),
+            origin=tuple(d.get("origin", (0.0, 0.0, 0.0))),
         )
 
 

@@ -76,6 +76,11 @@ class Dataset:
     layout: str = "descriptor"
     """How the dataset was recognised: "descriptor", "utrecht4cam" or "middlebury"."""
 
+    def __post_init__(self) -> None:
+        # Far from its world's origin (georeferenced), the rig works in a local frame
+        # (``Rig.localised``); outputs carry the origin back (``io.ply``).
+        object.__setattr__(self, "rig", self.rig.localised())
+
     @property
     def num_cameras(self) -> int:
         return len(self.rig)

@@ -89,7 +89,13 @@ class Similarity:
         )
 
     def rig(self, rig: Rig) -> Rig:
-        return Rig(cameras=tuple(self.camera(c) for c in rig), unit=self.unit, up=self.up)
+        origin = self.points(np.asarray([rig.origin], np.float64))[0]
+        return Rig(
+            cameras=tuple(self.camera(c) for c in rig),
+            unit=self.unit,
+            up=self.up,
+            origin=(float(origin[0]), float(origin[1]), float(origin[2])),
+        )
 
     def describe(self) -> str:
         return (
@@ -265,14 +271,16 @@ def export_colmap(
     colors = kept.colors if kept.colors is not None else np.full((len(kept), 3), 128, np.uint8)
     points = ColmapPoints(
         ids=np.arange(1, len(kept) + 1, dtype=np.int64),
-        xyz=kept.points3D,
+        xyz=kept.points3D + np.asarray(rig.origin),  # world coordinates (Rig.localised)
         rgb=colors,
         error=np.zeros(len(kept)),
         track_offsets=offsets,
         track_image_ids=np.concatenate(obs_image)[order] if len(p_all) else np.zeros(0, np.int64),
         track_point2D_idxs=np.concatenate(obs_idx)[order] if len(p_all) else np.zeros(0, np.int64),
     )
-    export_rig = Rig(cameras=tuple(cams), unit=rig.unit, up=rig.up, min_cameras=1)
+    export_rig = Rig(
+        cameras=tuple(cams), unit=rig.unit, up=rig.up, origin=rig.origin, min_cameras=1
+    ).in_world()
     names = [f"{c.name}{image_ext}" for c in cams]
     model = rig_to_colmap(
         export_rig,

@@ -5,7 +5,10 @@ red green blue (uchar), label (int), confidence (float), then the extra attribut
 with ``uchar inferred`` (1 = inferred point, e.g. ground-plane completion; 0 = measured;
 ``types.INFERRED``). A PLY without it reads as all measured (no attribute).
 The writer records the unit and up direction as header comments (``comment unit mm``,
-``comment up 0 0 -1``; ``read_ply_meta`` reads them back). The reader accepts any PLY: ASCII
+``comment up 0 0 -1``; ``read_ply_meta`` reads them back). A cloud of a rig far from its
+world's origin (``Rig.localised``: georeferenced coordinates) is written in world
+coordinates as float64 with ``comment origin X Y Z``, and ``read_ply`` gives it back
+relative to that origin, the frame the rig works in (``PlyMeta.origin`` adds it back). The reader accepts any PLY: ASCII
 or binary of either endianness, other elements (mesh faces) before or after the vertices,
 and list properties (openMVS's per-point ``views``), which it skips; unknown scalar
 properties land in ``PointCloud.attributes``.
@@ -14,6 +17,7 @@ properties land in ``PointCloud.attributes``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import tempfile
 from collections.abc import Sequence
@@ -99,6 +103,9 @@ class PlyMeta:
     """Length unit of the coordinates ("m", "mm", ...), None when the file does not say."""
     up: tuple[float, float, float] | None = None
     """World up direction, None when the file does not say."""
+    origin: tuple[float, float, float] | None = None
+    """``comment origin X Y Z``: the coordinates in the file are world coordinates and
+    ``read_ply`` subtracts this (the local frame of a localised rig); None when absent."""
     comments: tuple[str, ...] = ()
     """Every comment line, in order."""
     num_vertices: int = 0
@@ -106,13 +113,19 @@ class PlyMeta:
     """Scalar vertex properties; list properties are listed as ``list:<name>``."""
 
 
-def ply_comments(unit: str | None = None, up: Sequence[float] | None = None) -> list[str]:
-    """Header comments that record a cloud's unit and up direction."""
+def ply_comments(
+    unit: str | None = None,
+    up: Sequence[float] | None = None,
+    origin: Sequence[float] | None = None,
+) -> list[str]:
+    """Header comments that record a cloud's unit, up direction and (non-zero) origin."""
     out = []
     if unit is not None:
         out.append(f"unit {unit}")
     if up is not None:
         out.append("up " + " ".join(repr(float(v)) for v in up))
+    if origin is not None and any(origin):
+        out.append("origin " + " ".join(repr(float(v)) for v in origin))
     return out
 
 
@@ -123,10 +136,13 @@ def write_ply(
     double: bool = False,
     unit: str | None = None,
     up: Sequence[float] | None = None,
+    origin: Sequence[float] | None = None,
     comments: Sequence[str] = (),
 ) -> Path:
     """Write ``cloud`` as binary PLY, atomically. ``unit`` and ``up`` are recorded as header
     comments (``comment unit mm``, ``comment up 0 0 -1``) with any other ``comments``.
+    ``origin`` (a localised rig's, non-zero): the points are relative to it; the file gets
+    world coordinates (``origin`` added) as float64 and ``comment origin X Y Z``.
     Every cloud gets the ``inferred`` property (all 0 when the cloud has no such attribute):
     readers can tell measured points from inferred ones in any file edgerecon writes.
     Returns the path."""
@@ -135,10 +151,12 @@ def write_ply(
         cloud = cloud.with_inferred(False)
     fields: list[tuple[str, str]] = []
     cols: list[np.ndarray] = []
-    pos_t = "<f8" if double else "<f4"
+    shift = None if origin is None or not any(origin) else np.asarray(origin, np.float64)
+    pos_t = "<f8" if double or shift is not None else "<f4"
+    points = cloud.points3D if shift is None else cloud.points3D + shift
     for i, name in enumerate("xyz"):
         fields.append((name, pos_t))
-        cols.append(cloud.points3D[:, i])
+        cols.append(points[:, i])
     if cloud.normals is not None:
         for i, name in enumerate(("nx", "ny", "nz")):
             fields.append((name, "<f4"))
@@ -173,7 +191,7 @@ def write_ply(
         "ply",
         "format binary_little_endian 1.0",
         "comment written by edgerecon",
-        *(f"comment {c}" for c in [*ply_comments(unit, up), *comments]),
+        *(f"comment {c}" for c in [*ply_comments(unit, up, origin), *comments]),
         f"element vertex {n}",
     ]
     for name, code in fields:
@@ -188,8 +206,17 @@ def read_ply(path: str | os.PathLike[str]) -> PointCloud:
 
     Any PLY: ASCII or binary of either endianness, other elements before or after the
     vertices (faces of a mesh), and list properties (openMVS's ``views``), which are skipped.
+    A file with ``comment origin X Y Z`` is read relative to that origin (``PlyMeta.origin``).
     """
-    return _read(path)[0]
+    return read_ply_with_meta(path)[0]
+
+
+def read_ply_with_meta(path: str | os.PathLike[str]) -> tuple[PointCloud, PlyMeta]:
+    """``read_ply`` and ``read_ply_meta`` in one read."""
+    cloud, meta = _read(path)
+    if meta.origin is not None:
+        cloud = dataclasses.replace(cloud, points3D=cloud.points3D - np.asarray(meta.origin))
+    return cloud, meta
 
 
 def read_ply_meta(path: str | os.PathLike[str]) -> PlyMeta:
@@ -261,17 +288,22 @@ def _parse_header(f: BinaryIO, path: Path) -> tuple[PlyMeta, str, list[_Element]
     vertex = next((e for e in elements if e[0] == "vertex"), None)
     if vertex is None:
         raise DataError(f"{path}: no 'vertex' element")
-    unit = up = None
+    unit = up = origin = None
     for c in comments:
         w = c.split()
         if len(w) == 2 and w[0] == "unit":
             unit = w[1]
-        elif len(w) == 4 and w[0] == "up":
+        elif len(w) == 4 and w[0] in ("up", "origin"):
             with contextlib.suppress(ValueError):
-                up = (float(w[1]), float(w[2]), float(w[3]))
+                vec = (float(w[1]), float(w[2]), float(w[3]))
+                if w[0] == "up":
+                    up = vec
+                elif all(np.isfinite(vec)) and any(vec):
+                    origin = vec
     meta = PlyMeta(
         unit=unit,
         up=up,
+        origin=origin,
         comments=tuple(comments),
         num_vertices=vertex[1],
         vertex_properties=tuple(

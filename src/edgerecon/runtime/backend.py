@@ -292,10 +292,14 @@ class BackEnd:
                 self._last_bg_start = time.monotonic()
             try:
                 self._rebuild(*source)
-            except RebuildTimeout as exc:
-                logger.error("back-end: %s", exc)
             except Exception as exc:
-                logger.exception("back-end: background rebuild failed: %s", exc)
+                if self._stop:  # the run ended under it: its process is shut down
+                    logger.debug("back-end: background rebuild ended with the run (%s)", exc)
+                    return
+                if isinstance(exc, RebuildTimeout):
+                    logger.error("back-end: %s", exc)
+                else:
+                    logger.exception("back-end: background rebuild failed: %s", exc)
 
     def _bg_ready(self) -> bool:
         if not self.config.background_updates or self._busy or self._pending is not None:

@@ -173,7 +173,11 @@ def run_online(
             rig = dataset.rig
             version = saved.frontend.bg_version
             folder.ensure_background(
-                background, (version.epoch, version.counter), unit=rig.unit, up=rig.up
+                background,
+                (version.epoch, version.counter),
+                unit=rig.unit,
+                up=rig.up,
+                origin=rig.origin,
             )
             logger.warning(
                 "resuming after %d tasks (background %s, back-end epoch %d)",

@@ -492,7 +492,9 @@ class Session:
                 room = self.retention.make_room(version, bg_points, cloud=cloud)
                 m.cloud_skipped = cloud and not room
                 if out.background is not None:  # before the task that refers to it
-                    self.folder.write_background(out.background, version, unit=rig.unit, up=rig.up)
+                    self.folder.write_background(
+                        out.background, version, unit=rig.unit, up=rig.up, origin=rig.origin
+                    )
                     self.retention.background_written(version, len(out.background))
                 if cloud and room and out.foreground is not None:
                     self.folder.write_task_cloud(
@@ -502,6 +504,7 @@ class Session:
                         version,
                         unit=rig.unit,
                         up=rig.up,
+                        origin=rig.origin,
                     )
                     self.retention.cloud_written(t, version)
                     m.cloud_written = True
