@@ -165,3 +165,17 @@ def test_synth_cli_small_object_preset(tmp_path, capsys):
     assert main([*argv, "-d", "0.1%", "--json"]) == 0
     text = capsys.readouterr().out
     assert text.count('"precision": 1.0') >= 1 and text.count('"recall": 1.0') >= 1, text
+
+
+def test_synth_cli_site_preset(tmp_path, capsys):
+    """A site's scale: five cameras 14 m from the yard's centre, people from the first frame."""
+    out = tmp_path / "site"
+    args = ["synth", "--preset", "site", "--out", str(out), "--frames", "2", "--size", "192x108"]
+    assert main([*args, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["num_cameras"] == 5 and report["background_frames"] == 0
+    gt = GroundTruth.open(out)
+    fg = gt.reference_cloud(1, part="foreground", min_views=2)
+    assert len(fg) > 0 and float(fg.points3D[:, 2].max()) < 2.2  # people, on the ground
+    centres = gt.rig.centers
+    assert 12.0 < float(np.median(np.linalg.norm(centres[:, :2], axis=1))) < 16.0
