@@ -3,6 +3,7 @@ and caliscope TOML, each to a dataset that reconstructs; matching, offsets, chec
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -474,3 +475,58 @@ def test_import_panoptic_keeps_the_filmed_cameras(scene, tmp_path):
         extra.unlink()
     with pytest.raises(DataError, match=r"only 2 of the calibration's cameras .*00_00, 00_01"):
         import_dataset(tmp_path / "p3", calibration=calib, frames=[str(frames)])
+
+
+def poses_bounds(rig: Rig) -> np.ndarray:
+    """LLFF's ``poses_bounds.npy`` of ``rig``: camera-to-world with axes (down, right,
+    backwards), the centre, (height, width, focal), then near / far bounds."""
+    rows = []
+    for cam in rig:
+        c2w = cam.R.T  # columns: right, down, forward
+        pose = np.column_stack(
+            [c2w[:, 1], c2w[:, 0], -c2w[:, 2], cam.center, [cam.height, cam.width, cam.K[0, 0]]]
+        )
+        rows.append(np.concatenate([pose.ravel(), [0.5, 20.0]]))
+    return np.asarray(rows)
+
+
+def test_import_llff_poses_bounds(scene, tmp_path, capsys):
+    ds, gt = scene
+    # Neural 3D Video's layout: poses_bounds.npy next to one folder (here) or video per
+    # camera, its rows in the sources' sorted order; the principal point is the centre.
+    centred = Rig(
+        cameras=tuple(
+            dataclasses.replace(
+                c,
+                K=np.array([[c.K[0, 0], 0, c.width / 2], [0, c.K[1, 1], c.height / 2], [0, 0, 1]]),
+            )
+            for c in ds.rig
+        )
+    )
+    root = tmp_path / "n3dv"
+    root.mkdir()
+    np.save(root / "poses_bounds.npy", poses_bounds(centred).astype(np.float32))
+    for k, cam in enumerate(ds.rig.names):
+        (root / f"cam{k:02d}").symlink_to(ds.root / "frames" / cam)
+    got = load_rig(root)
+    assert got.names == [f"cam{k:02d}" for k in range(5)]
+    _assert_same_rig(got, centred, atol=2e-4)  # stored as float32
+    out = tmp_path / "ll"
+    assert (
+        main(["import", str(root / "poses_bounds.npy"), str(root), "--out", str(out), "--json"])
+        == 0
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert report["calibration_format"] == "llff"
+    assert [c["matched_by"] for c in report["cameras"]] == ["order"] * 5
+    assert "SfM scales are arbitrary" in report["unit_note"]
+    assert open_dataset(out).rig.up == (0.0, 0.0, 1.0)  # the cameras' horizons
+    score = _reconstruct_score(out, tmp_path, gt, 1.0)
+    assert score.precision > 0.85 and score.num_pred > 150, score
+    with pytest.raises(CalibrationError, match="5 cameras .rows. but 4"):
+        import_dataset(
+            tmp_path / "l4", calibration=root, frames=[str(root / f"cam0{k}") for k in range(4)]
+        )
+    np.save(root / "poses_bounds.npy", np.zeros((3, 12)))
+    with pytest.raises(CalibrationError, match=r"\(N, 17\) array, got shape \(3, 12\)"):
+        load_rig(root)

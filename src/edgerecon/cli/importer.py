@@ -14,7 +14,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="make a dataset from a calibration and per-camera videos or image folders",
         description="Read a calibration (edgerecon rig JSON, COLMAP text or binary model, "
         "anipose / Pose2Sim / caliscope TOML, EasyMocap intri.yml + extri.yml, CMU Panoptic "
-        "calibration_*.json, openMVG sfm_data, OpenCV XML, Middlebury), find each camera's "
+        "calibration_*.json, LLFF poses_bounds.npy, openMVG sfm_data, OpenCV XML, Middlebury), find "
+        "each camera's "
         "frames, check every camera (frames readable, counts, sizes) and write "
         "OUT/dataset.json + OUT/rig.json. Frames are referenced where they are, not copied. "
         "A calibration of more cameras than were filmed (a dome's) keeps the cameras whose "

@@ -34,6 +34,8 @@ Formats (``load_rig`` detects them from a file or a folder):
   ``camera_array.toml``; ``edgerecon.io.calib_toml``): OpenCV cameras, world->camera.
 * **EasyMocap** ``intri.yml`` + ``extri.yml`` (ZJU-MoCap's layout too) and **CMU Panoptic
   Studio** ``calibration_<sequence>.json`` (``edgerecon.io.calib_mocap``).
+* **LLFF** ``poses_bounds.npy`` (NeRF's forward-facing scenes, Neural 3D Video;
+  ``edgerecon.io.calib_llff``).
 
 Every malformed or inconsistent input raises ``CalibrationError`` naming the file, the camera
 when there is one, and the problem.
@@ -54,6 +56,7 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.io._errors import in_file as _in_file
+from edgerecon.io.calib_llff import LLFF_FILE, llff_file, read_llff
 from edgerecon.io.calib_mocap import (
     easymocap_camera_names,
     easymocap_files,
@@ -99,6 +102,7 @@ FORMATS = (
     "toml",
     "easymocap",
     "panoptic",
+    "llff",
 )
 
 
@@ -490,7 +494,7 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     Folders: ``rig.json`` > COLMAP (``cameras`` + ``images`` .txt or .bin, also under
     ``sparse/`` or ``sparse/0``) > one calibration ``*.toml`` (also under ``calibration/``) >
     ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json`` > EasyMocap's ``intri.yml`` +
-    ``extri.yml`` > one Panoptic ``calibration_*.json``.
+    ``extri.yml`` > LLFF's ``poses_bounds.npy`` > one Panoptic ``calibration_*.json``.
     """
     path = Path(path)
     if not path.exists():
@@ -498,6 +502,8 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     if path.is_dir():
         return _detect_in_folder(path)[0]
     name = path.name.lower()
+    if path.name == LLFF_FILE:
+        return "llff"
     if name.endswith("_par.txt"):
         return "middlebury"
     if name in ("cameras.txt", "images.txt", "cameras.bin", "images.bin"):
@@ -553,6 +559,9 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     mocap = easymocap_files(folder)
     if mocap is not None:
         return "easymocap", mocap[0]
+    llff = llff_file(folder)
+    if llff is not None:
+        return "llff", llff
     panoptic = panoptic_files(folder)
     if len(panoptic) > 1:
         raise CalibrationError(
@@ -564,7 +573,7 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     raise CalibrationError(
         f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
         "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
-        "intri.yml + extri.yml, a Panoptic calibration_*.json)"
+        "intri.yml + extri.yml, LLFF's poses_bounds.npy, a Panoptic calibration_*.json)"
     )
 
 
@@ -597,6 +606,8 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
         rig = read_easymocap(target, sizes)
     elif fmt == "panoptic":
         rig = read_panoptic(target)
+    elif fmt == "llff":
+        rig = read_llff(target)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:

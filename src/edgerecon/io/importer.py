@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from edgerecon.geometry.camera import Rig
+from edgerecon.io.calib_llff import read_llff
 from edgerecon.io.calib_mocap import easymocap_camera_names, read_easymocap
 from edgerecon.io.calibration import detect_calibration_format, load_rig
 from edgerecon.io.colmap import find_colmap_model, read_colmap_model, rig_from_colmap
@@ -378,7 +379,13 @@ def import_dataset(
         raise DataError("no frames given: pass per-camera videos / image folders (or --images)")
     sources = collect_sources(frames) if images is None else []
     matched: dict[str, tuple[_Source, str]] = {}
-    if fmt == "easymocap":
+    if fmt == "llff":
+        # Rows follow the sorted images / videos they were made from: the sources in natural
+        # order name the cameras.
+        ordered = sorted(sources, key=lambda s: natural_key(s.label))
+        rig = read_llff(calib, [s.label for s in ordered])
+        matched = {s.label: (s, "order") for s in ordered}
+    elif fmt == "easymocap":
         # intri.yml may record no image size: the frames' own, before the cameras are read.
         matched = match_sources(easymocap_camera_names(calib), sources, subset_min=3)
         sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
@@ -397,7 +404,7 @@ def import_dataset(
             if flavour == "anipose"
             else f"{rig.unit} ({flavour} calibrations are in metres)"
         )
-    elif fmt in ("openmvg", "colmap") and rig.unit == "m":
+    elif fmt in ("openmvg", "colmap", "llff") and rig.unit == "m":
         unit_note = "m (assumed: the format stores no unit; SfM scales are arbitrary)"
     elif fmt == "easymocap":
         unit_note = "m (EasyMocap calibrations are in metres)"
