@@ -55,6 +55,23 @@ def test_export_colmap_workspace(reconstruction, tiny_dataset, tmp_path, capsys)
     np.testing.assert_allclose(back[4].center, rig[4].center, atol=1e-12)
 
 
+def test_export_model_dir_for_gaussian_splatting(reconstruction, tmp_path, capsys):
+    """3D Gaussian Splatting and nerfstudio read ``<workspace>/sparse/0`` + ``images``."""
+    out = tmp_path / "gs"
+    args = ["export", str(reconstruction), "--out", str(out), "--cloud", "dense", "--binary"]
+    assert main([*args, "--model-dir", "sparse/0", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["model"] == str(out / "sparse" / "0")
+    assert {p.name for p in (out / "sparse" / "0").iterdir()} == {
+        "cameras.bin",
+        "images.bin",
+        "points3D.bin",
+    }
+    assert len(read_colmap_model(out / "sparse" / "0").points3D) == report["num_points"] > 1000
+    assert main([*args, "--model-dir", "../x"]) == 2
+    assert "inside the workspace" in capsys.readouterr().err
+
+
 def test_export_is_read_by_pycolmap(reconstruction, tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
     assert main(["export", str(reconstruction), "--out", str(tmp_path / "b"), "--binary"]) == 0

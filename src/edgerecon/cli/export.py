@@ -53,6 +53,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-images", action="store_true", help="colmap: write the model only")
     p.add_argument(
+        "--model-dir",
+        default="sparse",
+        metavar="DIR",
+        help="colmap: the model's folder inside OUT (default sparse, as openMVS and COLMAP "
+        "read it; sparse/0 for 3D Gaussian Splatting and nerfstudio)",
+    )
+    p.add_argument(
         "--min-track", type=int, default=2, help="colmap: least images per point (default 2)"
     )
     p.add_argument(
@@ -162,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
         binary=args.binary,
         min_track=args.min_track,
         transform=z_up_metres(dataset.rig.unit, dataset.rig.up) if args.z_up_metres else None,
+        model_dir=args.model_dir,
     )
     if args.json:
         emit_json(

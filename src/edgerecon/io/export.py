@@ -230,12 +230,17 @@ def export_colmap(
     min_track: int = 2,
     image_ext: str = ".png",
     transform: Similarity | None = None,
+    model_dir: str = "sparse",
 ) -> ExportReport:
     """Write ``cloud`` and the rig's cameras as a COLMAP workspace in ``out`` (see the
     module docstring). ``frames`` (the timestamp's frames, in rig order) become
-    ``images/``; without them only ``sparse/`` is written. ``transform`` (e.g.
-    ``z_up_metres(rig.unit, rig.up)``) changes the world frame of the cloud and the poses alike."""
+    ``images/``; without them only the model is written, in ``out/<model_dir>`` (``sparse``
+    for openMVS and COLMAP, ``sparse/0`` where 3D Gaussian Splatting and nerfstudio look).
+    ``transform`` (e.g. ``z_up_metres(rig.unit, rig.up)``) changes the world frame of the
+    cloud and the poses alike."""
     out = Path(out)
+    if Path(model_dir).is_absolute() or ".." in Path(model_dir).parts:
+        raise DataError(f"the model's folder must be inside the workspace, got {model_dir!r}")
     if min_track < 1:
         raise ValueError(f"min_track must be >= 1, got {min_track}")
     if transform is not None:
@@ -289,7 +294,7 @@ def export_colmap(
         point3D_ids=ids_per_image,
         points=points,
     )
-    model_dir = write_colmap_model(out / "sparse", model, binary=binary)
+    written = write_colmap_model(out / model_dir, model, binary=binary)
     images = []
     if frames is not None:
         if len(frames.images) != len(rig):
@@ -306,7 +311,7 @@ def export_colmap(
             )
     return ExportReport(
         folder=out,
-        model=model_dir,
+        model=written,
         images=images,
         num_points_in=len(cloud),
         num_points=len(kept),
