@@ -147,3 +147,16 @@ def test_a_georeferenced_run_writes_world_clouds_and_reads_them_back(far_dataset
     stored, meta = read_ply_with_meta(out / "tasks" / "000003" / "fg.ply")
     assert meta.origin == rig.origin
     assert float(np.abs(stored.points3D + np.asarray(meta.origin) - OFFSET).max()) < 50
+
+
+def test_evaluate_against_the_truth_in_world_coordinates(tiny_dataset, tmp_path, capsys):
+    """A PLY with an origin is scored against a synthetic scene's truth in world coordinates."""
+    from edgerecon.synth import GroundTruth
+
+    ref = GroundTruth.open(tiny_dataset).reference_cloud(3, "all", min_views=1)
+    origin = (1000.0, 2000.0, 0.0)
+    local = dataclasses.replace(ref, points3D=ref.points3D - np.asarray(origin))
+    pred = write_ply(tmp_path / "pred.ply", local, origin=origin)
+    args = ["evaluate", str(pred), "--gt", str(tiny_dataset), "--time", "3", "--part", "all"]
+    assert main([*args, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["scores"][0]["fscore"] > 0.99

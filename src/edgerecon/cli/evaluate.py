@@ -288,6 +288,9 @@ def _run_gt(args: argparse.Namespace) -> int:
     if args.part != "background" and args.time is None:
         raise DataError(f"--part {args.part} needs --time T (0..{gt.num_frames - 1})")
     pred_all, inferred = read_pred(args.pred, args.measured_only)
+    origin = read_ply_meta(args.pred).origin  # the truth is in world coordinates
+    if origin is not None:
+        pred_all = dataclasses.replace(pred_all, points3D=pred_all.points3D + np.asarray(origin))
     th = resolve_thresholds(args.threshold, gt.rig, None, args.max_distance, "ground truth's rig")
     ref_all = gt.reference_cloud(args.time, part=args.part, min_views=1)
     seen = np.asarray(ref_all.attributes["num_views"]) >= args.min_views
