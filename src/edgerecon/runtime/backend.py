@@ -397,9 +397,10 @@ def rebuild_background(
 
 
 def _lower_priority(nice: int, idle: bool = False) -> None:
-    from edgerecon.runtime.memory import limit_malloc_arenas
+    from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
 
     limit_malloc_arenas()  # the parent's MALLOC_ARENA_MAX, or the default
+    start_heap_trimmer()
     try:
         os.nice(nice)
     except OSError:  # not allowed: run at the same priority

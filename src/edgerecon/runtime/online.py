@@ -34,7 +34,7 @@ from edgerecon.runtime.engine import (
     learn_scene_model,
 )
 from edgerecon.runtime.frontend import FixedController
-from edgerecon.runtime.memory import limit_malloc_arenas
+from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
 from edgerecon.runtime.state import DatasetIdentity, OutputFolder
@@ -138,6 +138,7 @@ def run_online(
     (:class:`~edgerecon.runtime.session.RunInterrupted` after Ctrl-C, summary written)."""
     check_options(dataset, options, engine=engine, fixed=fixed)
     limit_malloc_arenas()  # before the roles' threads and processes start (runtime.memory)
+    start_heap_trimmer()
     fr = options.frames
     with OutputFolder(out_dir).acquire(command) as folder:
         saved = folder.prepare(

@@ -160,9 +160,10 @@ class _BackendActor:
 
     def __init__(self, dataset: Dataset, config: RuntimeConfig, frontend_name: str) -> None:
         from edgerecon.runtime.backend import BackEnd
-        from edgerecon.runtime.memory import limit_malloc_arenas
+        from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
 
         limit_malloc_arenas()  # a worker process of a cluster the driver did not start
+        start_heap_trimmer()
 
         ray = _ray()
         frontend = ray.get_actor(frontend_name)
@@ -236,9 +237,10 @@ class _FrontendActor:
         background: Any,
         niceness: int = 0,
     ) -> None:
-        from edgerecon.runtime.memory import limit_malloc_arenas
+        from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
 
         limit_malloc_arenas()  # a worker process of a cluster the driver did not start
+        start_heap_trimmer()
         self.niceness = normal_priority(niceness)
         if self.niceness > niceness:
             logger.warning(
