@@ -16,7 +16,7 @@ the arenas still to be created: call it before the work starts) and, through the
 rebuild's, a private Ray instance's workers). A value the user put in ``MALLOC_ARENA_MAX``
 wins. Other C libraries (musl, macOS) are left as they are. :func:`start_heap_trimmer`
 gives the heap's free pages back every 30 s in a run's processes (the session's, the
-rebuild's, Ray's actors).
+rebuild's, Ray's actors, the viewer's).
 """
 
 from __future__ import annotations

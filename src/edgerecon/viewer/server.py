@@ -175,6 +175,9 @@ class RunViewer:
 
     def serve_forever(self, parent_pid: int | None = None) -> None:
         """Block until interrupted (or until process ``parent_pid`` is gone)."""
+        from edgerecon.runtime.memory import start_heap_trimmer
+
+        start_heap_trimmer()  # the viewer lives as long as a live run (runtime.memory)
         try:
             while not self._stop.wait(1.0):
                 if parent_pid is not None and not _alive(parent_pid):
