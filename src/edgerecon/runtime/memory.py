@@ -8,7 +8,10 @@ caliscope_charuco served as a live stream (``benchmarks/bench_soak.py``, 4 x 128
 ~1.9 tasks per second) the run's main process grew from 1.55 GB to 2.63 GB over 900 s
 (about 1 GB per 1000 tasks, in steps); with two arenas set when the command starts it held
 1.08-1.26 GB from the fifth minute to the thirtieth (3,364 tasks), and the tasks were no
-slower (0.519 s against 0.522 s on average). See docs/BENCHMARKS.md.
+slower (0.519 s against 0.522 s on average); over 65 minutes (7,052 tasks) it rose in
+steps to 1.40 GB by minute 43 and held 1.40-1.51 GB to the end. The trimmer (below) halved
+the slope over minutes 11-45 (+98 -> +44 MB per 1000 tasks; 1.29 against 1.40 GB at minute
+45, within the samples' swings). See docs/BENCHMARKS.md.
 
 :func:`limit_malloc_arenas` sets the limit for this process (``mallopt(M_ARENA_MAX)``, for
 the arenas still to be created: call it before the work starts) and, through the
