@@ -106,8 +106,9 @@ class HullConfig:
     """A voxel survives when at most this many of the cameras that see it put it outside
     their silhouette (0 = exact intersection; 1 = robust to one bad mask)."""
     bounds: Bounds | None = None
-    """Region to carve ((xmin, ymin, zmin), (xmax, ymax, zmax)) in rig units; None = the
-    region the rig looks at (``rig_region``)."""
+    """Region to carve ((xmin, ymin, zmin), (xmax, ymax, zmax)) in rig units, in the frame
+    the rig works in (a georeferenced rig's local frame: world minus ``Rig.origin``, which
+    ``edgerecon info`` prints); None = the region the rig looks at (``rig_region``)."""
     max_voxels: int = 3_000_000
     """Refinement stops (coarser hull, logged) before a level would exceed this many voxels."""
     object_gap: float | None = None
