@@ -38,8 +38,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.io._errors import in_file
-from edgerecon.io.frames import IMAGE_EXTENSIONS, VIDEO_EXTENSIONS, natural_key
+from edgerecon.io._errors import check_distortion, in_file, rotation_matrix
+from edgerecon.io.frames import VIDEO_EXTENSIONS, probe_video
 from edgerecon.types import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -152,7 +152,7 @@ def easymocap_camera_names(path: str | os.PathLike[str]) -> list[str]:
 def _frame_size_nearby(folder: Path, name: str) -> tuple[int, int] | None:
     """The size of camera ``name``'s frames in EasyMocap's layout under ``folder``
     (``videos/<name>.*``, ``images/<name>/*``), if there are any."""
-    from edgerecon.io.frames import probe_image_size, probe_video
+    from edgerecon.io.calibration import camera_folder_frame_size  # (imports this module)
 
     videos = folder / "videos"
     if videos.is_dir():
@@ -161,14 +161,7 @@ def _frame_size_nearby(folder: Path, name: str) -> tuple[int, int] | None:
                 info = probe_video(p, camera=name)
                 return (info.width, info.height)
     images = folder / "images" / name
-    if images.is_dir():
-        files = sorted(
-            (p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS),
-            key=lambda p: natural_key(p.name),
-        )
-        if files:
-            return probe_image_size(files[0])
-    return None
+    return camera_folder_frame_size(images, name) if images.is_dir() else None
 
 
 def read_easymocap(
@@ -218,12 +211,8 @@ def _easymocap_camera(
     dist = intri.matrix(f"dist_{name}")
     if dist is None:
         dist = intri.matrix(f"D_{name}")
-    dist = np.zeros(5) if dist is None else dist.ravel()
-    if dist.size not in (4, 5, 8, 12, 14):
-        raise CalibrationError(
-            f"{intri.path}: camera {name!r}: dist_{name} must have 4, 5, 8, 12 or 14 entries, "
-            f"got {dist.size}"
-        )
+    where = f"{intri.path}: camera {name!r}: dist_{name}"
+    dist = np.zeros(5) if dist is None else check_distortion(dist, where)
     rot = extri.matrix(f"Rot_{name}")
     if rot is None:
         rot = extri.matrix(f"R_{name}")
@@ -232,15 +221,7 @@ def _easymocap_camera(
         raise CalibrationError(
             f"{extri.path}: camera {name!r} needs R_{name} (or Rot_{name}) and T_{name}"
         )
-    if rot.size == 3:
-        R = np.asarray(cv2.Rodrigues(rot.reshape(3, 1))[0], np.float64)
-    elif rot.size == 9:
-        R = rot.reshape(3, 3)
-    else:
-        raise CalibrationError(
-            f"{extri.path}: camera {name!r}: the rotation must be a Rodrigues vector or a 3x3 "
-            f"matrix, got {rot.size} values"
-        )
+    R = rotation_matrix(rot, f"{extri.path}: camera {name!r}")
     if T.size != 3:
         raise CalibrationError(f"{extri.path}: camera {name!r}: T_{name} must have 3 values")
     h, w = intri.integer(f"H_{name}"), intri.integer(f"W_{name}")
@@ -313,11 +294,7 @@ def read_panoptic(path: str | os.PathLike[str]) -> Rig:
                 res = cam.get("resolution")
                 if not (isinstance(res, list | tuple) and len(res) == 2):
                     raise ValueError("'resolution' must be [width, height]")
-                dist = np.asarray(cam["distCoef"], np.float64).ravel()
-                if dist.size not in (4, 5, 8, 12, 14):
-                    raise ValueError(
-                        f"distCoef must have 4, 5, 8, 12 or 14 values, got {dist.size}"
-                    )
+                dist = check_distortion(cam["distCoef"], f"camera {name!r}: distCoef")
                 t = np.asarray(cam["t"], np.float64).ravel()
                 if t.size != 3:
                     raise ValueError(f"t must have 3 values, got {t.size}")

@@ -33,10 +33,10 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.io._errors import rotation_matrix
 from edgerecon.types import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -177,15 +177,7 @@ def _camera(path: Path, name: str, table: dict[str, Any]) -> Camera:
         raise CalibrationError(f"{where}: malformed values ({exc})") from None
     if len(size) != 2 or any(v != int(v) or v <= 0 for v in size):
         raise CalibrationError(f"{where}: size must be [width, height] in pixels, got {size}")
-    if rot.size == 3:
-        R = np.asarray(cv2.Rodrigues(rot.reshape(3, 1))[0], np.float64)
-    elif rot.size == 9:
-        R = rot.reshape(3, 3)
-    else:
-        raise CalibrationError(
-            f"{where}: rotation must be a Rodrigues vector (3) or a 3x3 matrix, got {rot.size} "
-            "values"
-        )
+    R = rotation_matrix(rot, where)
     if dist.size > 5:
         raise CalibrationError(
             f"{where}: {dist.size} distortion coefficients; edgerecon supports OpenCV's "

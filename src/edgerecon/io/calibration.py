@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.io._errors import check_distortion, rotation_matrix
 from edgerecon.io._errors import in_file as _in_file
 from edgerecon.io.calib_llff import LLFF_FILE, llff_file, read_llff
 from edgerecon.io.calib_mocap import (
@@ -314,28 +315,15 @@ def read_opencv_camera_xml(
         fs.release()
     assert K is not None and rot is not None and trans is not None
     with _in_file(path):
-        if rot.size == 3:
-            R = np.asarray(cv2.Rodrigues(rot.reshape(3, 1))[0], dtype=np.float64)
-        elif rot.size == 9:
-            R = rot.reshape(3, 3)
-        else:
-            raise CalibrationError(
-                f"camera {name!r}: Rotation must be a 3x1 Rodrigues vector or a 3x3 matrix, "
-                f"got shape {rot.shape}"
-            )
-        if dist is not None and dist.size not in (4, 5, 8, 12, 14):
-            raise CalibrationError(
-                f"camera {name!r}: DistortionCoeffs must have 4, 5, 8, 12 or 14 entries, "
-                f"got {dist.size}"
-            )
+        where = f"camera {name!r}"
         return Camera(
             name=name,
             width=image_size[0],
             height=image_size[1],
             K=K,
-            R=R,
+            R=rotation_matrix(rot, where),
             t=trans.ravel(),
-            dist=np.zeros(5) if dist is None else dist.ravel(),
+            dist=np.zeros(5) if dist is None else check_distortion(dist, where),
         )
 
 

@@ -129,4 +129,10 @@ def stop_heap_trimmer(timeout: float = 5.0) -> None:
         thread.join(timeout)
 
 
-__all__ = ["ARENAS", "TRIM_INTERVAL_S", "limit_malloc_arenas", "start_heap_trimmer", "stop_heap_trimmer"]
+__all__ = [
+    "ARENAS",
+    "TRIM_INTERVAL_S",
+    "limit_malloc_arenas",
+    "start_heap_trimmer",
+    "stop_heap_trimmer",
+]

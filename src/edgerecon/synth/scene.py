@@ -399,6 +399,18 @@ def preset_config(name: str, **overrides: Any) -> SceneConfig:
 PHONE_DISTORTION = (-0.06, 0.02, 0.0, 0.0, 0.0)
 
 
+def _phone_realism() -> RealismConfig:
+    """Phones' and webcams' noise, exposure and white balance per camera, mild blur, and
+    ``ROOM_LIGHTS``' dimming stretch (hd4, site)."""
+    return RealismConfig(
+        noise_sigma=2.5,
+        exposure_spread=0.08,
+        white_balance_spread=0.04,
+        blur_sigma_px=0.8,
+        light_keys=ROOM_LIGHTS,
+    )
+
+
 def _hd4(portrait: bool = False) -> SceneConfig:
     """Four full-HD cameras 90 degrees apart in a room, no background clip, scripted actors."""
     w, h = (1080, 1920) if portrait else (1920, 1080)
@@ -425,13 +437,7 @@ def _hd4(portrait: bool = False) -> SceneConfig:
         room_size_m=(7.6, 7.2, 2.8),
         num_furniture=6,
         capture_radius_m=1.3,
-        realism=RealismConfig(
-            noise_sigma=2.5,
-            exposure_spread=0.08,
-            white_balance_spread=0.04,
-            blur_sigma_px=0.8,
-            light_keys=ROOM_LIGHTS,
-        ),
+        realism=_phone_realism(),
         actor_scripts=ROOM_SCRIPTS,
     )
 
@@ -464,13 +470,7 @@ def _site() -> SceneConfig:
         room_size_m=(44.0, 44.0, 14.0),
         num_furniture=14,
         capture_radius_m=5.0,
-        realism=RealismConfig(  # hd4's, its dimming stretch a cloud passing over
-            noise_sigma=2.5,
-            exposure_spread=0.08,
-            white_balance_spread=0.04,
-            blur_sigma_px=0.8,
-            light_keys=ROOM_LIGHTS,
-        ),
+        realism=_phone_realism(),  # the dimming stretch: a cloud passing over
         gt_voxel_foreground_m=0.01,
         gt_voxel_background_m=0.03,
     )
