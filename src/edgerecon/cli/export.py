@@ -1,5 +1,5 @@
-"""``edgerecon export``: a reconstruction as a COLMAP model (for openMVS and COLMAP) or as a
-viewer-friendly PLY."""
+"""``edgerecon export``: a reconstruction as a COLMAP model (for openMVS and COLMAP), a
+nerfstudio dataset (nerfstudio, Instant-NGP, Gaussian splatting) or a viewer-friendly PLY."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 
 from edgerecon.cli._common import add_json_flag, console, emit_json
 from edgerecon.io.dataset import Dataset, open_dataset
-from edgerecon.io.export import export_colmap, z_up_metres
+from edgerecon.io.export import export_colmap, export_nerfstudio, z_up_metres
 from edgerecon.io.ply import PlyMeta, read_ply, read_ply_meta, write_ply
 from edgerecon.runtime.state import TASK_DROPPED, TASK_FOREGROUND
 from edgerecon.types import DataError, PointCloud
@@ -27,21 +27,26 @@ _PLY_ORDER = ("merged.ply", "dense.ply", "sparse.ply")
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "export",
-        help="export a reconstruction as a COLMAP model (openMVS, COLMAP) or a viewer PLY",
+        help="export a reconstruction as a COLMAP model (openMVS, COLMAP), a nerfstudio "
+        "dataset or a viewer PLY",
         description="SOURCE is the output folder of `reconstruct`, a task folder of `run` "
         "(RUN/tasks/<time>) or a PLY file. --to colmap writes OUT/images/<camera>.png (the "
         "timestamp's frames, undistorted) and OUT/sparse/ (cameras, images, points3D with "
-        "tracks): openMVS reads it with `InterfaceCOLMAP -i OUT -o scene.mvs`. --to ply "
+        "tracks): openMVS reads it with `InterfaceCOLMAP -i OUT -o scene.mvs`. --to "
+        "nerfstudio writes OUT/images/, OUT/transforms.json (pinhole cameras, OpenGL poses) "
+        "and OUT/points3D.ply (the splats' start): `ns-train splatfacto --data OUT`. --to ply "
         "writes one PLY with its unit and up direction in the header.",
     )
     p.add_argument("source", help="reconstruction folder, run task folder, or a PLY file")
     p.add_argument("--out", "-o", required=True, help="output folder (colmap) or file (ply)")
-    p.add_argument("--to", choices=("colmap", "ply"), default="colmap", help="format (colmap)")
+    p.add_argument(
+        "--to", choices=("colmap", "nerfstudio", "ply"), default="colmap", help="format (colmap)"
+    )
     p.add_argument(
         "--cloud",
         default="auto",
         help="which cloud: sparse, dense, merged, fg, bg or a PLY path (default: colmap: "
-        "sparse.ply, ply: merged.ply or dense.ply)",
+        "sparse.ply, nerfstudio and ply: merged.ply or dense.ply)",
     )
     p.add_argument("--dataset", help="the dataset (default: recorded in the source folder)")
     p.add_argument("--time", "-t", type=int, help="the timestamp (default: recorded)")
@@ -148,8 +153,12 @@ def run(args: argparse.Namespace) -> int:
     if args.to == "ply":
         return _run_ply(args, source, dataset_path)
     if dataset_path is None:
-        raise DataError("--to colmap needs the dataset (--dataset DIR): the cameras come from it")
+        raise DataError(
+            f"--to {args.to} needs the dataset (--dataset DIR): the cameras come from it"
+        )
     dataset = open_dataset(dataset_path)
+    if args.to == "nerfstudio":
+        return _run_nerfstudio(args, source, dataset, time_index)
     cloud_path = _cloud_path(source, args.cloud, _COLMAP_ORDER)
     cloud, dropped = crop_range(_read_cloud(cloud_path), dataset.rig, args.max_range)
     occluders = _occluders(source, cloud_path)
@@ -192,6 +201,39 @@ def run(args: argparse.Namespace) -> int:
         soft_wrap=True,
     )
     console.print(f"openMVS: InterfaceCOLMAP -i {args.out} -o {Path(args.out) / 'scene.mvs'}")
+    return 0
+
+
+def _run_nerfstudio(
+    args: argparse.Namespace, source: Path, dataset: Dataset, time_index: int | None
+) -> int:
+    if time_index is None:
+        raise DataError("--to nerfstudio needs the timestamp of the frames (--time T)")
+    cloud_path = _cloud_path(source, args.cloud, _PLY_ORDER)
+    cloud, dropped = crop_range(_read_cloud(cloud_path), dataset.rig, args.max_range)
+    with dataset.open_frames() as src:
+        frames = src.read(int(time_index))
+    report = export_nerfstudio(
+        args.out,
+        dataset.rig,
+        cloud,
+        frames,
+        transform=z_up_metres(dataset.rig.unit, dataset.rig.up) if args.z_up_metres else None,
+    )
+    if args.json:
+        emit_json(
+            {**report.to_dict(), "cloud": str(cloud_path), "time": time_index, "dropped": dropped}
+        )
+        return 0
+    if dropped:
+        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
+    console.print(
+        f"wrote {report.transforms}, {len(report.images)} undistorted images and {report.ply} "
+        f"({report.num_points:,} points of {cloud_path.name})"
+        + (f"; world frame {report.transform}" if report.transform else ""),
+        soft_wrap=True,
+    )
+    console.print(f"nerfstudio: ns-train splatfacto --data {args.out}", soft_wrap=True)
     return 0
 
 

@@ -14,7 +14,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="make a dataset from a calibration and per-camera videos or image folders",
         description="Read a calibration (edgerecon rig JSON, COLMAP text or binary model, "
         "anipose / Pose2Sim / caliscope TOML, EasyMocap intri.yml + extri.yml, CMU Panoptic "
-        "calibration_*.json, LLFF poses_bounds.npy, openMVG sfm_data, OpenCV XML, Middlebury), find "
+        "calibration_*.json, LLFF poses_bounds.npy, nerfstudio / Instant-NGP transforms.json, "
+        "openMVG sfm_data, OpenCV XML, Middlebury), find "
         "each camera's "
         "frames, check every camera (frames readable, counts, sizes) and write "
         "OUT/dataset.json + OUT/rig.json. Frames are referenced where they are, not copied. "
@@ -26,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "  edgerecon import colmap/sparse/0 --images colmap/images --out data/scene\n"
         "  edgerecon import zju/ zju/videos --out d                  # EasyMocap layout\n"
         "  edgerecon import calibration_seq.json seq/hdVideos --out d  # Panoptic HD cameras\n"
+        "  edgerecon import capture/transforms.json videos/ --out d     # nerfstudio\n"
         "  edgerecon import calibration.toml videos/ --offset B=2 --unit mm --out d",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -36,6 +36,8 @@ Formats (``load_rig`` detects them from a file or a folder):
   Studio** ``calibration_<sequence>.json`` (``edgerecon.io.calib_mocap``).
 * **LLFF** ``poses_bounds.npy`` (NeRF's forward-facing scenes, Neural 3D Video;
   ``edgerecon.io.calib_llff``).
+* **NeRF** ``transforms.json`` (nerfstudio, Instant-NGP, the Blender scenes;
+  ``edgerecon.io.calib_nerf``): OpenGL camera-to-world poses, pinhole or OPENCV cameras.
 
 Every malformed or inconsistent input raises ``CalibrationError`` naming the file, the camera
 when there is one, and the problem.
@@ -67,6 +69,7 @@ from edgerecon.io.calib_mocap import (
     read_easymocap,
     read_panoptic,
 )
+from edgerecon.io.calib_nerf import is_transforms, read_transforms, transforms_file
 from edgerecon.io.calib_toml import (
     load_toml,
     read_toml_calibration,
@@ -104,6 +107,7 @@ FORMATS = (
     "easymocap",
     "panoptic",
     "llff",
+    "nerf",
 )
 
 
@@ -482,7 +486,8 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     Folders: ``rig.json`` > COLMAP (``cameras`` + ``images`` .txt or .bin, also under
     ``sparse/`` or ``sparse/0``) > one calibration ``*.toml`` (also under ``calibration/``) >
     ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json`` > EasyMocap's ``intri.yml`` +
-    ``extri.yml`` > LLFF's ``poses_bounds.npy`` > one Panoptic ``calibration_*.json``.
+    ``extri.yml`` > LLFF's ``poses_bounds.npy`` > one Panoptic ``calibration_*.json`` > a NeRF
+    ``transforms.json`` (or ``transforms_train.json``).
     """
     path = Path(path)
     if not path.exists():
@@ -516,9 +521,11 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
             return "openmvg"
         if is_panoptic(data):
             return "panoptic"
+        if is_transforms(data):
+            return "nerf"
         raise CalibrationError(
             f"{path}: JSON file is neither an edgerecon rig (format: edgerecon-rig), an "
-            "openMVG sfm_data file nor a Panoptic calibration"
+            "openMVG sfm_data file, a Panoptic calibration nor a NeRF transforms.json"
         )
     raise CalibrationError(f"{path}: unknown calibration format (supported: {', '.join(FORMATS)})")
 
@@ -558,10 +565,14 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
         )
     if panoptic:
         return "panoptic", panoptic[0]
+    nerf = transforms_file(folder)
+    if nerf is not None:
+        return "nerf", nerf
     raise CalibrationError(
         f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
         "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
-        "intri.yml + extri.yml, LLFF's poses_bounds.npy, a Panoptic calibration_*.json)"
+        "intri.yml + extri.yml, LLFF's poses_bounds.npy, a Panoptic calibration_*.json, a "
+        "NeRF transforms.json)"
     )
 
 
@@ -596,6 +607,8 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
         rig = read_panoptic(target)
     elif fmt == "llff":
         rig = read_llff(target)
+    elif fmt == "nerf":
+        rig = read_transforms(target, image_sizes)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:

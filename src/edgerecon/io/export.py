@@ -14,6 +14,10 @@ openMVS's ``InterfaceCOLMAP`` and COLMAP's own tools read them) and viewer-frien
 * ``z_up_metres``: a similarity (scale to metres, rotation taking the rig's up to +Z) for
   viewers that assume Z-up metres; it applies to the cloud and the camera poses alike, so a
   model stays consistent.
+* ``export_nerfstudio`` writes nerfstudio's data layout: ``images/<camera>.png`` (undistorted),
+  ``transforms.json`` (per-frame pinhole intrinsics, OpenGL camera-to-world poses; also what
+  Instant-NGP reads) and ``points3D.ply``, named by ``ply_file_path``, which nerfstudio's
+  Gaussian splatting (``splatfacto``) starts from.
 """
 
 from __future__ import annotations
@@ -31,8 +35,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.io.calib_nerf import write_transforms
 from edgerecon.io.colmap import ColmapPoints, rig_to_colmap, write_colmap_model
-from edgerecon.io.ply import atomic_write_bytes
+from edgerecon.io.ply import atomic_write_bytes, write_ply
 from edgerecon.types import DataError, FrameSet, PointCloud, Points3D
 
 logger = logging.getLogger(__name__)
@@ -295,20 +300,7 @@ def export_colmap(
         points=points,
     )
     written = write_colmap_model(out / model_dir, model, binary=binary)
-    images = []
-    if frames is not None:
-        if len(frames.images) != len(rig):
-            raise DataError(f"{len(frames.images)} frames for a rig of {len(rig)} cameras")
-        for cam, name, image in zip(rig, names, frames.images, strict=True):
-            if image is None:
-                raise DataError(f"camera {cam.name!r} has no frame at time {frames.time_index}")
-            picture = image if distorted else cam.prepare_image(image)
-            ok, data = cv2.imencode(image_ext, picture)
-            if not ok:
-                raise DataError(f"cannot encode {name}")
-            images.append(
-                atomic_write_bytes(out / "images" / name, lambda f, d=data: f.write(d.tobytes()))
-            )
+    images = [] if frames is None else _write_frames(out, list(rig), frames, names, distorted)
     return ExportReport(
         folder=out,
         model=written,
@@ -325,12 +317,107 @@ def export_colmap(
     )
 
 
+# ============================================================================== nerfstudio
+@dataclass(frozen=True, kw_only=True)
+class NerfstudioReport:
+    """What ``export_nerfstudio`` wrote."""
+
+    folder: Path
+    transforms: Path
+    images: list[Path]
+    ply: Path
+    num_points: int
+    transform: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "folder": str(self.folder),
+            "transforms": str(self.transforms),
+            "images": [str(p) for p in self.images],
+            "ply": str(self.ply),
+            "num_points": self.num_points,
+            "transform": self.transform,
+        }
+
+
+def _write_frames(
+    out: Path, cams: Sequence[Camera], frames: FrameSet, names: Sequence[str], distorted: bool
+) -> list[Path]:
+    """The timestamp's frames as ``out/images/<name>`` (undistorted unless ``distorted``;
+    ``cams`` are the rig's own cameras, in its order)."""
+    if len(frames.images) != len(cams):
+        raise DataError(f"{len(frames.images)} frames for a rig of {len(cams)} cameras")
+    images = []
+    for cam, name, image in zip(cams, names, frames.images, strict=True):
+        if image is None:
+            raise DataError(f"camera {cam.name!r} has no frame at time {frames.time_index}")
+        picture = image if distorted else cam.prepare_image(image)
+        ok, data = cv2.imencode(Path(name).suffix, picture)
+        if not ok:
+            raise DataError(f"cannot encode {name}")
+        images.append(
+            atomic_write_bytes(out / "images" / name, lambda f, d=data: f.write(d.tobytes()))
+        )
+    return images
+
+
+def export_nerfstudio(
+    out: str | os.PathLike[str],
+    rig: Rig,
+    cloud: PointCloud,
+    frames: FrameSet,
+    *,
+    transform: Similarity | None = None,
+    image_ext: str = ".png",
+) -> NerfstudioReport:
+    """Write one timestamp as a nerfstudio dataset in ``out`` (see the module docstring):
+    ``frames`` (in rig order) undistorted, the cameras as pinhole cameras in world
+    coordinates, ``cloud`` as the splats' starting points. ``transform`` (e.g.
+    ``z_up_metres``) changes the world frame of the cloud and the poses alike."""
+    out = Path(out)
+    if transform is not None:
+        rig, cloud = transform.rig(rig), transform.cloud(cloud)
+    names = [f"{c.name}{image_ext}" for c in rig]
+    images = _write_frames(out, list(rig), frames, names, distorted=False)
+    world = Rig(
+        cameras=tuple(c.undistorted() for c in rig),
+        unit=rig.unit,
+        up=rig.up,
+        origin=rig.origin,
+        min_cameras=1,
+    ).in_world()
+    ply = write_ply(
+        out / "points3D.ply",
+        cloud,
+        unit=rig.unit,
+        up=rig.up,
+        origin=rig.origin,
+        comments=["exported by edgerecon for nerfstudio"],
+    )
+    written = write_transforms(
+        out / "transforms.json",
+        world,
+        {c.name: f"images/{n}" for c, n in zip(rig, names, strict=True)},
+        ply_file_path=ply.name,
+    )
+    return NerfstudioReport(
+        folder=out,
+        transforms=written,
+        images=images,
+        ply=ply,
+        num_points=len(cloud),
+        transform=None if transform is None else transform.describe(),
+    )
+
+
 __all__ = [
     "METRES_PER_UNIT",
     "ExportReport",
+    "NerfstudioReport",
     "Similarity",
     "Tracks",
     "export_colmap",
+    "export_nerfstudio",
     "rotation_between",
     "visibility_tracks",
     "z_up_metres",

@@ -38,6 +38,7 @@ import numpy as np
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.calib_llff import read_llff
 from edgerecon.io.calib_mocap import easymocap_camera_names, read_easymocap
+from edgerecon.io.calib_nerf import read_transforms, transforms_camera_names
 from edgerecon.io.calibration import detect_calibration_format, load_rig
 from edgerecon.io.colmap import find_colmap_model, read_colmap_model, rig_from_colmap
 from edgerecon.io.dataset import DESCRIPTOR, Dataset, open_dataset, write_dataset_descriptor
@@ -379,6 +380,7 @@ def import_dataset(
         raise DataError("no frames given: pass per-camera videos / image folders (or --images)")
     sources = collect_sources(frames) if images is None else []
     matched: dict[str, tuple[_Source, str]] = {}
+    listed: list[str] | None = None  # the calibration's cameras, where it was read in part
     if fmt == "llff":
         # Rows follow the sorted images / videos they were made from: the sources in natural
         # order name the cameras.
@@ -387,9 +389,16 @@ def import_dataset(
         matched = {s.label: (s, "order") for s in ordered}
     elif fmt == "easymocap":
         # intri.yml may record no image size: the frames' own, before the cameras are read.
-        matched = match_sources(easymocap_camera_names(calib), sources, subset_min=3)
+        listed = easymocap_camera_names(calib)
+        matched = match_sources(listed, sources, subset_min=3)
         sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
         rig = read_easymocap(calib, sizes, only=matched.keys())
+    elif fmt == "nerf":
+        # A transforms.json may record no image size (the Blender scenes'): the frames' own.
+        listed = transforms_camera_names(calib)
+        matched = match_sources(listed, sources, subset_min=3)
+        sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
+        rig = read_transforms(calib, sizes, only=matched.keys())
     else:
         rig = load_rig(calib)
     notes: list[str] = []
@@ -404,7 +413,7 @@ def import_dataset(
             if flavour == "anipose"
             else f"{rig.unit} ({flavour} calibrations are in metres)"
         )
-    elif fmt in ("openmvg", "colmap", "llff") and rig.unit == "m":
+    elif fmt in ("openmvg", "colmap", "llff", "nerf") and rig.unit == "m":
         unit_note = "m (assumed: the format stores no unit; SfM scales are arbitrary)"
     elif fmt == "easymocap":
         unit_note = "m (EasyMocap calibrations are in metres)"
@@ -423,7 +432,7 @@ def import_dataset(
         matched = _colmap_frames(model_dir, Path(images), out, rig)
     else:
         matched = matched or match_sources(rig.names, sources, subset_min=rig.min_cameras)
-        left_out = [n for n in rig.names if n not in matched]
+        left_out = [n for n in (listed or rig.names) if n not in matched]
         if left_out:
             rig = dataclasses.replace(rig, cameras=tuple(c for c in rig if c.name in matched))
             shown = ", ".join(left_out[:8])
