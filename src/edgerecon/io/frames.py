@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from edgerecon.types import CalibrationError, DataError, EdgereconError, FrameSet, Image
 
@@ -63,6 +64,10 @@ IMAGE_EXTENSIONS = frozenset(
 )
 #: File extensions treated as videos when a camera folder is probed.
 VIDEO_EXTENSIONS = frozenset({".avi", ".mp4", ".mkv", ".mov", ".m4v", ".mpg", ".mpeg", ".webm"})
+
+#: Relative difference of the cameras' mean frame rates above which their videos are paired
+#: by timestamps rather than by frame index (``VideoFrameSource``): 29.97 against 30 fps is 1e-3.
+TIME_PAIRING_RATE_TOL = 5e-4
 
 _INDEX_FIELD = re.compile(r"\{index(?::[^{}]*)?\}")
 
@@ -104,6 +109,28 @@ class VideoInfo:
     """Frames per second from the header, None when the container does not say."""
     header_frames: int
     """Frame count claimed by the container header (may differ from ``num_frames``)."""
+    timestamps_s: NDArray[np.float64] | None = None
+    """Presentation time of each frame (seconds from the stream's start), read while the
+    frames were counted; None when the container gives none that increase (then frame
+    ``k`` is at ``k / fps``)."""
+
+    @property
+    def mean_fps(self) -> float | None:
+        """Frames per second over the whole video, from the timestamps (else ``fps``)."""
+        ts = self.timestamps_s
+        if ts is None or len(ts) < 2 or not ts[-1] > ts[0]:
+            return self.fps
+        return float((len(ts) - 1) / (ts[-1] - ts[0]))
+
+    @property
+    def regular(self) -> bool:
+        """Whether frame ``k`` is at ``k / fps`` within a quarter of a frame throughout (a
+        constant frame rate); False for a variable frame rate or a drifting one."""
+        ts, fps = self.timestamps_s, self.fps
+        if ts is None or fps is None:
+            return True
+        ideal = ts[0] + np.arange(len(ts)) / fps
+        return bool(np.max(np.abs(ts - ideal)) <= 0.25 / fps)
 
 
 def probe_video(path: str | os.PathLike[str], camera: str | None = None) -> VideoInfo:
@@ -139,22 +166,29 @@ def _probe_video_cached(path: str, size: int, mtime_ns: int) -> VideoInfo:
         height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps_raw = float(cap.get(cv2.CAP_PROP_FPS))
         header = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        stamps: list[float] = []
         if width <= 0 or height <= 0:
             ok, frame = cap.read()
             if not ok or frame is None:
                 raise DataError(f"video {path} has no decodable frame")
             height, width = frame.shape[:2]
-            count = 1
-        else:
-            count = 0
+            stamps.append(float(cap.get(cv2.CAP_PROP_POS_MSEC)))
         while cap.grab():
-            count += 1
+            stamps.append(float(cap.get(cv2.CAP_PROP_POS_MSEC)))
+        count = len(stamps)
     finally:
         cap.release()
     if count == 0:
         raise DataError(f"video {path} has no decodable frame")
     if header > 0 and count != header:
         logger.debug("%s: header says %d frames, %d decode", path, header, count)
+    ts: NDArray[np.float64] | None = np.asarray(stamps, np.float64) / 1000.0
+    assert ts is not None
+    if not (np.all(np.isfinite(ts)) and (len(ts) < 2 or np.all(np.diff(ts) > 0))):
+        logger.debug("%s: frame timestamps do not increase; frames are k / fps", path)
+        ts = None
+    else:
+        ts.setflags(write=False)
     return VideoInfo(
         path=Path(path),
         width=width,
@@ -162,6 +196,7 @@ def _probe_video_cached(path: str, size: int, mtime_ns: int) -> VideoInfo:
         num_frames=count,
         fps=fps_raw if np.isfinite(fps_raw) and fps_raw > 0 else None,
         header_frames=header,
+        timestamps_s=ts,
     )
 
 
@@ -410,6 +445,63 @@ class _OffsetReader(_CameraReader):
 
     def read(self, t: int) -> Image:
         return self.inner.read(t + self.offset)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class _TimedReader(_CameraReader):
+    """A video whose time index t is its frame nearest in time to ``t / fps`` seconds after
+    its frame ``offset`` (frame-rate and variable-frame-rate synchronisation, see
+    ``VideoFrameSource``)."""
+
+    def __init__(self, inner: _VideoReader, fps: float, offset: int = 0) -> None:
+        super().__init__(inner.camera)
+        ts = inner.info.timestamps_s
+        if ts is None:
+            rate = inner.info.fps or fps
+            ts = np.arange(inner.num_frames, dtype=np.float64) / rate
+        if not 0 <= offset < len(ts):
+            raise ValueError(f"camera {inner.camera!r}: frame offset {offset} out of range")
+        self.inner = inner
+        self.offset = offset
+        self.rate = fps
+        self._times = ts[offset:] - ts[offset]
+        # Half of the camera's own median frame interval past its last frame still maps to it.
+        step = float(np.median(np.diff(self._times))) if len(self._times) > 1 else 1.0 / fps
+        self._num = int(np.floor((self._times[-1] + 0.5 * step) * fps + 1e-9)) + 1
+
+    def frame_of(self, t: int) -> int:
+        """The camera's own frame index of time index ``t``."""
+        target = t / self.rate
+        k = int(np.searchsorted(self._times, target))
+        if k > 0 and (
+            k == len(self._times) or target - self._times[k - 1] <= self._times[k] - target
+        ):
+            k -= 1
+        return k + self.offset
+
+    @property
+    def num_frames(self) -> int:
+        return self._num
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.inner.size
+
+    @property
+    def fps(self) -> float | None:
+        return self.rate
+
+    @property
+    def location(self) -> str:
+        return self.inner.location + (f" (from its frame {self.offset})" if self.offset else "")
+
+    def frame_location(self, t: int) -> str:
+        return self.inner.frame_location(self.frame_of(t))
+
+    def read(self, t: int) -> Image:
+        return self.inner.read(self.frame_of(t))
 
     def close(self) -> None:
         self.inner.close()
@@ -697,6 +789,15 @@ class VideoFrameSource(_PerCameraSource):
 
     ``cameras`` maps camera names to video files (or lists files in rig order). With a
     ``rig``, frames are returned in rig order and their size is checked against it.
+
+    Time index t is frame t of every camera (after its offset) when the videos run at one
+    constant frame rate. When their rates differ (a 30 and a 60 fps phone, 29.97 against 30)
+    or one's frames are not evenly spaced in time (a phone's variable frame rate), time
+    index t is instead each camera's frame nearest in time to ``t / fps`` seconds after its
+    first frame (after its offset, in its own frames), by the frames' timestamps
+    (``VideoInfo.timestamps_s``); ``fps`` is then the slowest camera's mean rate unless given
+    (``pairing == "time"``). Pairing frame t with frame t would drift apart by a frame
+    every 1000 frames at 29.97 against 30 fps, and at once at 30 against 60.
     """
 
     def __init__(
@@ -708,13 +809,37 @@ class VideoFrameSource(_PerCameraSource):
         fps: float | None = None,
         offsets: Mapping[str, int] | None = None,
     ) -> None:
-        readers = [_VideoReader(name, Path(p)) for name, p in _order(cameras, rig)]
-        if fps is None:
-            rates = {r.camera: r.fps for r in readers if r.fps is not None}
-            if rates:
-                fps = min(rates.values())
-                if max(rates.values()) - fps > 1e-3:
-                    logger.warning("cameras have different frame rates %s", rates)
+        videos = [_VideoReader(name, Path(p)) for name, p in _order(cameras, rig)]
+        readers: list[_CameraReader] = list(videos)
+        self.pairing: Literal["index", "time"] = "index"
+        """How the cameras' frames make a time index: "index" (frame t of each, after the
+        offsets) or "time" (by their timestamps; see the class docstring)."""
+        rates = {v.camera: v.info.mean_fps for v in videos if v.info.mean_fps is not None}
+        irregular = sorted(v.camera for v in videos if not v.info.regular)
+        if rates and (
+            max(rates.values()) - min(rates.values()) > TIME_PAIRING_RATE_TOL * max(rates.values())
+            or irregular
+        ):
+            offsets = dict(offsets or {})
+            unknown = sorted(set(offsets) - {v.camera for v in videos})
+            if unknown:
+                raise DataError(f"frame offsets given for unknown cameras {unknown}")
+            ref = fps if fps is not None else min(rates.values())
+            readers = [_TimedReader(v, ref, int(offsets.get(v.camera, 0))) for v in videos]
+            offsets, fps, self.pairing = None, ref, "time"
+            shown = ", ".join(f"{n} {r:.3f}" for n, r in rates.items())
+            why = f"variable or drifting frame rate: {', '.join(irregular)}" if irregular else ""
+            if _warn_once(("pairing", *(v.location for v in videos))):
+                logger.info(
+                    "cameras paired by their frames' timestamps at %.3f fps (frame rates %s%s)",
+                    ref,
+                    shown,
+                    f"; {why}" if why else "",
+                )
+        elif fps is None:
+            nominal = {v.camera: v.fps for v in videos if v.fps is not None}
+            if nominal:
+                fps = min(nominal.values())
         super().__init__(readers, rig=rig, missing=missing, fps=fps, offsets=offsets)
 
 

@@ -525,6 +525,15 @@ def import_dataset(
         name=name or out.name,
     )
     dataset = open_dataset(out)
+    if kind == "video":
+        with dataset.open_frames() as opened:
+            if getattr(opened, "pairing", "index") == "time":
+                notes.append(
+                    "the videos' frame rates differ or vary ("
+                    + ", ".join(f"{c.name} {c.fps:.3f}" for c in cameras if c.fps)
+                    + f" fps in their headers): time index t pairs each camera's frame nearest "
+                    f"in time to t / {opened.fps:.3f} s (its frames' timestamps)"
+                )
     logger.info("imported %s: %d cameras, %d frames", out, len(rig), dataset.num_frames)
     return ImportReport(
         dataset=dataset,
