@@ -15,6 +15,7 @@ from edgerecon.cli import main
 from edgerecon.geometry import Rig
 from edgerecon.io import load_rig, open_dataset, read_ply
 from edgerecon.io.calib_toml import read_toml_calibration, toml_flavour
+from edgerecon.io.calibration import save_rig
 from edgerecon.io.colmap import (
     ColmapCamera,
     ColmapImage,
@@ -530,3 +531,19 @@ def test_import_llff_poses_bounds(scene, tmp_path, capsys):
     np.save(root / "poses_bounds.npy", np.zeros((3, 12)))
     with pytest.raises(CalibrationError, match=r"\(N, 17\) array, got shape \(3, 12\)"):
         load_rig(root)
+
+
+def test_relative_paths_are_kept_from_where_import_ran(scene, tmp_path, monkeypatch):
+    # `edgerecon import calib videos/ --out data/session1`, as the README shows it: the
+    # dataset is opened from its own folder later, wherever the reader runs.
+    ds, _ = scene
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "frames").symlink_to(ds.root / "frames")
+    save_rig(work / "rig.json", ds.rig)
+    monkeypatch.chdir(work)
+    assert main(["import", "rig.json", "frames", "--out", "data/session1", "-q"]) == 0
+    monkeypatch.chdir(tmp_path)
+    with open_dataset(work / "data" / "session1").open_frames() as src:
+        assert src.num_frames == ds.num_frames
+        assert src.read(2).images[0] is not None

@@ -199,7 +199,8 @@ def collect_sources(items: Sequence[str]) -> list[_Source]:
         text = item
         if "=" in item and not Path(item).exists():
             name, text = item.split("=", 1)
-        path = Path(text)
+        # Absolute: the dataset is opened from its own folder, not from where this runs.
+        path = Path(text).absolute()
         if not path.exists() and "{index" not in text:
             raise DataError(f"frames not found: {text}")
         src = _classify(path)
