@@ -496,12 +496,6 @@ def import_dataset(
             "frames matched to cameras by order (names did not tell): "
             + ", ".join(f"{c.name} <- {Path(c.source).name}" for c in cameras)
         )
-    counts = {c.name: c.num_frames for c in cameras}
-    if len(set(counts.values())) > 1:
-        notes.append(
-            f"cameras have different frame counts {counts}: the dataset uses the first "
-            f"{min(counts.values())}"
-        )
     spec = FrameSpec(
         kind=kind,  # type: ignore[arg-type]
         cameras=tuple((c.name, c.source) for c in cameras),
@@ -526,6 +520,7 @@ def import_dataset(
         name=name or out.name,
     )
     dataset = open_dataset(out)
+    counts = {c.name: c.num_frames for c in cameras}
     if kind == "video":
         with dataset.open_frames() as opened:
             if getattr(opened, "pairing", "index") == "time":
@@ -535,6 +530,12 @@ def import_dataset(
                     + f" fps in their headers): time index t pairs each camera's frame nearest "
                     f"in time to t / {opened.fps:.3f} s (its frames' timestamps)"
                 )
+                counts = opened.frame_counts  # in time indices
+    if len(set(counts.values())) > 1:
+        notes.append(
+            f"cameras have different frame counts {counts}: the dataset uses the first "
+            f"{min(counts.values())}"
+        )
     logger.info("imported %s: %d cameras, %d frames", out, len(rig), dataset.num_frames)
     return ImportReport(
         dataset=dataset,
