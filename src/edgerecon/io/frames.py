@@ -10,7 +10,9 @@ implementations share one per-camera reader interface:
   used: it is not frame-accurate on real files (on utrecht4cam cam4 it lands one frame off
   after frame ~320), so a read *before* the stream position restarts that video. Headers
   over-count frames (utrecht4cam: 428 claimed, 426 decode), so frame counts come from one
-  ``grab()`` pass when a video is first opened (cached per file for the process).
+  ``grab()`` pass when a video is first opened (cached per file for the process), which
+  also records each frame's timestamp: videos at different or variable frame rates are
+  paired by time rather than by frame index (``VideoFrameSource``).
 * :class:`ImageFolderFrameSource`: per camera a ``str.format`` pattern with an ``{index}``
   field (``frames/cam0/{index:06d}.png``), a folder whose sorted image files are the frames,
   or a single image file (a static camera with one frame).
