@@ -15,6 +15,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a calibration (edgerecon rig JSON, COLMAP text or binary model, "
         "anipose / Pose2Sim / caliscope TOML, EasyMocap intri.yml + extri.yml, CMU Panoptic "
         "calibration_*.json, LLFF poses_bounds.npy, nerfstudio / Instant-NGP transforms.json, "
+        "Kalibr camchain.yaml, "
         "openMVG sfm_data, OpenCV XML, Middlebury), find "
         "each camera's "
         "frames, check every camera (frames readable, counts, sizes) and write "
@@ -28,6 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "  edgerecon import zju/ zju/videos --out d                  # EasyMocap layout\n"
         "  edgerecon import calibration_seq.json seq/hdVideos --out d  # Panoptic HD cameras\n"
         "  edgerecon import capture/transforms.json videos/ --out d     # nerfstudio\n"
+        "  edgerecon import camchain-kalibr.yaml videos/ --out d        # Kalibr\n"
         "  edgerecon import calibration.toml videos/ --offset B=2 --unit mm --out d",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -36,6 +36,8 @@ Formats (``load_rig`` detects them from a file or a folder):
   Studio** ``calibration_<sequence>.json`` (``edgerecon.io.calib_mocap``).
 * **LLFF** ``poses_bounds.npy`` (NeRF's forward-facing scenes, Neural 3D Video;
   ``edgerecon.io.calib_llff``).
+* **Kalibr** ``camchain.yaml`` (robotics rigs; ``edgerecon.io.calib_kalibr``): pinhole
+  cameras with radtan distortion chained by ``T_cn_cnm1`` from camera 0.
 * **NeRF** ``transforms.json`` (nerfstudio, Instant-NGP, the Blender scenes;
   ``edgerecon.io.calib_nerf``): OpenGL camera-to-world poses, pinhole or OPENCV cameras.
 
@@ -59,6 +61,7 @@ from numpy.typing import NDArray
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.io._errors import check_distortion, rotation_matrix
 from edgerecon.io._errors import in_file as _in_file
+from edgerecon.io.calib_kalibr import is_kalibr_file, kalibr_files, read_kalibr
 from edgerecon.io.calib_llff import LLFF_FILE, llff_file, read_llff
 from edgerecon.io.calib_mocap import (
     easymocap_camera_names,
@@ -108,6 +111,7 @@ FORMATS = (
     "panoptic",
     "llff",
     "nerf",
+    "kalibr",
 )
 
 
@@ -486,7 +490,8 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     Folders: ``rig.json`` > COLMAP (``cameras`` + ``images`` .txt or .bin, also under
     ``sparse/`` or ``sparse/0``) > one calibration ``*.toml`` (also under ``calibration/``) >
     ``*_par.txt`` > ``camN/config.xml`` > ``sfm_data*.json`` > EasyMocap's ``intri.yml`` +
-    ``extri.yml`` > LLFF's ``poses_bounds.npy`` > one Panoptic ``calibration_*.json`` > a NeRF
+    ``extri.yml`` > one Kalibr ``*camchain*.yaml`` > LLFF's ``poses_bounds.npy`` > one Panoptic
+    ``calibration_*.json`` > a NeRF
     ``transforms.json`` (or ``transforms_train.json``).
     """
     path = Path(path)
@@ -505,6 +510,8 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
         name in ("intri.yml", "extri.yml") or is_easymocap_file(path)
     ):
         return "easymocap"
+    if path.suffix.lower() in (".yml", ".yaml") and is_kalibr_file(path):
+        return "kalibr"
     if path.suffix.lower() in (".xml", ".yml", ".yaml"):
         return "opencv-xml"
     if path.suffix.lower() == ".toml":
@@ -554,6 +561,14 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     mocap = easymocap_files(folder)
     if mocap is not None:
         return "easymocap", mocap[0]
+    kalibr = kalibr_files(folder)
+    if len(kalibr) > 1:
+        raise CalibrationError(
+            f"{folder}: several Kalibr camera chains ({', '.join(p.name for p in kalibr)}); "
+            "pass one of them"
+        )
+    if kalibr:
+        return "kalibr", kalibr[0]
     llff = llff_file(folder)
     if llff is not None:
         return "llff", llff
@@ -571,8 +586,8 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     raise CalibrationError(
         f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
         "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
-        "intri.yml + extri.yml, LLFF's poses_bounds.npy, a Panoptic calibration_*.json, a "
-        "NeRF transforms.json)"
+        "intri.yml + extri.yml, a Kalibr camchain*.yaml, LLFF's poses_bounds.npy, a Panoptic "
+        "calibration_*.json, a NeRF transforms.json)"
     )
 
 
@@ -609,6 +624,8 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
         rig = read_llff(target)
     elif fmt == "nerf":
         rig = read_transforms(target, image_sizes)
+    elif fmt == "kalibr":
+        rig = read_kalibr(target)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:

@@ -418,6 +418,8 @@ def import_dataset(
         unit_note = "m (assumed: the format stores no unit; SfM scales are arbitrary)"
     elif fmt == "easymocap":
         unit_note = "m (EasyMocap calibrations are in metres)"
+    elif fmt == "kalibr":
+        unit_note = "m (Kalibr calibrations are in metres)"
     elif fmt == "panoptic":
         unit_note = (
             "cm (Panoptic Studio calibrations are in centimetres)"
