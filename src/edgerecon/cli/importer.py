@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "  edgerecon import calibration_seq.json seq/hdVideos --out d  # Panoptic HD cameras\n"
         "  edgerecon import capture/transforms.json videos/ --out d     # nerfstudio\n"
         "  edgerecon import camchain-kalibr.yaml videos/ --out d        # Kalibr\n"
-        "  edgerecon import calibration.toml videos/ --offset B=2 --unit mm --out d",
+        "  edgerecon import calibration.toml videos/ --offset B=2 --unit mm --out d\n"
+        "  edgerecon import calibration.toml videos/ --offset auto --out d  # phones started by hand",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("calibration", help="calibration file or folder (format detected)")
@@ -58,9 +59,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--offset",
         action="append",
         default=[],
-        metavar="CAMERA=FRAMES",
+        metavar="CAMERA=FRAMES|auto",
         help="synchronisation: time index t is that camera's frame t + FRAMES (negative: the "
-        "others are shifted); repeatable or comma-separated",
+        "others are shifted); repeatable or comma-separated; auto: estimated from what the "
+        "cameras see move (cameras started at different moments)",
     )
     p.add_argument(
         "--unit", help="length unit of the calibration (m, mm, ...) when it does not say"

@@ -576,6 +576,11 @@ class FrameSource(ABC):
     def frame_counts(self) -> dict[str, int]:
         """Frames of each camera."""
 
+    @property
+    def camera_fps(self) -> dict[str, float | None]:
+        """Each camera's own frame rate (here: the source's)."""
+        return dict.fromkeys(self.camera_names, self.fps)
+
     @abstractmethod
     def iter_frames(
         self, start: int = 0, stop: int | None = None, step: int = 1
@@ -667,6 +672,15 @@ class _PerCameraSource(FrameSource):
     def frame_counts(self) -> dict[str, int]:
         """Frames of each camera (the source has the smallest count)."""
         return {r.camera: r.num_frames for r in self._readers}
+
+    @property
+    def camera_fps(self) -> dict[str, float | None]:
+        """Each camera's own frame rate (its videos' mean rate), whatever the pairing."""
+        out: dict[str, float | None] = {}
+        for r in self._readers:
+            info = getattr(getattr(r, "inner", r), "info", None)
+            out[r.camera] = info.mean_fps if isinstance(info, VideoInfo) else r.fps
+        return out
 
     def stats(self) -> dict[str, int]:
         """Decoder work so far: frames decoded, frames skipped with ``grab()``, and rewinds

@@ -31,7 +31,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -48,6 +48,7 @@ from edgerecon.io.frames import (
     FrameSpec,
     natural_key,
 )
+from edgerecon.io.sync import SyncResult, estimate_offsets
 from edgerecon.types import CalibrationError, DataError
 
 logger = logging.getLogger(__name__)
@@ -84,6 +85,8 @@ class ImportReport:
     unit_note: str
     up_note: str
     notes: list[str] = field(default_factory=list)
+    sync: SyncResult | None = None
+    """The offsets' estimate (``offsets="auto"``)."""
 
     def to_dict(self) -> dict[str, Any]:
         ds = self.dataset
@@ -97,6 +100,7 @@ class ImportReport:
             "up_note": self.up_note,
             "cameras": [dataclasses.asdict(c) for c in self.cameras],
             "notes": self.notes,
+            "sync": None if self.sync is None else self.sync.to_dict(),
         }
 
 
@@ -361,7 +365,7 @@ def import_dataset(
     frames: Sequence[str] = (),
     images: str | os.PathLike[str] | None = None,
     background: Sequence[str] = (),
-    offsets: Mapping[str, int] | None = None,
+    offsets: Mapping[str, int] | Literal["auto"] | None = None,
     unit: str | None = None,
     up: str | tuple[float, float, float] = "auto",
     fps: float | None = None,
@@ -369,7 +373,8 @@ def import_dataset(
     overwrite: bool = False,
 ) -> ImportReport:
     """Write a dataset folder ``out`` from a calibration and per-camera frames (see the module
-    docstring). Raises ``DataError`` / ``CalibrationError`` naming the camera and problem."""
+    docstring). ``offsets="auto"``: estimated from the frames (``io.sync``). Raises
+    ``DataError`` / ``CalibrationError`` naming the camera and problem."""
     out = Path(out)
     calib = Path(calibration)
     if (out / DESCRIPTOR).exists() and not overwrite:
@@ -452,6 +457,10 @@ def import_dataset(
             + ", ".join(f"{n}: {s.kind}" for n, (s, _) in matched.items())
         )
     kind = kinds.pop()
+    sync = None
+    if offsets == "auto":
+        sync = _estimate_offsets(kind, rig.names, matched, fps, notes)
+        offsets = sync.offsets
     offs = _normalise_offsets(offsets or {}, rig.names)
 
     cameras: list[CameraImport] = []
@@ -547,7 +556,42 @@ def import_dataset(
         unit_note=unit_note,
         up_note=up_note,
         notes=notes,
+        sync=sync,
     )
+
+
+def _estimate_offsets(
+    kind: str,
+    names: Sequence[str],
+    matched: Mapping[str, tuple[_Source, str]],
+    fps: float | None,
+    notes: list[str],
+) -> SyncResult:
+    """``offsets="auto"``: the cameras' offsets from their motion (``io.sync``), said in
+    ``notes``; cameras it cannot link keep offset 0."""
+    spec = FrameSpec(
+        kind=kind,  # type: ignore[arg-type]
+        cameras=tuple((n, matched[n][0].path) for n in names),
+        fps=fps,
+    )
+    with spec.open() as source:
+        result = estimate_offsets(source, progress=True)
+    used = [p for p in result.pairs if p.used]
+    notes.append(
+        "offsets estimated from the cameras' motion over their first "
+        f"{result.frames_read} frames: "
+        + ", ".join(f"{n} {k}" for n, k in result.offsets.items())
+        + f" (from {len(used)} of {len(result.pairs)} camera pairs, correlation "
+        + (f"{min(p.peak for p in used):.2f}-{max(p.peak for p in used):.2f})" if used else "-)")
+    )
+    if result.unlinked:
+        notes.append(
+            "no camera pair agreed on the offset of "
+            + ", ".join(result.unlinked)
+            + ": offset 0 kept (too little motion seen by it and another camera in the "
+            "window, or a periodic motion); give --offset"
+        )
+    return result
 
 
 def _toml_flavour(calib: Path) -> str | None:
@@ -599,8 +643,11 @@ def _fmt_vec(v: Sequence[float]) -> str:
     return "(" + ", ".join(f"{x:.3g}" for x in v) + ")"
 
 
-def parse_offsets(items: Sequence[str]) -> dict[str, int]:
-    """``NAME=K`` items (or comma-separated lists of them) -> {name: K}."""
+def parse_offsets(items: Sequence[str]) -> dict[str, int] | Literal["auto"]:
+    """``NAME=K`` items (or comma-separated lists of them) -> {name: K}; ``auto`` alone ->
+    "auto" (estimated from the frames)."""
+    if [i.strip().lower() for i in items] == ["auto"]:
+        return "auto"
     out: dict[str, int] = {}
     for item in items:
         for part in item.split(","):
