@@ -137,8 +137,9 @@ def test_refused_models_and_bad_matrices(scene, tmp_path):
         with pytest.raises(CalibrationError, match=match):
             read_transforms(path)
 
-    fails({**data, "camera_model": "OPENCV_FISHEYE"}, "OPENCV_FISHEYE: edgerecon models")
-    fails({**data, "is_fisheye": True}, "is_fisheye")
+    fails({**data, "camera_model": "OPENCV_FISHEYE"}, "have fisheye lenses: import")
+    fails({**data, "is_fisheye": True}, "have fisheye lenses: import")
+    fails({**data, "camera_model": "EQUIRECTANGULAR"}, "camera_model EQUIRECTANGULAR")
     bad = json.loads(json.dumps(data))
     bad["frames"][1]["transform_matrix"][0][0] *= 3
     fails(bad, r"frame 1: transform_matrix's rotation is scaled")

@@ -6,8 +6,9 @@ A YAML mapping ``cam0``, ``cam1``, ... of:
 * ``camera_model`` ``pinhole`` with ``intrinsics`` ``[fu, fv, pu, pv]`` (pixels) and
   ``resolution`` ``[width, height]``;
 * ``distortion_model`` ``radtan`` with ``distortion_coeffs`` ``[k1, k2, r1, r2]`` (OpenCV's
-  ``k1 k2 p1 p2``) or ``none``; ``equidistant`` (fisheye), ``fov`` and the omnidirectional
-  camera models are refused with a clear error (edgerecon models plumb-bob distortion);
+  ``k1 k2 p1 p2``), ``none``, or ``equidistant`` ``[k1, k2, k3, k4]`` (OpenCV's fisheye
+  model: the import rectifies those frames to pinhole cameras, ``geometry.lens``); ``fov``
+  and the omnidirectional camera models are refused with a clear error;
 * ``T_cn_cnm1`` (4x4, every camera but the first): the pose of camera n-1 in camera n
   (``X_n = T X_{n-1}``), so camera 0's frame is the world (y down: the import estimates the
   up direction from the cameras' horizons); in a ``camchain-imucam.yaml`` ``T_cam_imu``
@@ -29,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
 from edgerecon.io._errors import in_file
 from edgerecon.types import CalibrationError
 
@@ -112,7 +114,19 @@ def _transform(value: Any, key: str, where: str) -> NDArray[np.float64]:
 
 def read_kalibr(path: str | os.PathLike[str]) -> Rig:
     """Read a Kalibr ``camchain.yaml`` (the file, or a folder holding one) as a rig; see the
-    module docstring."""
+    module docstring. Fisheye cameras raise (``kalibr_calibration`` gives their lenses)."""
+    cal = kalibr_calibration(path)
+    if cal.lenses:
+        raise CalibrationError(
+            f"{path}: cameras {', '.join(cal.lenses)} have fisheye (equidistant) lenses: import "
+            "the calibration with its frames (edgerecon import), which rectifies them"
+        )
+    return cal.rig
+
+
+def kalibr_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
+    """``read_kalibr``'s rig with the lenses of its ``equidistant`` cameras (OpenCV's fisheye
+    model: those cameras are the pinhole cameras their frames are rectified to)."""
     file = Path(path)
     if file.is_dir():
         found = kalibr_files(file)
@@ -142,6 +156,7 @@ def read_kalibr(path: str | os.PathLike[str]) -> Rig:
             "T_cam_imu): the cameras' poses are unknown"
         )
     cameras = []
+    lenses: dict[str, FisheyeLens] = {}
     pose = np.eye(4)  # world (camera 0, or the IMU) -> current camera
     for n, key in enumerate(keys):
         entry = data[key]
@@ -154,15 +169,18 @@ def read_kalibr(path: str | os.PathLike[str]) -> Rig:
             )
         dmodel = str(entry.get("distortion_model", "none")).lower()
         coeffs = entry.get("distortion_coeffs", [])
+        fisheye = dmodel == "equidistant"
         if dmodel == "radtan":
             k1, k2, p1, p2 = _floats(coeffs, 4, "distortion_coeffs", where)
             dist = np.array([k1, k2, p1, p2, 0.0])
         elif dmodel == "none":
             dist = np.zeros(5)
+        elif fisheye:
+            dist = _floats(coeffs, 4, "distortion_coeffs", where)
         else:
             raise CalibrationError(
                 f"{where}: distortion_model {dmodel!r}: edgerecon models radtan (OpenCV's "
-                "plumb-bob) only; calibrate with radtan or undistort the frames first"
+                "plumb-bob) and equidistant (OpenCV's fisheye) only"
             )
         fu, fv, pu, pv = _floats(entry.get("intrinsics"), 4, "intrinsics", where)
         width, height = (int(x) for x in _floats(entry.get("resolution"), 2, "resolution", where))
@@ -171,17 +189,17 @@ def read_kalibr(path: str | os.PathLike[str]) -> Rig:
                 pose = _transform(entry["T_cn_cnm1"], "T_cn_cnm1", where) @ pose
         else:
             pose = _transform(entry["T_cam_imu"], "T_cam_imu", where)
+        K = np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]])
+        R, t = pose[:3, :3].copy(), pose[:3, 3].copy()
         with in_file(file):
-            cameras.append(
-                Camera(
-                    name=key,
-                    width=width,
-                    height=height,
-                    K=np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]]),
-                    R=pose[:3, :3].copy(),
-                    t=pose[:3, 3].copy(),
-                    dist=dist,
+            if fisheye:
+                lens = FisheyeLens(width=width, height=height, K=K, D=dist)
+                lenses[key] = lens
+                cameras.append(pinhole_camera(key, lens, R, t))
+            else:
+                cameras.append(
+                    Camera(name=key, width=width, height=height, K=K, R=R, t=t, dist=dist)
                 )
-            )
     with in_file(file):
-        return Rig(cameras=tuple(cameras), unit="m", up=(0.0, -1.0, 0.0))
+        rig = Rig(cameras=tuple(cameras), unit="m", up=(0.0, -1.0, 0.0))
+    return CalibratedRig(rig=rig, lenses=lenses)

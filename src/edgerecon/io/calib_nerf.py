@@ -9,9 +9,9 @@ either at the top (shared) or in each frame (a frame's own win):
   ``intrinsic_matrix`` (3x3 or 4x4, NeuS2), or ``camera_angle_x`` (and ``camera_angle_y``):
   the horizontal field of view in radians (the Blender scenes, whose size is the images');
 * ``camera_model`` ``PINHOLE`` / ``SIMPLE_PINHOLE`` / ``OPENCV`` with ``k1 k2 (k3) p1 p2``
-  (OpenCV's plumb-bob model, as edgerecon's cameras). ``OPENCV_FISHEYE``, ``EQUIRECTANGULAR``
-  and Instant-NGP's ``is_fisheye`` are refused with a clear error: edgerecon models
-  plumb-bob distortion only.
+  (OpenCV's plumb-bob model, as edgerecon's cameras), or ``OPENCV_FISHEYE`` (Instant-NGP:
+  ``is_fisheye``) with ``k1 k2 k3 k4``: OpenCV's fisheye model, whose frames the import
+  rectifies to pinhole cameras (``geometry.lens``); ``EQUIRECTANGULAR`` is refused.
 
 The principal point defaults to the image centre and ``fl_y`` to ``fl_x``. Without ``w`` /
 ``h`` the size comes from ``image_sizes`` or from the image at ``file_path`` (relative to
@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
 from edgerecon.io._errors import in_file
 from edgerecon.io.frames import probe_image_size
 from edgerecon.types import CalibrationError, DataError
@@ -153,15 +154,15 @@ def _intrinsics(
     params: Mapping[str, Any],
     size: tuple[int, int] | None,
     where: str,
-) -> tuple[tuple[int, int], NDArray[np.float64], NDArray[np.float64]]:
-    """(size, K, dist) of one frame's merged parameters."""
+) -> tuple[tuple[int, int], NDArray[np.float64], NDArray[np.float64], bool]:
+    """(size, K, distortion, fisheye) of one frame's merged parameters: the distortion is
+    OpenCV's (k1, k2, p1, p2, k3), or the fisheye model's (k1, k2, k3, k4)."""
     model = str(params.get("camera_model", "OPENCV")).upper()
-    if model not in _PINHOLE_MODELS or params.get("is_fisheye"):
-        shown = "is_fisheye" if params.get("is_fisheye") else f"camera_model {model}"
+    fisheye = model == "OPENCV_FISHEYE" or bool(params.get("is_fisheye"))
+    if model not in (*_PINHOLE_MODELS, "OPENCV_FISHEYE"):
         raise CalibrationError(
-            f"{where}: {shown}: edgerecon models OpenCV's plumb-bob (pinhole) distortion only; "
-            "undistort the frames to a pinhole camera first (e.g. nerfstudio's "
-            "ns-process-data or COLMAP's image_undistorter)"
+            f"{where}: camera_model {model}: edgerecon models pinhole cameras with OpenCV's "
+            "plumb-bob or fisheye distortion; reproject the frames to a pinhole camera first"
         )
     w, h = _number(params, "w", where), _number(params, "h", where)
     if w is not None and h is not None:
@@ -199,13 +200,16 @@ def _intrinsics(
     if not (fx > 0 and fy > 0):
         raise CalibrationError(f"{where}: focal lengths must be > 0, got {fx:g}, {fy:g}")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if fisheye:
+        D = np.array([_number(params, key, where) or 0.0 for key in ("k1", "k2", "k3", "k4")])
+        return (width, height), K, D, True
     dist = np.array([_number(params, key, where) or 0.0 for key in ("k1", "k2", "p1", "p2", "k3")])
     if (_number(params, "k4", where) or 0.0) != 0.0:
         raise CalibrationError(
-            f"{where}: k4 is set: that is the fisheye model, which edgerecon does not model; "
-            "undistort the frames first"
+            f"{where}: k4 is set with camera_model {model}: k4 belongs to the fisheye model "
+            "(camera_model OPENCV_FISHEYE)"
         )
-    return (width, height), K, dist
+    return (width, height), K, dist, False
 
 
 def _pose(value: Any, where: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -263,7 +267,25 @@ def read_transforms(
 ) -> Rig:
     """Read a ``transforms.json`` (the file or its folder) as a rig; see the module
     docstring. ``image_sizes`` ((width, height) per camera name, or one for all) is used
-    where the file records no size; ``only``: the cameras to read (those filmed)."""
+    where the file records no size; ``only``: the cameras to read (those filmed). Fisheye
+    cameras raise (``transforms_calibration`` gives them with their lenses)."""
+    cal = transforms_calibration(path, image_sizes, only=only)
+    if cal.lenses:
+        raise CalibrationError(
+            f"{path}: cameras {', '.join(cal.lenses)} have fisheye lenses: import the "
+            "calibration with its frames (edgerecon import), which rectifies them"
+        )
+    return cal.rig
+
+
+def transforms_calibration(
+    path: str | os.PathLike[str],
+    image_sizes: Mapping[str, tuple[int, int]] | tuple[int, int] | None = None,
+    *,
+    only: Collection[str] | None = None,
+) -> CalibratedRig:
+    """``read_transforms``'s rig with the fisheye lenses (``OPENCV_FISHEYE``): those cameras
+    are the pinhole cameras their frames are rectified to (``geometry.lens``)."""
     file = transforms_file(path)
     if file is None:
         raise CalibrationError(f"{path}: no {' or '.join(TRANSFORMS_FILES)}")
@@ -274,6 +296,7 @@ def read_transforms(
     paths = [str(f.get("file_path", f"frame{k:04d}")) for k, f in zip(firsts, frames, strict=True)]
     names = _names(paths)
     cameras: list[Camera] = []
+    lenses: dict[str, FisheyeLens] = {}
     for k, frame, name, image, (R, t) in zip(firsts, frames, names, paths, poses, strict=True):
         if only is not None and name not in only:
             continue
@@ -292,11 +315,19 @@ def read_transforms(
                     size = probe_image_size(found)
                 except DataError as exc:
                     raise CalibrationError(f"{where}: {exc}") from None
-        (width, height), K, dist = _intrinsics(params, size, where)
+        (width, height), K, dist, fisheye = _intrinsics(params, size, where)
         with in_file(file):
-            cameras.append(Camera(name=name, width=width, height=height, K=K, R=R, t=t, dist=dist))
+            if fisheye:
+                lens = FisheyeLens(width=width, height=height, K=K, D=dist)
+                lenses[name] = lens
+                cameras.append(pinhole_camera(name, lens, R, t))
+            else:
+                cameras.append(
+                    Camera(name=name, width=width, height=height, K=K, R=R, t=t, dist=dist)
+                )
     with in_file(file):
-        return Rig(cameras=tuple(cameras), unit="m", up=(0.0, 0.0, 1.0))
+        rig = Rig(cameras=tuple(cameras), unit="m", up=(0.0, 0.0, 1.0))
+    return CalibratedRig(rig=rig, lenses=lenses)
 
 
 def write_transforms(

@@ -37,7 +37,14 @@ Formats (``load_rig`` detects them from a file or a folder):
 * **LLFF** ``poses_bounds.npy`` (NeRF's forward-facing scenes, Neural 3D Video;
   ``edgerecon.io.calib_llff``).
 * **Kalibr** ``camchain.yaml`` (robotics rigs; ``edgerecon.io.calib_kalibr``): pinhole
-  cameras with radtan distortion chained by ``T_cn_cnm1`` from camera 0.
+  cameras with radtan or equidistant (fisheye) distortion chained by ``T_cn_cnm1`` from
+  camera 0.
+* **Ego-Exo4D** ``gopro_calibs.csv`` (``edgerecon.io.calib_egoexo``): static GoPros with
+  Kannala-Brandt fisheye lenses.
+
+Fisheye lenses (``geometry.lens``) come with ``load_calibration``: those cameras are in the
+rig as the pinhole cameras their frames are rectified to as they are read; ``load_rig``
+refuses them (the frames would not match).
 * **NeRF** ``transforms.json`` (nerfstudio, Instant-NGP, the Blender scenes;
   ``edgerecon.io.calib_nerf``): OpenGL camera-to-world poses, pinhole or OPENCV cameras.
 
@@ -59,9 +66,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.lens import CalibratedRig
 from edgerecon.io._errors import check_distortion, rotation_matrix
 from edgerecon.io._errors import in_file as _in_file
-from edgerecon.io.calib_kalibr import is_kalibr_file, kalibr_files, read_kalibr
+from edgerecon.io.calib_egoexo import egoexo_calibration, egoexo_file, is_egoexo_file
+from edgerecon.io.calib_kalibr import is_kalibr_file, kalibr_calibration, kalibr_files
 from edgerecon.io.calib_llff import LLFF_FILE, llff_file, read_llff
 from edgerecon.io.calib_mocap import (
     easymocap_camera_names,
@@ -72,7 +81,7 @@ from edgerecon.io.calib_mocap import (
     read_easymocap,
     read_panoptic,
 )
-from edgerecon.io.calib_nerf import is_transforms, read_transforms, transforms_file
+from edgerecon.io.calib_nerf import is_transforms, transforms_calibration, transforms_file
 from edgerecon.io.calib_toml import (
     load_toml,
     read_toml_calibration,
@@ -112,6 +121,7 @@ FORMATS = (
     "llff",
     "nerf",
     "kalibr",
+    "egoexo",
 )
 
 
@@ -514,6 +524,10 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
         return "kalibr"
     if path.suffix.lower() in (".xml", ".yml", ".yaml"):
         return "opencv-xml"
+    if path.suffix.lower() == ".csv":
+        if is_egoexo_file(path):
+            return "egoexo"
+        raise CalibrationError(f"{path}: CSV file is not an Ego-Exo4D gopro_calibs.csv")
     if path.suffix.lower() == ".toml":
         if toml_flavour(load_toml(path)) is None:
             raise CalibrationError(
@@ -583,11 +597,14 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     nerf = transforms_file(folder)
     if nerf is not None:
         return "nerf", nerf
+    egoexo = egoexo_file(folder)
+    if egoexo is not None:
+        return "egoexo", egoexo
     raise CalibrationError(
         f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
         "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
         "intri.yml + extri.yml, a Kalibr camchain*.yaml, LLFF's poses_bounds.npy, a Panoptic "
-        "calibration_*.json, a NeRF transforms.json)"
+        "calibration_*.json, a NeRF transforms.json, an Ego-Exo4D gopro_calibs.csv)"
     )
 
 
@@ -597,10 +614,28 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
     ``image_sizes`` ((width, height) per camera name, or one for all) is needed only by
     formats that do not store sizes and have no frames next to them (OpenCV XML, EasyMocap
     without ``H_`` / ``W_``); for other formats it is checked against the stored sizes.
+    A calibration with fisheye cameras raises: its frames must be rectified, which
+    ``edgerecon import`` sets up (``load_calibration`` gives the lenses).
     """
+    cal = load_calibration(path, image_sizes)
+    if cal.lenses:
+        raise CalibrationError(
+            f"{path}: cameras {', '.join(cal.lenses)} have fisheye lenses: import the "
+            "calibration with its frames (edgerecon import), which rectifies them"
+        )
+    return cal.rig
+
+
+def load_calibration(
+    path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
+) -> CalibratedRig:
+    """``load_rig``'s rig with the fisheye lenses of the formats that record them (NeRF
+    ``OPENCV_FISHEYE``, Kalibr ``equidistant``, Ego-Exo4D): those cameras are in the rig as
+    the pinhole cameras their frames are rectified to (``geometry.lens``)."""
     path = Path(path)
     fmt = detect_calibration_format(path)
     target = _detect_in_folder(path)[1] if path.is_dir() else path
+    lenses: CalibratedRig | None = None
     if fmt == "edgerecon":
         rig = read_rig_json(target)
     elif fmt == "openmvg":
@@ -623,9 +658,11 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
     elif fmt == "llff":
         rig = read_llff(target)
     elif fmt == "nerf":
-        rig = read_transforms(target, image_sizes)
+        lenses = transforms_calibration(target, image_sizes)
     elif fmt == "kalibr":
-        rig = read_kalibr(target)
+        lenses = kalibr_calibration(target)
+    elif fmt == "egoexo":
+        lenses = egoexo_calibration(target)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:
@@ -633,9 +670,10 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
             f"{target}: a single OpenCV XML file holds one camera; pass the folder of camN/ "
             "sub-folders (or use read_opencv_camera_xml)"
         )
+    cal = lenses if lenses is not None else CalibratedRig(rig=rig, lenses={})
     if image_sizes is not None and fmt not in ("middlebury", "opencv-xml", "easymocap"):
-        check_image_sizes(rig, image_sizes, str(target))
-    return rig
+        check_image_sizes(cal.rig, image_sizes, str(target))
+    return cal
 
 
 def check_image_sizes(rig: Rig, image_sizes: ImageSizes, source: str) -> None:

@@ -27,6 +27,7 @@ from typing import Any, cast
 import numpy as np
 
 from edgerecon.geometry.camera import Rig
+from edgerecon.geometry.lens import Rectification
 from edgerecon.io.calibration import (
     detect_calibration_format,
     load_rig,
@@ -44,7 +45,7 @@ from edgerecon.io.frames import (
     probe_video,
 )
 from edgerecon.io.ply import atomic_write_text
-from edgerecon.types import DataError
+from edgerecon.types import DataError, EdgereconError
 
 logger = logging.getLogger(__name__)
 
@@ -287,6 +288,18 @@ def _spec_from_section(
     unknown = sorted(set(offsets) - set(names))
     if unknown:
         raise DataError(f"{descriptor}: {what}.offsets names cameras {unknown} the rig lacks")
+    rectify_section = section.get("rectify", {})
+    if not isinstance(rectify_section, Mapping):
+        raise DataError(f"{descriptor}: {what}.rectify must map camera names to lenses")
+    unknown = sorted(set(rectify_section) - set(names))
+    if unknown:
+        raise DataError(f"{descriptor}: {what}.rectify names cameras {unknown} the rig lacks")
+    try:
+        rectify = tuple(
+            (str(n), Rectification.from_dict(dict(v))) for n, v in rectify_section.items()
+        )
+    except (EdgereconError, TypeError, ValueError) as exc:
+        raise DataError(f"{descriptor}: {what}.rectify: {exc}") from None
     if kind == "stream":
         paths = tuple((n, _stream_location(str(cameras[n]), root)) for n in names)
     else:
@@ -304,6 +317,7 @@ def _spec_from_section(
             fps=fps,
             stream=stream,
             offsets=tuple(offsets.items()),
+            rectify=rectify,
         )
     except (ValueError, TypeError) as exc:
         raise DataError(f"{descriptor}: {what}: {exc}") from None
@@ -450,6 +464,8 @@ def _section(
             out.update(spec.stream.to_dict())
         if spec.offsets:
             out["offsets"] = dict(spec.offsets)
+        if spec.rectify:
+            out["rectify"] = {n: r.to_dict() for n, r in spec.rectify}
     else:
         out = dict(spec)
         if out.get("kind") not in ("video", "images", "stream"):

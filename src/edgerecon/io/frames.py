@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.geometry.lens import Rectification
 from edgerecon.types import CalibrationError, DataError, EdgereconError, FrameSet, Image
 
 if TYPE_CHECKING:
@@ -452,6 +453,46 @@ class _OffsetReader(_CameraReader):
         self.inner.close()
 
 
+class _RectifiedReader(_CameraReader):
+    """A fisheye camera's frames remapped to its pinhole camera (``geometry.lens``)."""
+
+    def __init__(self, inner: _CameraReader, rectification: Rectification) -> None:
+        super().__init__(inner.camera)
+        self.inner = inner
+        self.rectification = rectification
+        if tuple(inner.size) != rectification.lens.size:
+            raise CalibrationError(
+                f"camera {inner.camera!r}: frames in {inner.location} are "
+                f"{inner.size[0]}x{inner.size[1]} but its fisheye lens is calibrated for "
+                f"{rectification.lens.width}x{rectification.lens.height}"
+            )
+
+    @property
+    def num_frames(self) -> int:
+        return self.inner.num_frames
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.inner.size
+
+    @property
+    def fps(self) -> float | None:
+        return self.inner.fps
+
+    @property
+    def location(self) -> str:
+        return self.inner.location
+
+    def frame_location(self, t: int) -> str:
+        return self.inner.frame_location(t)
+
+    def read(self, t: int) -> Image:
+        return self.rectification(self.inner.read(t))
+
+    def close(self) -> None:
+        self.inner.close()
+
+
 class _TimedReader(_CameraReader):
     """A video whose time index t is its frame nearest in time to ``t / fps`` seconds after
     its frame ``offset`` (frame-rate and variable-frame-rate synchronisation, see
@@ -605,6 +646,13 @@ class FrameSource(ABC):
         self.close()
 
 
+def _innermost(reader: _CameraReader) -> _CameraReader:
+    """The file reader under a reader's wrappers (offset, timing, rectification)."""
+    while isinstance(inner := getattr(reader, "inner", None), _CameraReader):
+        reader = inner
+    return reader
+
+
 class _PerCameraSource(FrameSource):
     """Shared logic of sources made of one independent reader per camera."""
 
@@ -616,6 +664,7 @@ class _PerCameraSource(FrameSource):
         missing: MissingPolicy,
         fps: float | None,
         offsets: Mapping[str, int] | None = None,
+        rectify: Mapping[str, Rectification] | None = None,
     ) -> None:
         if missing not in MISSING_POLICIES:
             raise ValueError(f"missing must be one of {MISSING_POLICIES}, got {missing!r}")
@@ -625,9 +674,16 @@ class _PerCameraSource(FrameSource):
         unknown = sorted(set(offsets) - {r.camera for r in readers})
         if unknown:
             raise DataError(f"frame offsets given for unknown cameras {unknown}")
+        rectify = dict(rectify or {})
+        unknown = sorted(set(rectify) - {r.camera for r in readers})
+        if unknown:
+            raise DataError(f"lenses given for unknown cameras {unknown}")
         readers = [
             _OffsetReader(r, int(offsets[r.camera])) if offsets.get(r.camera) else r
             for r in readers
+        ]
+        readers = [
+            _RectifiedReader(r, rectify[r.camera]) if r.camera in rectify else r for r in readers
         ]
         self._readers = list(readers)
         self._missing = missing
@@ -678,14 +734,14 @@ class _PerCameraSource(FrameSource):
         """Each camera's own frame rate (its videos' mean rate), whatever the pairing."""
         out: dict[str, float | None] = {}
         for r in self._readers:
-            info = getattr(getattr(r, "inner", r), "info", None)
+            info = getattr(_innermost(r), "info", None)
             out[r.camera] = info.mean_fps if isinstance(info, VideoInfo) else r.fps
         return out
 
     def stats(self) -> dict[str, int]:
         """Decoder work so far: frames decoded, frames skipped with ``grab()``, and rewinds
         (a read before the current stream position restarts that video from its start)."""
-        inner = [getattr(r, "inner", r) for r in self._readers]
+        inner = [_innermost(r) for r in self._readers]
         return {
             "decoded": sum(r.num_decoded for r in inner),
             "grabbed": sum(r.num_grabbed for r in inner),
@@ -824,6 +880,7 @@ class VideoFrameSource(_PerCameraSource):
         missing: MissingPolicy = "error",
         fps: float | None = None,
         offsets: Mapping[str, int] | None = None,
+        rectify: Mapping[str, Rectification] | None = None,
     ) -> None:
         videos = [_VideoReader(name, Path(p)) for name, p in _order(cameras, rig)]
         readers: list[_CameraReader] = list(videos)
@@ -856,7 +913,9 @@ class VideoFrameSource(_PerCameraSource):
             nominal = {v.camera: v.fps for v in videos if v.fps is not None}
             if nominal:
                 fps = min(nominal.values())
-        super().__init__(readers, rig=rig, missing=missing, fps=fps, offsets=offsets)
+        super().__init__(
+            readers, rig=rig, missing=missing, fps=fps, offsets=offsets, rectify=rectify
+        )
 
 
 class ImageFolderFrameSource(_PerCameraSource):
@@ -874,9 +933,12 @@ class ImageFolderFrameSource(_PerCameraSource):
         fps: float | None = None,
         start: int = 0,
         offsets: Mapping[str, int] | None = None,
+        rectify: Mapping[str, Rectification] | None = None,
     ) -> None:
         readers = [_ImageReader(name, p, start) for name, p in _order(cameras, rig)]
-        super().__init__(readers, rig=rig, missing=missing, fps=fps, offsets=offsets)
+        super().__init__(
+            readers, rig=rig, missing=missing, fps=fps, offsets=offsets, rectify=rectify
+        )
 
 
 def check_frame_size(rig: Rig, camera: str, size: tuple[int, int], where: str) -> None:
@@ -913,6 +975,9 @@ class FrameSpec:
     offsets: tuple[tuple[str, int], ...] = ()
     """Synchronisation: (camera name, k >= 0) when time index t is that camera's frame t + k
     (cameras not listed: k = 0; files only)."""
+    rectify: tuple[tuple[str, Rectification], ...] = ()
+    """Fisheye cameras: (camera name, its lens and pinhole camera): their frames are
+    remapped as they are read (``geometry.lens``; files only)."""
 
     def __post_init__(self) -> None:
         if self.kind not in FRAME_KINDS:
@@ -938,14 +1003,28 @@ class FrameSpec:
         if self.kind == "stream":
             from edgerecon.io.streams import StreamFrameSource
 
+            if self.rectify:
+                raise DataError(
+                    "live streams of fisheye cameras are not rectified: record them to files, "
+                    "or rectify them before they reach edgerecon"
+                )
+
             return StreamFrameSource(
                 paths, rig=rig, missing=missing, fps=self.fps, config=self.stream
             )
-        offsets = dict(self.offsets)
+        offsets, rectify = dict(self.offsets), dict(self.rectify)
         if self.kind == "video":
-            return VideoFrameSource(paths, rig=rig, missing=missing, fps=self.fps, offsets=offsets)
+            return VideoFrameSource(
+                paths, rig=rig, missing=missing, fps=self.fps, offsets=offsets, rectify=rectify
+            )
         return ImageFolderFrameSource(
-            paths, rig=rig, missing=missing, fps=self.fps, start=self.start, offsets=offsets
+            paths,
+            rig=rig,
+            missing=missing,
+            fps=self.fps,
+            start=self.start,
+            offsets=offsets,
+            rectify=rectify,
         )
 
 

@@ -3,7 +3,7 @@ edgerecon dataset folder (``dataset.json`` + ``rig.json``), checked camera by ca
 
 What it does, in order:
 
-1. Reads the calibration with ``load_rig`` (any format, including COLMAP models with many
+1. Reads the calibration with ``load_calibration`` (any format, including COLMAP models with many
    images per camera and anipose / Pose2Sim / caliscope TOML), applies ``unit`` and ``up``.
 2. Finds each camera's frames. Sources are given as ``NAME=PATH`` pairs, as paths (video
    files, image folders or ``{index}`` patterns) or as one folder holding them
@@ -36,10 +36,11 @@ from typing import Any, Literal
 import numpy as np
 
 from edgerecon.geometry.camera import Rig
+from edgerecon.geometry.lens import FisheyeLens, Rectification, pinhole_camera
 from edgerecon.io.calib_llff import read_llff
 from edgerecon.io.calib_mocap import easymocap_camera_names, read_easymocap
-from edgerecon.io.calib_nerf import read_transforms, transforms_camera_names
-from edgerecon.io.calibration import detect_calibration_format, load_rig
+from edgerecon.io.calib_nerf import transforms_calibration, transforms_camera_names
+from edgerecon.io.calibration import detect_calibration_format, load_calibration
 from edgerecon.io.colmap import find_colmap_model, read_colmap_model, rig_from_colmap
 from edgerecon.io.dataset import DESCRIPTOR, Dataset, open_dataset, write_dataset_descriptor
 from edgerecon.io.frames import (
@@ -387,6 +388,7 @@ def import_dataset(
     sources = collect_sources(frames) if images is None else []
     matched: dict[str, tuple[_Source, str]] = {}
     listed: list[str] | None = None  # the calibration's cameras, where it was read in part
+    lenses: dict[str, FisheyeLens] = {}  # fisheye cameras (in the rig as their pinhole views)
     if fmt == "llff":
         # Rows follow the sorted images / videos they were made from: the sources in natural
         # order name the cameras.
@@ -404,9 +406,11 @@ def import_dataset(
         listed = transforms_camera_names(calib)
         matched = match_sources(listed, sources, subset_min=3)
         sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
-        rig = read_transforms(calib, sizes, only=matched.keys())
+        cal = transforms_calibration(calib, sizes, only=matched.keys())
+        rig, lenses = cal.rig, dict(cal.lenses)
     else:
-        rig = load_rig(calib)
+        cal = load_calibration(calib)
+        rig, lenses = cal.rig, dict(cal.lenses)
     notes: list[str] = []
     unit_note = f"{rig.unit} (from the calibration)"
     if unit is not None:
@@ -425,6 +429,8 @@ def import_dataset(
         unit_note = "m (EasyMocap calibrations are in metres)"
     elif fmt == "kalibr":
         unit_note = "m (Kalibr calibrations are in metres)"
+    elif fmt == "egoexo":
+        unit_note = "m (Ego-Exo4D calibrations are in metres)"
     elif fmt == "panoptic":
         unit_note = (
             "cm (Panoptic Studio calibrations are in centimetres)"
@@ -470,7 +476,15 @@ def import_dataset(
         n, size, cam_fps = _probe(src)
         rescaled = None
         if size != cam.size:
-            if _same_aspect(size, cam.size):
+            if _same_aspect(size, cam.size) and cam.name in lenses:
+                rescaled = cam.size
+                lens = lenses[cam.name] = lenses[cam.name].resized(*size)
+                cam = pinhole_camera(cam.name, lens, cam.R, cam.t)
+                notes.append(
+                    f"camera {cam.name!r}: calibrated at {rescaled[0]}x{rescaled[1]}, frames "
+                    f"are {size[0]}x{size[1]}: the fisheye lens rescaled"
+                )
+            elif _same_aspect(size, cam.size):
                 rescaled = cam.size
                 cam = cam.resized(*size)
                 notes.append(
@@ -507,10 +521,21 @@ def import_dataset(
             "frames matched to cameras by order (names did not tell): "
             + ", ".join(f"{c.name} <- {Path(c.source).name}" for c in cameras)
         )
+    rectify = tuple(
+        (c.name, Rectification(lens=lenses[c.name], K=c.K)) for c in rig if c.name in lenses
+    )
+    if rectify:
+        notes.append(
+            f"{len(rectify)} camera(s) with fisheye lenses ("
+            + ", ".join(f"{c.name} f {c.K[0, 0]:.0f} px" for c in rig if c.name in lenses)
+            + " as pinhole cameras): their frames are rectified as they are read, to the "
+            "widest pinhole view without invalid pixels"
+        )
     spec = FrameSpec(
         kind=kind,  # type: ignore[arg-type]
         cameras=tuple((c.name, c.source) for c in cameras),
         offsets=tuple(offs.items()),
+        rectify=rectify,
     )
     bg_spec = None
     if background:
@@ -521,6 +546,7 @@ def import_dataset(
         bg_spec = FrameSpec(
             kind=bg_kinds.pop(),  # type: ignore[arg-type]
             cameras=tuple((n, bg[n][0].path) for n in rig.names),
+            rectify=rectify,
         )
     write_dataset_descriptor(
         out,
