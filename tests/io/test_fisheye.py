@@ -224,3 +224,24 @@ def test_kalibr_equidistant_cameras_come_with_their_lenses(scene, tmp_path):
         pin = cal.rig.cameras[n]
         np.testing.assert_allclose(pin.K, lens.pinhole_K(), atol=1e-9)
         assert not pin.has_distortion
+
+
+def test_aniposelib_fisheye_camera_comes_with_its_lens(tmp_path):
+    from edgerecon.io.calib_toml import toml_calibration
+    from tests.conftest import ring_rig
+    from tests.io.test_importer import anipose_toml
+
+    rig = ring_rig(3)
+    text = anipose_toml(rig)
+    # aniposelib's FisheyeCamera: ``fisheye = true`` and 4 coefficients (k1..k4).
+    text = text.replace("[cam_0]\n", "[cam_0]\nfisheye = true\n", 1)
+    lines = text.splitlines()
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("distortions"))
+    lines[first] = "distortions = [0.03, -0.01, 0.004, -0.001]"
+    path = tmp_path / "calibration.toml"
+    path.write_text("\n".join(lines) + "\n")
+    cal = toml_calibration(path)
+    assert list(cal.lenses) == [rig.names[0]]
+    np.testing.assert_allclose(cal.lenses[rig.names[0]].D, D)
+    assert not cal.rig.cameras[0].has_distortion
+    np.testing.assert_allclose(cal.rig.cameras[1].K, rig.cameras[1].K)

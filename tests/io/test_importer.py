@@ -129,7 +129,7 @@ def test_toml_errors(tmp_path):
     rig = ring_rig(3)
     bad = tmp_path / "Calib.toml"
     bad.write_text(anipose_toml(rig, pose2sim=True).replace("fisheye = false", "fisheye = true", 1))
-    with pytest.raises(CalibrationError, match=r"'cam0'.*fisheye cameras are not supported"):
+    with pytest.raises(CalibrationError, match=r"cameras cam0 have fisheye lenses: import"):
         load_rig(bad)
     bad.write_text(anipose_toml(rig).replace("rotation = [", "rotation = [0.0, ", 1))
     with pytest.raises(CalibrationError, match=r"'cam0'.*rotation must be a Rodrigues"):

@@ -17,8 +17,9 @@ All three write OpenCV cameras, one table per camera:
 ``rotation`` / ``translation`` are world->camera (``X_cam = R X + t``, OpenCV's
 ``projectPoints`` convention), edgerecon's own. Principal points follow OpenCV's pixel-centre
 convention, as edgerecon's. Cameras marked ``ignore = true`` or without extrinsics are
-skipped with a warning; fisheye cameras are rejected (edgerecon's camera model is OpenCV's
-pinhole with k1 k2 p1 p2 k3).
+skipped with a warning. aniposelib's fisheye cameras (``fisheye = true``, ``distortions``
+k1..k4 of OpenCV's fisheye model) come with their lenses (``toml_calibration``): ``edgerecon
+import`` rectifies their frames to pinhole cameras as they are read (``geometry.lens``).
 
 Units: caliscope and Pose2Sim write metres. anipose does not record its unit, so it is
 guessed from the rig's size (``guess_unit``: cameras 0.05-50 units from the point they look
@@ -36,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
 from edgerecon.io._errors import rotation_matrix
 from edgerecon.types import CalibrationError
 
@@ -78,8 +80,8 @@ def toml_flavour(data: dict[str, Any]) -> str | None:
         "port" in t or "cam_id" in t or "ignore" in t for _, t in tables
     ):
         return "caliscope"
-    if any("fisheye" in t for _, t in tables):
-        return "pose2sim"
+    if any(t.get("fisheye") is False for _, t in tables):
+        return "pose2sim"  # Pose2Sim writes ``fisheye = false``; aniposelib's fisheye ``true``
     return "anipose"
 
 
@@ -110,7 +112,26 @@ def read_toml_calibration(
     up: tuple[float, float, float] | None = None,
 ) -> Rig:
     """Read an anipose / Pose2Sim / caliscope TOML calibration as a rig (see the module
-    docstring for the formats and units)."""
+    docstring for the formats and units). Fisheye cameras raise (``toml_calibration`` gives
+    their lenses)."""
+    cal = toml_calibration(path, unit=unit, up=up)
+    if cal.lenses:
+        raise CalibrationError(
+            f"{path}: cameras {', '.join(cal.lenses)} have fisheye lenses: import the "
+            "calibration with its frames (edgerecon import), which rectifies them"
+        )
+    return cal.rig
+
+
+def toml_calibration(
+    path: str | os.PathLike[str],
+    *,
+    unit: str | None = None,
+    up: tuple[float, float, float] | None = None,
+) -> CalibratedRig:
+    """``read_toml_calibration``'s rig with the lenses of its ``fisheye = true`` cameras
+    (aniposelib's fisheye cameras: OpenCV's fisheye model, in the rig as the pinhole cameras
+    their frames are rectified to)."""
     path = Path(path)
     data = load_toml(path)
     flavour = toml_flavour(data)
@@ -120,6 +141,7 @@ def read_toml_calibration(
             "with 'matrix', 'distortions', 'rotation', 'translation', 'size')"
         )
     cameras = []
+    lenses: dict[str, FisheyeLens] = {}
     for key, table in _camera_tables(data):
         name = _camera_name(flavour, key, table)
         if table.get("ignore") is True:
@@ -128,7 +150,10 @@ def read_toml_calibration(
         if table.get("rotation") is None or table.get("translation") is None:
             logger.warning("%s: camera %r has no extrinsics (not calibrated); skipped", path, name)
             continue
-        cameras.append(_camera(path, name, table))
+        camera, lens = _camera(path, name, table)
+        cameras.append(camera)
+        if lens is not None:
+            lenses[name] = lens
     try:
         rig = Rig(cameras=tuple(cameras), unit=unit or "m", up=up or (0.0, 0.0, 1.0))
     except CalibrationError as exc:
@@ -144,7 +169,7 @@ def read_toml_calibration(
         else:
             logger.info("%s: anipose calibration, unit guessed from its size: %s", path, guessed)
             rig = Rig(cameras=rig.cameras, unit=guessed, up=rig.up)
-    return rig
+    return CalibratedRig(rig=rig, lenses=lenses)
 
 
 def _camera_name(flavour: str, key: str, table: dict[str, Any]) -> str:
@@ -157,20 +182,19 @@ def _camera_name(flavour: str, key: str, table: dict[str, Any]) -> str:
     return str(name) if name not in (None, "") else key
 
 
-def _camera(path: Path, name: str, table: dict[str, Any]) -> Camera:
+def _camera(path: Path, name: str, table: dict[str, Any]) -> tuple[Camera, FisheyeLens | None]:
+    """One camera table: the camera, and its lens when it is a fisheye one (the camera is
+    then the pinhole camera its frames are rectified to)."""
     where = f"{path}: camera {name!r}"
     missing = [k for k in _CAMERA_KEYS if k not in table and k != "distortions"]
     if missing:
         raise CalibrationError(f"{where}: missing {', '.join(missing)}")
-    if table.get("fisheye") is True:
-        raise CalibrationError(
-            f"{where}: fisheye cameras are not supported (edgerecon's camera model is OpenCV's "
-            "pinhole with k1 k2 p1 p2 k3)"
-        )
+    fisheye = table.get("fisheye") is True
     try:
         size = [float(v) for v in table["size"]]
         K = np.asarray(table["matrix"], np.float64)
-        dist = np.asarray(table.get("distortions", [0.0] * 5), np.float64).ravel()
+        dist = np.asarray(table.get("distortions", [0.0] * (4 if fisheye else 5)), np.float64)
+        dist = dist.ravel()
         rot = np.asarray(table["rotation"], np.float64)
         t = np.asarray(table["translation"], np.float64).ravel()
     except (TypeError, ValueError) as exc:
@@ -178,13 +202,23 @@ def _camera(path: Path, name: str, table: dict[str, Any]) -> Camera:
     if len(size) != 2 or any(v != int(v) or v <= 0 for v in size):
         raise CalibrationError(f"{where}: size must be [width, height] in pixels, got {size}")
     R = rotation_matrix(rot, where)
+    if fisheye:
+        if dist.size != 4:
+            raise CalibrationError(
+                f"{where}: a fisheye camera has 4 distortion coefficients (k1..k4), got {dist.size}"
+            )
+        try:
+            lens = FisheyeLens(width=int(size[0]), height=int(size[1]), K=K, D=dist)
+            return pinhole_camera(name, lens, R, t), lens
+        except CalibrationError as exc:
+            raise CalibrationError(f"{where}: {exc}") from None
     if dist.size > 5:
         raise CalibrationError(
             f"{where}: {dist.size} distortion coefficients; edgerecon supports OpenCV's "
             "k1 k2 p1 p2 k3"
         )
     try:
-        return Camera(
+        camera = Camera(
             name=name,
             width=int(size[0]),
             height=int(size[1]),
@@ -195,6 +229,7 @@ def _camera(path: Path, name: str, table: dict[str, Any]) -> Camera:
         )
     except CalibrationError as exc:
         raise CalibrationError(f"{path}: {exc}") from None
+    return camera, None
 
 
 def toml_calibrations(folder: str | os.PathLike[str]) -> list[Path]:
@@ -215,6 +250,7 @@ __all__ = [
     "guess_unit",
     "is_toml_calibration",
     "read_toml_calibration",
+    "toml_calibration",
     "toml_calibrations",
     "toml_flavour",
 ]

@@ -84,7 +84,7 @@ from edgerecon.io.calib_mocap import (
 from edgerecon.io.calib_nerf import is_transforms, transforms_calibration, transforms_file
 from edgerecon.io.calib_toml import (
     load_toml,
-    read_toml_calibration,
+    toml_calibration,
     toml_calibrations,
     toml_flavour,
 )
@@ -645,7 +645,7 @@ def load_calibration(
     elif fmt == "colmap":
         rig = read_colmap_text(target)
     elif fmt == "toml":
-        rig = read_toml_calibration(target)
+        lenses = toml_calibration(target)
     elif fmt == "easymocap":
         sizes = (
             None
