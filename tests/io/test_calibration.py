@@ -680,8 +680,12 @@ def test_colmap_errors(tmp_path):
     ]
     images = _colmap_images()
     _write_colmap(tmp_path, ["1 OPENCV_FISHEYE 64 48 50 50 32 24 0 0 0 0", *good_cams[1:]], images)
+    with pytest.raises(CalibrationError, match=r"cameras img0 are OPENCV_FISHEYE: import"):
+        read_colmap_text(tmp_path)  # read with its lens by load_calibration (test_fisheye.py)
+    _write_colmap(tmp_path, ["1 SIMPLE_RADIAL_FISHEYE 64 48 50 32 24 0", *good_cams[1:]], images)
     with pytest.raises(
-        CalibrationError, match=r"cameras\.txt:2.*unsupported COLMAP camera model 'OPENCV_FISHEYE'"
+        CalibrationError,
+        match=r"cameras\.txt:2.*unsupported COLMAP camera model 'SIMPLE_RADIAL_FISHEYE'",
     ):
         read_colmap_text(tmp_path)
     _write_colmap(tmp_path, ["1 PINHOLE 64 48 50 50 32", *good_cams[1:]], images)

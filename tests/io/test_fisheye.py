@@ -245,3 +245,29 @@ def test_aniposelib_fisheye_camera_comes_with_its_lens(tmp_path):
     np.testing.assert_allclose(cal.lenses[rig.names[0]].D, D)
     assert not cal.rig.cameras[0].has_distortion
     np.testing.assert_allclose(cal.rig.cameras[1].K, rig.cameras[1].K)
+
+
+def test_colmap_opencv_fisheye_comes_with_its_lens(scene, tmp_path):
+    from edgerecon.io.colmap import rotation_to_quaternion
+
+    ds, _ = scene
+    cams, imgs = [], []
+    for k, cam in enumerate(ds.rig, start=1):
+        lens = _lens(cam)
+        params = [lens.K[0, 0], lens.K[1, 1], lens.K[0, 2] + 0.5, lens.K[1, 2] + 0.5, *lens.D]
+        cams.append(
+            f"{k} OPENCV_FISHEYE {cam.width} {cam.height} "
+            + " ".join(repr(float(v)) for v in params)
+        )
+        q = rotation_to_quaternion(cam.R)
+        imgs += [f"{k} {' '.join(repr(float(v)) for v in (*q, *cam.t))} {k} {cam.name}.png", ""]
+    (tmp_path / "cameras.txt").write_text("\n".join(cams) + "\n")
+    (tmp_path / "images.txt").write_text("\n".join(imgs) + "\n")
+    (tmp_path / "points3D.txt").write_text("")
+    cal = load_calibration(tmp_path)
+    assert sorted(cal.lenses) == sorted(ds.rig.names)
+    for cam in ds.rig:
+        np.testing.assert_allclose(cal.lenses[cam.name].K, _lens(cam).K, atol=1e-9)
+        got = cal.rig.cameras[cal.rig.index(cam.name)]
+        np.testing.assert_allclose(got.R, cam.R, atol=1e-9)
+        assert not got.has_distortion

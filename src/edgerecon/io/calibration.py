@@ -89,6 +89,7 @@ from edgerecon.io.calib_toml import (
     toml_flavour,
 )
 from edgerecon.io.colmap import (
+    colmap_calibration,
     find_colmap_model,
     read_colmap_rig,
     write_colmap_rig,
@@ -643,7 +644,7 @@ def load_calibration(
     elif fmt == "middlebury":
         rig = read_middlebury_par(target, image_sizes)
     elif fmt == "colmap":
-        rig = read_colmap_text(target)
+        lenses = colmap_calibration(target)
     elif fmt == "toml":
         lenses = toml_calibration(target)
     elif fmt == "easymocap":

@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
 from edgerecon.io._errors import in_file
 from edgerecon.io.frames import IMAGE_EXTENSIONS, natural_key
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text
@@ -612,6 +613,16 @@ def colmap_intrinsics(cam: ColmapCamera) -> tuple[NDArray[np.float64], NDArray[n
     return K, dist
 
 
+def colmap_fisheye(cam: ColmapCamera) -> FisheyeLens | None:
+    """The lens of an ``OPENCV_FISHEYE`` camera (fx fy cx cy k1 k2 k3 k4: OpenCV's fisheye
+    model) in edgerecon's pixel convention; None for the other models."""
+    if cam.model != "OPENCV_FISHEYE":
+        return None
+    fx, fy, cx, cy, *D = cam.params[:8]
+    K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
+    return FisheyeLens(width=cam.width, height=cam.height, K=K, D=np.asarray(D))
+
+
 def camera_to_colmap(cam: Camera, camera_id: int) -> ColmapCamera:
     """The simplest COLMAP model that holds ``cam`` exactly (PINHOLE, OPENCV, FULL_OPENCV)."""
     if cam.K[0, 1] != 0:
@@ -650,6 +661,9 @@ class ColmapRig:
     pose_spread: dict[str, tuple[float, float]]
     """Per camera: largest distance of an image's centre from the mean (rig units) and
     largest rotation from the mean (degrees)."""
+    lenses: dict[str, FisheyeLens] = field(default_factory=dict)
+    """The ``OPENCV_FISHEYE`` cameras' lenses: those cameras are in ``rig`` as the pinhole
+    cameras their frames are rectified to (``geometry.lens``)."""
 
 
 def rig_from_colmap(
@@ -734,6 +748,7 @@ def rig_from_colmap(
     how, groups, spread = chosen
     names = _group_names(how, groups, images)
     cameras = []
+    lenses: dict[str, FisheyeLens] = {}
     frames: dict[str, list[str]] = {}
     spreads: dict[str, tuple[float, float]] = {}
     for name, group, (d, a) in zip(names, groups, spread, strict=True):
@@ -750,8 +765,10 @@ def rig_from_colmap(
                     f"{source}: camera {name!r}: its images use COLMAP cameras {cam_ids} "
                     "with different intrinsics"
                 )
+        lens = None
         try:
-            K, dist = colmap_intrinsics(first)
+            lens = colmap_fisheye(first)
+            K, dist = (np.eye(3), np.zeros(5)) if lens is not None else colmap_intrinsics(first)
         except CalibrationError as exc:
             raise CalibrationError(f"{first.origin or source}: camera {name!r}: {exc}") from None
         if len(group) == 1:  # exactly as written
@@ -759,18 +776,23 @@ def rig_from_colmap(
         else:
             R = _mean_rotation([rotations[k] for k in group])
             t = -R @ centers[group].mean(axis=0)
-        with in_file(source):
-            cameras.append(
-                Camera(
-                    name=name,
-                    width=first.width,
-                    height=first.height,
-                    K=K,
-                    R=R,
-                    t=t,
-                    dist=dist,
+        if lens is not None:
+            lenses[name] = lens
+            with in_file(source):
+                cameras.append(pinhole_camera(name, lens, R, t))
+        else:
+            with in_file(source):
+                cameras.append(
+                    Camera(
+                        name=name,
+                        width=first.width,
+                        height=first.height,
+                        K=K,
+                        R=R,
+                        t=t,
+                        dist=dist,
+                    )
                 )
-            )
         frames[name] = [images[k].name for k in group]
         spreads[name] = (d, a)
     meta_up = model.meta.get("up")
@@ -796,7 +818,7 @@ def rig_from_colmap(
             rig.unit,
             max(a for _, a in spreads.values()),
         )
-    return ColmapRig(rig=rig, frames=frames, grouping=how, pose_spread=spreads)
+    return ColmapRig(rig=rig, frames=frames, grouping=how, pose_spread=spreads, lenses=lenses)
 
 
 def _strip_ext(name: str) -> str:
@@ -975,7 +997,21 @@ def read_colmap_rig(path: str | os.PathLike[str], *, unit: str | None = None) ->
     """The rig of a COLMAP model folder (text or binary; see ``rig_from_colmap``)."""
     folder = find_colmap_model(path)
     model = read_colmap_model(path, points=False)
-    return rig_from_colmap(model, unit=unit, source=str(folder or path)).rig
+    found = rig_from_colmap(model, unit=unit, source=str(folder or path))
+    if found.lenses:
+        raise CalibrationError(
+            f"{folder or path}: cameras {', '.join(found.lenses)} are OPENCV_FISHEYE: import the "
+            "model with its frames (edgerecon import), which rectifies them"
+        )
+    return found.rig
+
+
+def colmap_calibration(path: str | os.PathLike[str], *, unit: str | None = None) -> CalibratedRig:
+    """``read_colmap_rig``'s rig with the lenses of its ``OPENCV_FISHEYE`` cameras."""
+    folder = find_colmap_model(path)
+    model = read_colmap_model(path, points=False)
+    found = rig_from_colmap(model, unit=unit, source=str(folder or path))
+    return CalibratedRig(rig=found.rig, lenses=found.lenses)
 
 
 def write_colmap_rig(path: str | os.PathLike[str], rig: Rig, *, binary: bool = False) -> Path:
@@ -992,6 +1028,8 @@ __all__ = [
     "ColmapPoints",
     "ColmapRig",
     "camera_to_colmap",
+    "colmap_calibration",
+    "colmap_fisheye",
     "colmap_intrinsics",
     "find_colmap_model",
     "quaternion_to_rotation",
