@@ -15,13 +15,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a calibration (edgerecon rig JSON, COLMAP text or binary model, "
         "anipose / Pose2Sim / caliscope TOML, EasyMocap intri.yml + extri.yml, CMU Panoptic "
         "calibration_*.json, LLFF poses_bounds.npy, nerfstudio / Instant-NGP transforms.json, "
-        "Kalibr camchain.yaml, "
+        "Kalibr camchain.yaml, Ego-Exo4D gopro_calibs.csv, "
         "openMVG sfm_data, OpenCV XML, Middlebury), find "
         "each camera's "
         "frames, check every camera (frames readable, counts, sizes) and write "
         "OUT/dataset.json + OUT/rig.json. Frames are referenced where they are, not copied. "
         "A calibration of more cameras than were filmed (a dome's) keeps the cameras whose "
-        "frames are named after them.",
+        "frames are named after them. Fisheye cameras become the pinhole cameras their frames "
+        "are rectified to as they are read.",
         epilog="examples:\n"
         "  edgerecon import camera_array.toml videos/ --out data/session1\n"
         "  edgerecon import Calib.toml cam1=v/c1.mp4 cam2=v/c2.mp4 cam3=v/c3.mp4 --out d\n"
@@ -30,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "  edgerecon import calibration_seq.json seq/hdVideos --out d  # Panoptic HD cameras\n"
         "  edgerecon import capture/transforms.json videos/ --out d     # nerfstudio\n"
         "  edgerecon import camchain-kalibr.yaml videos/ --out d        # Kalibr\n"
+        "  edgerecon import take/trajectory/gopro_calibs.csv take/frame_aligned_videos --out d\n"
         "  edgerecon import calibration.toml videos/ --offset B=2 --unit mm --out d\n"
         "  edgerecon import calibration.toml videos/ --offset auto --out d  # phones started by hand",
         formatter_class=argparse.RawDescriptionHelpFormatter,
