@@ -69,17 +69,24 @@ def test_solve_drops_a_pair_that_disagrees_and_names_unlinked_cameras():
     assert unlinked == ["e"] and 3 not in used and 6 not in used
 
 
-def test_joint_evidence_links_a_weak_camera_when_its_pairs_agree():
-    lags = {"a": 0, "b": 0, "c": 0, "w": 0}
-    weak = [
-        _pair("a", "w", -5, 3.0, 2.5),
-        _pair("b", "w", -5, 2.6, 2.4),
-        _pair("c", "w", 31, 2.9, 2.8),
-    ]
-    got, still, used = _join_unlinked(lags, ["w"], weak)
-    assert got["w"] == 5 and still == [] and used == {0, 1}
-    scattered = [_pair("a", "w", -5, 3.0, 2.5), _pair("b", "w", 12, 2.6, 2.4), _pair("c", "w", 31)]
-    got, still, _ = _join_unlinked(lags, ["w"], scattered)
+def test_an_unlinked_camera_is_matched_against_the_linked_ones_consensus():
+    from edgerecon.io.sync import SyncConfig
+
+    rng = np.random.default_rng(6)
+    s = _bursts(700, seed=3)
+    # Linked cameras a, b, c (offsets 0, 4, 9: camera x's frame t + o_x shows common time t).
+    lags = {"a": 0, "b": 4, "c": 9}
+    signals = {
+        n: np.roll(s, o)[:600] * (1 + k) + 0.3 * rng.standard_normal(600)
+        for k, (n, o) in enumerate(lags.items())
+    }
+    # w sees the same motion faintly (offset 6) under heavy noise of its own.
+    signals["w"] = 0.35 * np.roll(s, 6)[:600] + 0.8 * rng.standard_normal(600)
+    got, still, tried = _join_unlinked(signals, {**lags, "w": 0}, ["w"], 100, SyncConfig())
+    assert still == [] and got["w"] == 6, tried
+    # A camera that saw none of it stays unlinked.
+    signals["w"] = _bursts(600, seed=77)
+    got, still, _ = _join_unlinked(signals, {**lags, "w": 0}, ["w"], 100, SyncConfig())
     assert still == ["w"] and got["w"] == 0
 
 

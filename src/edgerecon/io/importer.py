@@ -594,7 +594,7 @@ def _estimate_offsets(
     notes: list[str],
 ) -> SyncResult:
     """``offsets="auto"``: the cameras' offsets from their motion (``io.sync``), said in
-    ``notes``; cameras it cannot link keep offset 0."""
+    ``notes``; cameras it cannot link stay at the best-linked camera's time."""
     spec = FrameSpec(
         kind=kind,  # type: ignore[arg-type]
         cameras=tuple((n, matched[n][0].path) for n in names),
@@ -614,8 +614,8 @@ def _estimate_offsets(
         notes.append(
             "no camera pair agreed on the offset of "
             + ", ".join(result.unlinked)
-            + ": offset 0 kept (too little motion seen by it and another camera in the "
-            "window, or a periodic motion); give --offset"
+            + ": left at the best-linked camera's time (too little motion seen by it and "
+            "the others in the window, or a periodic motion); check it, or give --offset"
         )
     return result
 

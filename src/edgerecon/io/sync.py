@@ -21,10 +21,12 @@ sees: when people or things move, every camera that sees them sees motion at the
    by least squares over the pairs' lags (``o_i - o_j = d_ij``), camera by camera from the
    best-linked one; a pair whose lag disagrees with the solution by more than a frame is
    dropped and the solve repeated.
-4. **Joint evidence**: a camera no confident pair links joins when at least two of its pairs
-   with linked cameras, and more than half of them, imply one offset (within a frame) however
-   low their peaks: wrong lags scatter over the search range, right ones agree. Cameras
-   still unlinked keep offset 0 and are named.
+4. **Consensus**: a camera no confident pair links is matched once more, against the linked
+   cameras' signals aligned by their offsets and averaged (what they all saw adds up, their
+   own noise does not), with the same confidence test. (Counting the votes of its weak pairs
+   instead joined a camera at a wrong lag: two weak pairs with linked cameras agree by
+   construction when those cameras agree with each other.) Cameras still unlinked stay at
+   the best-linked camera's time and are named.
 
 The signals are read on the source's own time base, so videos paired by timestamps
 (different or variable frame rates, ``VideoFrameSource``) are compared in time, and the
@@ -107,8 +109,10 @@ class SyncResult:
     lags: dict[str, int]
     """Per camera, its offset in time indices of the source (before conversion)."""
     unlinked: list[str]
-    """Cameras no confident pair linked (offset 0)."""
+    """Cameras neither a confident pair nor the consensus linked (offset 0)."""
     pairs: list[PairLag]
+    joined: dict[str, tuple[int, float, float]] = field(default_factory=dict)
+    """Cameras tried against the linked cameras' consensus: (lag, peak, second)."""
     frames_read: int
     fps: float | None
     seconds: float
@@ -126,6 +130,7 @@ class SyncResult:
             "lags": self.lags,
             "unlinked": self.unlinked,
             "pairs": [p.__dict__ for p in self.pairs],
+            "joined": {n: list(v) for n, v in self.joined.items()},
             "frames_read": self.frames_read,
             "fps": self.fps,
             "seconds": self.seconds,
@@ -277,40 +282,42 @@ def _solve(names: list[str], pairs: list[PairLag]) -> tuple[dict[str, int], list
         active.discard(worst)
 
 
+def _zscore(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    x = _centred(x)
+    sd = float(x.std())
+    return x / sd if sd > 0 else x
+
+
 def _join_unlinked(
-    lags: dict[str, int], unlinked: list[str], pairs: list[PairLag]
-) -> tuple[dict[str, int], list[str], set[int]]:
-    """Step 4 of the module docstring: an unlinked camera joins when the offsets its pairs with
-    linked cameras imply agree (within a frame) for at least two of them and for more than
-    half, whatever their heights: wrong lags scatter over the whole search range, right ones
-    agree. Returns the offsets, the cameras still unlinked and the pairs used."""
-    lags, still, used = dict(lags), list(unlinked), set[int]()
-    changed = True
-    while changed and still:
-        changed = False
-        linked = [n for n in lags if n not in still]
-        for cam in list(still):
-            votes = []  # (offset of cam, pair index, height)
-            for k, p in enumerate(pairs):
-                if p.a == cam and p.b in linked and np.isfinite(p.peak):
-                    votes.append((lags[p.b] + p.lag, k, p.peak))
-                elif p.b == cam and p.a in linked and np.isfinite(p.peak):
-                    votes.append((lags[p.a] - p.lag, k, p.peak))
-            if len(votes) < 2:
-                continue
-            best = max(
-                (v for v, _, _ in votes),
-                key=lambda v: (sum(abs(o - v) <= 1 for o, _, _ in votes),
-                               sum(h for o, _, h in votes if abs(o - v) <= 1)),
-            )  # fmt: skip
-            agree = [(o, k, h) for o, k, h in votes if abs(o - best) <= 1]
-            if len(agree) >= 2 and 2 * len(agree) > len(votes):
-                weights = np.array([h for _, _, h in agree])
-                lags[cam] = round(float(np.average([o for o, _, _ in agree], weights=weights)))
-                used |= {k for _, k, _ in agree}
-                still.remove(cam)
-                changed = True
-    return lags, still, used
+    signals: dict[str, NDArray[np.float64]],
+    lags: dict[str, int],
+    unlinked: list[str],
+    max_lag: int,
+    config: SyncConfig,
+) -> tuple[dict[str, int], list[str], dict[str, tuple[int, float, float]]]:
+    """Step 4 of the module docstring: each unlinked camera against the linked cameras'
+    consensus (their normalised signals aligned by their offsets and averaged: the noise of
+    each averages out, what they all saw stays), joined when that one peak is confident.
+    Returns the offsets, the cameras still unlinked and, per camera tried, (lag, peak,
+    second)."""
+    linked = [n for n in lags if n not in unlinked]
+    lags, still = dict(lags), list(unlinked)
+    tried: dict[str, tuple[int, float, float]] = {}
+    if len(linked) < 2:
+        return lags, still, tried
+    base = min(lags[n] for n in linked)
+    shift = {n: lags[n] - base for n in linked}
+    length = min(len(signals[n]) - shift[n] for n in linked)
+    if length < 4:
+        return lags, still, tried
+    consensus = np.mean([_zscore(signals[n])[shift[n] : shift[n] + length] for n in linked], axis=0)
+    for cam in unlinked:
+        lag, peak, second = best_lag(signals[cam], consensus, max_lag)
+        tried[cam] = (lag, peak, second)
+        if np.isfinite(peak) and peak >= config.min_peak and peak - second >= config.min_margin:
+            lags[cam] = lag + base
+            still.remove(cam)
+    return lags, still, tried
 
 
 def estimate_offsets(
@@ -353,8 +360,8 @@ def estimate_offsets(
                 )
             )
     lags, unlinked, used = _solve(names, pairs)
-    lags, unlinked, joined = _join_unlinked(lags, unlinked, pairs)
-    used |= joined
+    signals = dict(zip(names, per_camera, strict=True))
+    lags, unlinked, joined = _join_unlinked(signals, lags, unlinked, max_lag, config)
     pairs = [
         PairLag(a=p.a, b=p.b, lag=p.lag, peak=p.peak, second=p.second, confident=p.confident,
                 used=k in used)
@@ -370,6 +377,7 @@ def estimate_offsets(
         lags=lags,
         unlinked=unlinked,
         pairs=pairs,
+        joined=joined,
         frames_read=n,
         fps=fps,
         seconds=time.perf_counter() - t0,
