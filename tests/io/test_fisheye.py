@@ -175,6 +175,10 @@ def test_import_egoexo_fisheye_calibrated_at_twice_the_size(scene, tmp_path, cap
         assert not cam.has_distortion
         want = _lens(ds.rig.cameras[ds.rig.index(cam.name)]).pinhole_K()
         np.testing.assert_allclose(cam.K, want, rtol=1e-6, atol=1e-6)
+    assert main(["info", "--dataset", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert sorted(info["lenses"]) == sorted(ds.rig.names)
+    np.testing.assert_allclose(info["lenses"]["cam0"]["D"], D)
     score = _score(out, tmp_path, gt)
     assert score.precision > 0.85 and score.num_pred > 150, score
 

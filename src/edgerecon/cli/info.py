@@ -97,6 +97,11 @@ def describe(ds: Dataset) -> dict[str, Any]:
             }
             for i, cam in enumerate(rig)
         ],
+        "lenses": {
+            name: {"K": r.lens.K.tolist(), "D": r.lens.D.tolist(), "size": list(r.lens.size)}
+            for name, r in ds.frames.rectify
+        },
+        "offsets": dict(ds.frames.offsets),
         "convergence_point": None if target is None else (target + o).tolist(),
         "baseline_angles_deg": np.round(baseline_angles_deg(rig), 3).tolist(),
     }
@@ -193,6 +198,21 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         console.print("distortion: none (ideal pinhole cameras)")
+    if info["lenses"]:
+        print_table(
+            "fisheye lenses (frames rectified to the pinhole cameras above as they are read)",
+            ["name", "fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4"],
+            [
+                [n, lens["K"][0][0], lens["K"][1][1], lens["K"][0][2], lens["K"][1][2], *lens["D"]]
+                for n, lens in info["lenses"].items()
+            ],
+        )
+    if info["offsets"]:
+        console.print(
+            "synchronisation offsets (frames): "
+            + ", ".join(f"{n} {k}" for n, k in info["offsets"].items()),
+            soft_wrap=True,
+        )
     angles = np.asarray(info["baseline_angles_deg"])
     names = ds.rig.names
     print_table(
