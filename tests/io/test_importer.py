@@ -547,3 +547,19 @@ def test_relative_paths_are_kept_from_where_import_ran(scene, tmp_path, monkeypa
     with open_dataset(work / "data" / "session1").open_frames() as src:
         assert src.num_frames == ds.num_frames
         assert src.read(2).images[0] is not None
+
+
+def test_sources_named_after_no_camera_are_left_out_and_said(scene, tmp_path, capsys):
+    # Ego-Exo4D's frame_aligned_videos/ holds the worn camera's streams beside the GoPros'.
+    ds, _ = scene
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    for cam in ds.rig.names:
+        (folder / cam).symlink_to(ds.root / "frames" / cam)
+    (folder / "aria01_214-1").symlink_to(ds.root / "frames" / ds.rig.names[0])
+    save_rig(tmp_path / "rig.json", ds.rig)
+    out = tmp_path / "ds"
+    assert main(["import", str(tmp_path / "rig.json"), str(folder), "-o", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [c["matched_by"] for c in report["cameras"]] == ["name"] * len(ds.rig)
+    assert any("left out: aria01_214-1" in n for n in report["notes"]), report["notes"]

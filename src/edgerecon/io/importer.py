@@ -455,6 +455,14 @@ def import_dataset(
                 f"{len(left_out)} of the calibration's {len(left_out) + len(rig)} cameras have "
                 f"no frames and are left out: {shown}{more}"
             )
+    unused = [s.path for s in sources if all(s is not m for m, _ in matched.values())]
+    if unused:
+        shown = ", ".join(Path(p).name for p in unused[:8])
+        more = f" and {len(unused) - 8} more" if len(unused) > 8 else ""
+        notes.append(
+            f"{len(unused)} source(s) named after no camera of the calibration, left out: "
+            f"{shown}{more}"
+        )
     rig, up_note = _apply_up(rig, up, fmt)
     kinds = {src.kind for src, _ in matched.values()}
     if len(kinds) > 1:
