@@ -142,3 +142,24 @@ def test_import_offset_auto(tmp_path, capsys):
     assert parse_offsets(["auto"]) == "auto" and parse_offsets(["a=2,b=3"]) == {"a": 2, "b": 3}
     with pytest.raises(ValueError, match="CAMERA=FRAMES"):
         parse_offsets(["auto,cam0=2"])
+
+
+def test_sync_command_checks_and_writes_a_datasets_offsets(tmp_path, capsys):
+    starts = {"cam0": 4, "cam1": 0, "cam2": 9}
+    paths = _videos(tmp_path, starts)
+    rig = ring_rig(3, width=W, height_px=H, focal_px=40.0)
+    save_rig(tmp_path / "rig.json", rig)
+    sources = [f"{n}={paths[c]}" for n, c in zip(rig.names, starts, strict=True)]
+    out = tmp_path / "ds"
+    assert main(["import", str(tmp_path / "rig.json"), *sources, "-o", str(out), "-q"]) == 0
+    capsys.readouterr()
+    want = dict(zip(rig.names, (5, 9, 0), strict=True))
+    assert main(["sync", "--dataset", str(out), "--json"]) == 3  # out of sync
+    report = json.loads(capsys.readouterr().out)
+    assert report["new"] == want and sorted(report["out_of_sync"]) == sorted(rig.names[:2])
+    assert main(["sync", "--dataset", str(out), "--write", "--json"]) == 0
+    capsys.readouterr()
+    assert dict(open_dataset(out).frames.offsets) == {k: v for k, v in want.items() if v}
+    assert main(["sync", "--dataset", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["out_of_sync"] == [] and set(report["change"].values()) == {0}
