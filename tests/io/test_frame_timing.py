@@ -132,3 +132,28 @@ def test_import_says_how_frames_pair(tmp_path, capsys):
     with open_dataset(out).open_frames() as src:
         assert src.fps == pytest.approx(30.0) and src.num_frames == 30
         assert [_decode(im) for im in src.read(12).images] == [12, 24, 12]
+
+
+def test_phone_video_with_rotation_metadata_reads_upright(tmp_path):
+    # Phones store portrait video as landscape pixels plus a display rotation: the frames and
+    # the probed size are the upright ones (what calibration tools reading the video saw).
+    av = pytest.importorskip("av")
+    from edgerecon.io.frames import probe_video
+
+    path = tmp_path / "portrait.mp4"
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("mpeg4", rate=10)
+        stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+        stream.set_display_rotation(90)
+        for _ in range(5):
+            image = np.zeros((H, W, 3), np.uint8)
+            image[:8, :12] = 255  # a mark in the stored frame's top-left corner
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    info = probe_video(path)
+    assert (info.width, info.height) == (H, W)
+    with VideoFrameSource({"p": path}) as src:
+        frame = src.read(2).images[0]
+    assert frame.shape[:2] == (W, H)  # rows, columns: upright portrait
