@@ -95,7 +95,7 @@ def test_refused_models_and_bad_chains(scene, tmp_path):
     path = tmp_path / "camchain.yaml"
     for text, match in (
         (_camchain(ds.rig, distortion="fov"), "distortion_model 'fov'"),
-        (_camchain(ds.rig, distortion="equidistant"), "have fisheye .equidistant. lenses"),
+        (_camchain(ds.rig, distortion="equidistant"), "have fisheye lenses: import"),
         (_camchain(ds.rig, model="omni"), "camera_model 'omni'"),
         (_camchain(ds.rig).replace("  T_cn_cnm1:", "  T_other:", 1), "cam1 without T_cn_cnm1"),
         (_camchain(ds.rig).replace("resolution: [320, 240]", "resolution: [320]", 1),

@@ -680,7 +680,7 @@ def test_colmap_errors(tmp_path):
     ]
     images = _colmap_images()
     _write_colmap(tmp_path, ["1 OPENCV_FISHEYE 64 48 50 50 32 24 0 0 0 0", *good_cams[1:]], images)
-    with pytest.raises(CalibrationError, match=r"cameras img0 are OPENCV_FISHEYE: import"):
+    with pytest.raises(CalibrationError, match=r"cameras img0 have fisheye lenses: import"):
         read_colmap_text(tmp_path)  # read with its lens by load_calibration (test_fisheye.py)
     _write_colmap(tmp_path, ["1 SIMPLE_RADIAL_FISHEYE 64 48 50 32 24 0", *good_cams[1:]], images)
     with pytest.raises(

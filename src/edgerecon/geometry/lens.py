@@ -152,6 +152,16 @@ class CalibratedRig:
     rig: Rig
     lenses: dict[str, FisheyeLens]
 
+    def pinhole_only(self, where: object) -> Rig:
+        """The rig, when no camera has a fisheye lens; ``CalibrationError`` naming ``where``
+        otherwise (its frames must be rectified: ``edgerecon import`` sets that up)."""
+        if self.lenses:
+            raise CalibrationError(
+                f"{where}: cameras {', '.join(self.lenses)} have fisheye lenses: import the "
+                "calibration with its frames (edgerecon import), which rectifies them"
+            )
+        return self.rig
+
 
 def pinhole_camera(
     name: str,

@@ -115,13 +115,7 @@ def _transform(value: Any, key: str, where: str) -> NDArray[np.float64]:
 def read_kalibr(path: str | os.PathLike[str]) -> Rig:
     """Read a Kalibr ``camchain.yaml`` (the file, or a folder holding one) as a rig; see the
     module docstring. Fisheye cameras raise (``kalibr_calibration`` gives their lenses)."""
-    cal = kalibr_calibration(path)
-    if cal.lenses:
-        raise CalibrationError(
-            f"{path}: cameras {', '.join(cal.lenses)} have fisheye (equidistant) lenses: import "
-            "the calibration with its frames (edgerecon import), which rectifies them"
-        )
-    return cal.rig
+    return kalibr_calibration(path).pinhole_only(path)
 
 
 def kalibr_calibration(path: str | os.PathLike[str]) -> CalibratedRig:

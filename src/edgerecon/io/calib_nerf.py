@@ -269,13 +269,7 @@ def read_transforms(
     docstring. ``image_sizes`` ((width, height) per camera name, or one for all) is used
     where the file records no size; ``only``: the cameras to read (those filmed). Fisheye
     cameras raise (``transforms_calibration`` gives them with their lenses)."""
-    cal = transforms_calibration(path, image_sizes, only=only)
-    if cal.lenses:
-        raise CalibrationError(
-            f"{path}: cameras {', '.join(cal.lenses)} have fisheye lenses: import the "
-            "calibration with its frames (edgerecon import), which rectifies them"
-        )
-    return cal.rig
+    return transforms_calibration(path, image_sizes, only=only).pinhole_only(path)
 
 
 def transforms_calibration(

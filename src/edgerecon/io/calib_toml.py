@@ -114,13 +114,7 @@ def read_toml_calibration(
     """Read an anipose / Pose2Sim / caliscope TOML calibration as a rig (see the module
     docstring for the formats and units). Fisheye cameras raise (``toml_calibration`` gives
     their lenses)."""
-    cal = toml_calibration(path, unit=unit, up=up)
-    if cal.lenses:
-        raise CalibrationError(
-            f"{path}: cameras {', '.join(cal.lenses)} have fisheye lenses: import the "
-            "calibration with its frames (edgerecon import), which rectifies them"
-        )
-    return cal.rig
+    return toml_calibration(path, unit=unit, up=up).pinhole_only(path)
 
 
 def toml_calibration(

@@ -618,13 +618,7 @@ def load_rig(path: str | os.PathLike[str], image_sizes: ImageSizes | None = None
     A calibration with fisheye cameras raises: its frames must be rectified, which
     ``edgerecon import`` sets up (``load_calibration`` gives the lenses).
     """
-    cal = load_calibration(path, image_sizes)
-    if cal.lenses:
-        raise CalibrationError(
-            f"{path}: cameras {', '.join(cal.lenses)} have fisheye lenses: import the "
-            "calibration with its frames (edgerecon import), which rectifies them"
-        )
-    return cal.rig
+    return load_calibration(path, image_sizes).pinhole_only(path)
 
 
 def load_calibration(

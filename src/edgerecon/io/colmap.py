@@ -995,15 +995,7 @@ def rotation_to_quaternion(R: NDArray[np.float64]) -> NDArray[np.float64]:
 # ============================================================================== rig API
 def read_colmap_rig(path: str | os.PathLike[str], *, unit: str | None = None) -> Rig:
     """The rig of a COLMAP model folder (text or binary; see ``rig_from_colmap``)."""
-    folder = find_colmap_model(path)
-    model = read_colmap_model(path, points=False)
-    found = rig_from_colmap(model, unit=unit, source=str(folder or path))
-    if found.lenses:
-        raise CalibrationError(
-            f"{folder or path}: cameras {', '.join(found.lenses)} are OPENCV_FISHEYE: import the "
-            "model with its frames (edgerecon import), which rectifies them"
-        )
-    return found.rig
+    return colmap_calibration(path, unit=unit).pinhole_only(find_colmap_model(path) or path)
 
 
 def colmap_calibration(path: str | os.PathLike[str], *, unit: str | None = None) -> CalibratedRig:
