@@ -8,7 +8,7 @@ sees: when people or things move, every camera that sees them sees motion at the
 1. **Motion signal** per camera: each frame reduced to ``width_px`` pixels wide (grey, area
    averaging), the mean absolute difference from the previous frame after the difference's
    median is removed (a global brightness change, an exposure step, is not motion): one
-   number per time index (``motion_signal``).
+   number per time index.
 2. **Lag per pair** of cameras: the generalised cross-correlation with phase transform
    (GCC-PHAT, Knapp and Carter 1976) of the two signals up to ``max_offset_s``
    (``best_lag``): the cross-spectrum is whitened, so the peak is sharp however smooth the
@@ -41,7 +41,6 @@ are whole frames: at 30 fps the cameras can still be up to 17 ms apart.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -166,15 +165,6 @@ class _Motion:
 
     def signal(self) -> NDArray[np.float64]:
         return np.asarray(self.values, np.float64)
-
-
-def motion_signal(frames: Iterable[Image | None], width_px: int = 96) -> NDArray[np.float64]:
-    """One camera's motion per frame (step 1 of the module docstring); NaN where a frame or
-    the one before it is missing, 0 for the first."""
-    motion = _Motion(width_px)
-    for image in frames:
-        motion.add(image)
-    return motion.signal()
 
 
 def _local_maxima(values: NDArray[np.float64]) -> NDArray[np.intp]:
