@@ -11,7 +11,8 @@ Such a camera enters the rig as the pinhole camera its frames are rectified to
 (``Rectification``: the lens, and the pinhole ``K`` at the same image size, by default the
 largest view with no invalid pixels, ``cv2.fisheye.estimateNewCameraMatrixForUndistortRectify``
 with ``balance`` 0); the frame sources remap every frame of it once, as it is read
-(``io.frames``). Nothing else in the pipeline sees the lens. What it cannot do: a lens wider
+(``io.frames``; a live stream's, ``io.streams``, once a synchronized set is chosen). Nothing
+else in the pipeline sees the lens. What it cannot do: a lens wider
 than about 160 degrees keeps only the part of its view a pinhole camera can hold.
 """
 

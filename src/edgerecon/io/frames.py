@@ -977,7 +977,7 @@ class FrameSpec:
     (cameras not listed: k = 0; files only)."""
     rectify: tuple[tuple[str, Rectification], ...] = ()
     """Fisheye cameras: (camera name, its lens and pinhole camera): their frames are
-    remapped as they are read (``geometry.lens``; files only)."""
+    remapped as they are read (``geometry.lens``)."""
 
     def __post_init__(self) -> None:
         if self.kind not in FRAME_KINDS:
@@ -1003,14 +1003,13 @@ class FrameSpec:
         if self.kind == "stream":
             from edgerecon.io.streams import StreamFrameSource
 
-            if self.rectify:
-                raise DataError(
-                    "live streams of fisheye cameras are not rectified: record them to files, "
-                    "or rectify them before they reach edgerecon"
-                )
-
             return StreamFrameSource(
-                paths, rig=rig, missing=missing, fps=self.fps, config=self.stream
+                paths,
+                rig=rig,
+                missing=missing,
+                fps=self.fps,
+                config=self.stream,
+                rectify=dict(self.rectify),
             )
         offsets, rectify = dict(self.offsets), dict(self.rectify)
         if self.kind == "video":

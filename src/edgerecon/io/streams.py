@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING, Any
 
 import cv2
 
+from edgerecon.geometry.lens import Rectification
 from edgerecon.io.frames import FrameSource, MissingPolicy
 from edgerecon.types import CalibrationError, DataError, FrameSet, Image
 
@@ -323,6 +324,7 @@ class StreamFrameSource(FrameSource):
         missing: MissingPolicy = "skip_camera",
         fps: float | None = None,
         config: StreamConfig | None = None,
+        rectify: Mapping[str, Rectification] | None = None,
     ) -> None:
         from edgerecon.io.frames import _order
 
@@ -340,6 +342,13 @@ class StreamFrameSource(FrameSource):
             )
         if not self._streams:
             raise DataError("a frame source needs at least one camera")
+        rectify = dict(rectify or {})
+        unknown = sorted(set(rectify) - {st.name for st in self._streams})
+        if unknown:
+            raise DataError(f"lenses given for unknown cameras {unknown}")
+        # Fisheye cameras: the frames of a set are rectified once it is chosen (only those
+        # the task uses pay the remap).
+        self._rectify = [rectify.get(st.name) for st in self._streams]
         self._used_seq = [0] * len(self._streams)
         self._stalled = [False] * len(self._streams)
         self._stalled_since = [0.0] * len(self._streams)
@@ -474,7 +483,8 @@ class StreamFrameSource(FrameSource):
         for i in group:
             f = newest[i]
             assert f is not None
-            images[i] = f.image
+            rect = self._rectify[i]
+            images[i] = f.image if rect is None else rect(f.image)
             times[i] = f.capture_s
             self._used_seq[i] = f.seq
         self._frames_used += len(group)
