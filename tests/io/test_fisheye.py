@@ -289,7 +289,7 @@ def test_aniposelib_fisheye_camera_comes_with_its_lens(tmp_path):
     np.testing.assert_allclose(cal.rig.cameras[1].K, rig.cameras[1].K)
 
 
-def test_colmap_opencv_fisheye_comes_with_its_lens(scene, tmp_path):
+def test_colmap_opencv_fisheye_comes_with_its_lens(scene, tmp_path, capsys):
     from edgerecon.io.colmap import rotation_to_quaternion
 
     ds, _ = scene
@@ -313,3 +313,22 @@ def test_colmap_opencv_fisheye_comes_with_its_lens(scene, tmp_path):
         got = cal.rig.cameras[cal.rig.index(cam.name)]
         np.testing.assert_allclose(got.R, cam.R, atol=1e-9)
         assert not got.has_distortion
+    # COLMAP's own images as the frames (one per camera: the fisheye frames of time 3).
+    images = tmp_path / "images"
+    images.mkdir()
+    with ds.open_frames() as src:
+        for cam, image in zip(ds.rig, src.read(3).images, strict=True):
+            cv2.imwrite(str(images / f"{cam.name}.png"), _fisheye_frame(image, cam, _lens(cam)))
+    out = tmp_path / "ds"
+    args = ["import", str(tmp_path), "--images", str(images), "-o", str(out), "--json"]
+    assert main(args) == 0
+    capsys.readouterr()
+    rec = tmp_path / "rec"
+    assert (
+        main(["reconstruct", "--dataset", str(out), "-t", "0", "--no-dense", "-o", str(rec)]) == 0
+    )
+    cloud = read_ply(rec / "sparse.ply")
+    score = evaluate_clouds(cloud.points3D, scene[1].reference_cloud(3, "all", min_views=2), 0.03)[
+        0
+    ]
+    assert score.precision > 0.85 and score.num_pred > 150, score
