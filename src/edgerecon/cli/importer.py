@@ -15,7 +15,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a calibration (edgerecon rig JSON, COLMAP text or binary model, "
         "anipose / Pose2Sim / caliscope TOML, EasyMocap intri.yml + extri.yml, CMU Panoptic "
         "calibration_*.json, LLFF poses_bounds.npy, nerfstudio / Instant-NGP transforms.json, "
-        "Kalibr camchain.yaml, Ego-Exo4D gopro_calibs.csv, "
+        "Kalibr camchain.yaml, Ego-Exo4D gopro_calibs.csv, multical calibration.json, "
         "openMVG sfm_data, OpenCV XML, Middlebury), find "
         "each camera's "
         "frames, check every camera (frames readable, counts, sizes) and write "

@@ -41,6 +41,8 @@ Formats (``load_rig`` detects them from a file or a folder):
   camera 0.
 * **Ego-Exo4D** ``gopro_calibs.csv`` (``edgerecon.io.calib_egoexo``): static GoPros with
   Kannala-Brandt fisheye lenses.
+* **multical** ``calibration.json`` (``edgerecon.io.calib_multical``): OpenCV or fisheye
+  cameras, poses absolute or relative to a master camera.
 
 Fisheye lenses (``geometry.lens``) come with ``load_calibration``: those cameras are in the
 rig as the pinhole cameras their frames are rectified to as they are read; ``load_rig``
@@ -81,6 +83,7 @@ from edgerecon.io.calib_mocap import (
     read_easymocap,
     read_panoptic,
 )
+from edgerecon.io.calib_multical import is_multical, multical_calibration
 from edgerecon.io.calib_nerf import is_transforms, transforms_calibration, transforms_file
 from edgerecon.io.calib_toml import (
     load_toml,
@@ -123,6 +126,7 @@ FORMATS = (
     "nerf",
     "kalibr",
     "egoexo",
+    "multical",
 )
 
 
@@ -545,9 +549,12 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
             return "panoptic"
         if is_transforms(data):
             return "nerf"
+        if is_multical(data):
+            return "multical"
         raise CalibrationError(
             f"{path}: JSON file is neither an edgerecon rig (format: edgerecon-rig), an "
-            "openMVG sfm_data file, a Panoptic calibration nor a NeRF transforms.json"
+            "openMVG sfm_data file, a Panoptic calibration, a NeRF transforms.json nor a "
+            "multical calibration"
         )
     raise CalibrationError(f"{path}: unknown calibration format (supported: {', '.join(FORMATS)})")
 
@@ -601,11 +608,14 @@ def _detect_in_folder(folder: Path) -> tuple[str, Path]:
     egoexo = egoexo_file(folder)
     if egoexo is not None:
         return "egoexo", egoexo
+    multical = folder / "calibration.json"
+    if multical.is_file() and is_multical(_read_json(multical)):
+        return "multical", multical
     raise CalibrationError(
         f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
         "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
         "intri.yml + extri.yml, a Kalibr camchain*.yaml, LLFF's poses_bounds.npy, a Panoptic "
-        "calibration_*.json, a NeRF transforms.json, an Ego-Exo4D gopro_calibs.csv)"
+        "calibration_*.json, a NeRF transforms.json, an Ego-Exo4D gopro_calibs.csv, a multical calibration.json)"
     )
 
 
@@ -658,6 +668,8 @@ def load_calibration(
         lenses = kalibr_calibration(target)
     elif fmt == "egoexo":
         lenses = egoexo_calibration(target)
+    elif fmt == "multical":
+        lenses = multical_calibration(target)
     elif target.is_dir():
         rig = read_opencv_xml_rig(target, image_sizes)
     else:

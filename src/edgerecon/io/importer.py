@@ -431,6 +431,8 @@ def import_dataset(
         unit_note = "m (Kalibr calibrations are in metres)"
     elif fmt == "egoexo":
         unit_note = "m (Ego-Exo4D calibrations are in metres)"
+    elif fmt == "multical":
+        unit_note = "m (multical: the boards' unit, metres in its board files; give --unit)"
     elif fmt == "panoptic":
         unit_note = (
             "cm (Panoptic Studio calibrations are in centimetres)"
