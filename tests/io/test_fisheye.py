@@ -328,7 +328,32 @@ def test_colmap_opencv_fisheye_comes_with_its_lens(scene, tmp_path, capsys):
         main(["reconstruct", "--dataset", str(out), "-t", "0", "--no-dense", "-o", str(rec)]) == 0
     )
     cloud = read_ply(rec / "sparse.ply")
-    score = evaluate_clouds(cloud.points3D, scene[1].reference_cloud(3, "all", min_views=2), 0.03)[
-        0
-    ]
+    truth = scene[1].reference_cloud(3, "all", min_views=2)
+    score = evaluate_clouds(cloud.points3D, truth, 0.03)[0]
     assert score.precision > 0.85 and score.num_pred > 150, score
+    # Back to COLMAP with the frames as filmed: OPENCV_FISHEYE cameras, the points' pixels
+    # where the lens put them.
+    from edgerecon.io.colmap import quaternion_to_rotation, read_colmap_model
+
+    ws = tmp_path / "ws"
+    assert main(["export", str(rec), "--distorted", "--cloud", "sparse", "-o", str(ws)]) == 0
+    model = read_colmap_model(ws / "sparse")
+    assert {c.model for c in model.cameras.values()} == {"OPENCV_FISHEYE"}
+    checked = 0
+    for image in model.images.values():
+        cam = model.cameras[image.camera_id]
+        written = cv2.imread(str(ws / "images" / image.name))
+        filmed = cv2.imread(str(images / image.name))
+        assert np.array_equal(written, filmed)
+        seen = image.point3D_ids >= 0
+        index = {int(i): k for k, i in enumerate(model.points3D.ids)}
+        xyz = model.points3D.xyz[[index[int(i)] for i in image.point3D_ids[seen]]]
+        R = quaternion_to_rotation(image.qvec)
+        fx, fy, cx, cy = cam.params[:4]
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+        proj, _ = cv2.fisheye.projectPoints(
+            xyz.reshape(-1, 1, 3), cv2.Rodrigues(R)[0], image.tvec, K, cam.params[4:8]
+        )
+        np.testing.assert_allclose(proj.reshape(-1, 2), image.points2D[seen], atol=1e-3)
+        checked += int(seen.sum())
+    assert checked > 100

@@ -4,6 +4,7 @@ nerfstudio dataset (nerfstudio, Instant-NGP, Gaussian splatting) or a viewer-fri
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -54,7 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--distorted",
         action="store_true",
-        help="colmap: original frames and OPENCV cameras (default: undistorted, PINHOLE)",
+        help="colmap: original frames and OPENCV cameras (fisheye cameras: OPENCV_FISHEYE and "
+        "their frames as filmed; default: undistorted, PINHOLE)",
     )
     p.add_argument("--no-images", action="store_true", help="colmap: write the model only")
     p.add_argument(
@@ -163,10 +165,13 @@ def run(args: argparse.Namespace) -> int:
     cloud, dropped = crop_range(_read_cloud(cloud_path), dataset.rig, args.max_range)
     occluders = _occluders(source, cloud_path)
     frames = None
+    # --distorted: fisheye cameras as filmed (OPENCV_FISHEYE), their frames not rectified.
+    lenses = {n: r.lens for n, r in dataset.frames.rectify} if args.distorted else {}
     if not args.no_images:
         if time_index is None:
             raise DataError("the images need the timestamp (--time T), or pass --no-images")
-        with dataset.open_frames() as src:
+        spec = dataclasses.replace(dataset.frames, rectify=()) if lenses else dataset.frames
+        with spec.open(dataset.rig) as src:
             frames = src.read(int(time_index))
     report = export_colmap(
         args.out,
@@ -179,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
         min_track=args.min_track,
         transform=z_up_metres(dataset.rig.unit, dataset.rig.up) if args.z_up_metres else None,
         model_dir=args.model_dir,
+        lenses=lenses,
     )
     if args.json:
         emit_json(

@@ -80,6 +80,16 @@ class FisheyeLens:
         )
         return np.asarray(K, np.float64)
 
+    def from_pinhole(self, K: NDArray[np.float64], uv: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Pixels ``uv`` (N, 2) of the pinhole camera ``K`` (the rectified view) -> the same
+        rays' pixels in this lens's frames."""
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        if not len(uv):
+            return uv.copy()
+        x = (uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+        out = cv2.fisheye.distortPoints(x.reshape(-1, 1, 2), self.K, self.D)
+        return np.asarray(out, np.float64).reshape(-1, 2)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "model": "fisheye",

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,8 +35,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.lens import FisheyeLens
 from edgerecon.io.calib_nerf import write_transforms
-from edgerecon.io.colmap import ColmapPoints, rig_to_colmap, write_colmap_model
+from edgerecon.io.colmap import ColmapCamera, ColmapPoints, rig_to_colmap, write_colmap_model
 from edgerecon.io.ply import atomic_write_bytes, write_ply
 from edgerecon.types import DataError, FrameSet, PointCloud, Points3D
 
@@ -236,13 +237,17 @@ def export_colmap(
     image_ext: str = ".png",
     transform: Similarity | None = None,
     model_dir: str = "sparse",
+    lenses: Mapping[str, FisheyeLens] | None = None,
 ) -> ExportReport:
     """Write ``cloud`` and the rig's cameras as a COLMAP workspace in ``out`` (see the
     module docstring). ``frames`` (the timestamp's frames, in rig order) become
     ``images/``; without them only the model is written, in ``out/<model_dir>`` (``sparse``
     for openMVS and COLMAP, ``sparse/0`` where 3D Gaussian Splatting and nerfstudio look).
     ``transform`` (e.g. ``z_up_metres(rig.unit, rig.up)``) changes the world frame of the
-    cloud and the poses alike."""
+    cloud and the poses alike. With ``distorted``, ``lenses`` (the fisheye cameras', whose
+    rig cameras are their rectified views): those cameras are written as COLMAP's
+    ``OPENCV_FISHEYE`` with their points' pixels in the frames as filmed (``frames`` must
+    then be those, not the rectified ones)."""
     out = Path(out)
     if Path(model_dir).is_absolute() or ".." in Path(model_dir).parts:
         raise DataError(f"the model's folder must be inside the workspace, got {model_dir!r}")
@@ -292,6 +297,10 @@ def export_colmap(
         cameras=tuple(cams), unit=rig.unit, up=rig.up, origin=rig.origin, min_cameras=1
     ).in_world()
     names = [f"{c.name}{image_ext}" for c in cams]
+    fisheye = dict(lenses or {}) if distorted else {}
+    for k, cam in enumerate(cams):  # the points' pixels in the frames as filmed
+        if cam.name in fisheye:
+            uv_per_image[k] = fisheye[cam.name].from_pinhole(cam.K, uv_per_image[k])
     model = rig_to_colmap(
         export_rig,
         image_names=names,
@@ -299,6 +308,17 @@ def export_colmap(
         point3D_ids=ids_per_image,
         points=points,
     )
+    for k, cam in enumerate(cams, start=1):
+        if cam.name in fisheye:
+            lens = fisheye[cam.name]
+            fx, fy, cx, cy = lens.K[0, 0], lens.K[1, 1], lens.K[0, 2] + 0.5, lens.K[1, 2] + 0.5
+            model.cameras[k] = ColmapCamera(
+                camera_id=k,
+                model="OPENCV_FISHEYE",
+                width=lens.width,
+                height=lens.height,
+                params=np.array([fx, fy, cx, cy, *lens.D], np.float64),
+            )
     written = write_colmap_model(out / model_dir, model, binary=binary)
     images = [] if frames is None else _write_frames(out, list(rig), frames, names, distorted)
     return ExportReport(
