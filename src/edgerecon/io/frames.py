@@ -96,7 +96,7 @@ def natural_key(name: str) -> list[int | str]:
 
 
 # --------------------------------------------------------------------------------- probing
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class VideoInfo:
     """What a video file's stream says about itself, with an exact frame count."""
 
