@@ -128,13 +128,24 @@ class SyncResult:
             "offsets": self.offsets,
             "lags": self.lags,
             "unlinked": self.unlinked,
-            "pairs": [p.__dict__ for p in self.pairs],
-            "joined": {n: list(v) for n, v in self.joined.items()},
+            "pairs": [
+                {**p.__dict__, "peak": _finite(p.peak), "second": _finite(p.second)}
+                for p in self.pairs
+            ],
+            "joined": {
+                n: [lag, _finite(peak), _finite(second)]
+                for n, (lag, peak, second) in self.joined.items()
+            },
             "frames_read": self.frames_read,
             "fps": self.fps,
             "seconds": self.seconds,
             "activity": self.activity,
         }
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None where it is NaN or infinite (JSON has neither)."""
+    return float(x) if np.isfinite(x) else None
 
 
 def _reduced(image: Image, width: int) -> NDArray[np.float32]:
