@@ -98,3 +98,20 @@ def test_import_multical_and_reconstruct(scene, tmp_path, capsys):
     points = (read_ply(rec / "sparse.ply").points3D - t0) @ R0
     score = evaluate_clouds(points, gt.reference_cloud(3, "all", min_views=2), 0.03)[0]
     assert score.precision > 0.85 and score.num_pred > 150, score
+
+
+def test_malformed_values_are_calibration_errors(scene, tmp_path):
+    # Found by mutating valid files: every malformed value is a CalibrationError naming it.
+    ds, _ = scene
+    path = tmp_path / "calibration.json"
+    for change, match in (
+        (lambda d: d["cameras"]["cam1"].update(dist="x"), "cam1.*dist is not a list of numbers"),
+        (lambda d: d["cameras"]["cam1"].update(dist=[[{}]]), "dist is not a list of numbers"),
+        (lambda d: d["cameras"]["cam2"].update(K=[[1, 2]]), "cam2.*K must hold 9"),
+        (lambda d: d["camera_poses"]["cam0"].update(R="x"), "R is not an array of numbers"),
+    ):
+        data = _multical(ds.rig)
+        change(data)
+        path.write_text(json.dumps(data))
+        with pytest.raises(CalibrationError, match=match):
+            load_rig(path)

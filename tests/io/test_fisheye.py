@@ -357,3 +357,21 @@ def test_colmap_opencv_fisheye_comes_with_its_lens(scene, tmp_path, capsys):
         np.testing.assert_allclose(proj.reshape(-1, 2), image.points2D[seen], atol=1e-3)
         checked += int(seen.sum())
     assert checked > 100
+
+
+def test_malformed_lenses_are_calibration_errors(scene, tmp_path):
+    ds, _ = scene
+    good = {c.name: _lens(c) for c in ds.rig}
+    path = tmp_path / "gopro_calibs.csv"
+    _write_egoexo_csv(path, ds.rig, good)
+    rows = list(csv.reader(open(path)))
+    col = rows[0].index("image_width")
+    for value, match in (("1e308", "between 1 and 65535"), ("x", "not a number"), ("0", "between")):
+        bad = [list(r) for r in rows]
+        bad[2][col] = value
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerows(bad)
+        with pytest.raises(CalibrationError, match=match):
+            load_calibration(path)
+    with pytest.raises(CalibrationError, match="fold the image back|no pinhole view"):
+        FisheyeLens(width=640, height=480, K=np.diag([300.0, 300, 1]), D=[-5, 0, 0, 0]).pinhole_K()

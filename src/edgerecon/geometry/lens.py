@@ -48,10 +48,12 @@ class FisheyeLens:
             raise CalibrationError(f"a fisheye lens has 4 coefficients (k1..k4), got {D.size}")
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D))):
             raise CalibrationError("fisheye lens parameters must be finite")
-        if not (K[0, 0] > 0 and K[1, 1] > 0) or self.width < 1 or self.height < 1:
+        if not (K[0, 0] > 0 and K[1, 1] > 0) or not (
+            1 <= self.width <= 65535 and 1 <= self.height <= 65535
+        ):
             raise CalibrationError(
-                f"fisheye lens: focal lengths {K[0, 0]:g}, {K[1, 1]:g} and size "
-                f"{self.width}x{self.height} must be positive"
+                f"fisheye lens: focal lengths {K[0, 0]:g}, {K[1, 1]:g} must be positive and the "
+                f"size {self.width}x{self.height} between 1 and 65535 pixels"
             )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "D", D)
@@ -75,10 +77,19 @@ class FisheyeLens:
     def pinhole_K(self, balance: float = 0.0) -> NDArray[np.float64]:
         """The pinhole camera matrix its frames are rectified to, at the same size:
         ``balance`` 0 keeps only valid pixels, 1 keeps the whole view (black corners)."""
-        K = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
-            self.K, self.D, self.size, np.eye(3), balance=float(balance)
-        )
-        return np.asarray(K, np.float64)
+        try:
+            found = cv2.fisheye.estimateNewCameraMatrixForUndistortRectify(
+                self.K, self.D, self.size, np.eye(3), balance=float(balance)
+            )
+        except cv2.error as exc:
+            raise CalibrationError(f"fisheye lens: no pinhole view ({exc})") from None
+        K: NDArray[np.float64] = np.asarray(found, np.float64)
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+            raise CalibrationError(
+                f"fisheye lens: no pinhole view (k1..k4 {', '.join(f'{d:g}' for d in self.D)} "
+                "fold the image back on itself)"
+            )
+        return K
 
     def from_pinhole(self, K: NDArray[np.float64], uv: NDArray[np.float64]) -> NDArray[np.float64]:
         """Pixels ``uv`` (N, 2) of the pinhole camera ``K`` (the rectified view) -> the same

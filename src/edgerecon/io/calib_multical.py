@@ -121,7 +121,12 @@ def multical_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
         size = _array(entry["image_size"], (2,), "image_size", where)
         width, height = int(size[0]), int(size[1])
         K = _array(entry["K"], (3, 3), "K", where)
-        dist = np.asarray(entry.get("dist", [[0.0] * 5]), np.float64).ravel()
+        try:
+            dist = np.asarray(entry.get("dist", [[0.0] * 5]), np.float64).ravel()
+        except (TypeError, ValueError):
+            raise CalibrationError(f"{where}: dist is not a list of numbers") from None
+        if not np.all(np.isfinite(dist)):
+            raise CalibrationError(f"{where}: dist holds NaN or infinite values")
         R, t = poses[name][:3, :3], poses[name][:3, 3]
         with in_file(file):
             if dist.size == 4:  # multical's fisheye cameras (cv2.fisheye's k1..k4)
