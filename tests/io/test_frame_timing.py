@@ -157,3 +157,49 @@ def test_phone_video_with_rotation_metadata_reads_upright(tmp_path):
     with VideoFrameSource({"p": path}) as src:
         frame = src.read(2).images[0]
     assert frame.shape[:2] == (W, H)  # rows, columns: upright portrait
+
+
+def _stamped(folder, times_ns, index_of) -> None:
+    """Image files named by their capture time (ns), each encoding ``index_of(time)``."""
+    folder.mkdir(parents=True)
+    for ns in times_ns:
+        cv2.imwrite(str(folder / f"{ns}.png"), _encode(index_of(ns)))
+
+
+def test_image_folders_named_by_capture_times_pair_by_time(tmp_path, capsys):
+    from edgerecon.io import ImageFolderFrameSource
+
+    t0 = 1_700_000_000_000_000_000  # ns on one clock (ROS time)
+    tick = 50_000_000  # 20 Hz
+    tick_of = lambda ns: round((ns - t0) / tick)  # noqa: E731 - the encoded moment
+    a = [t0 + k * tick for k in range(60)]
+    b = [t0 + k * tick + 2_000_000 for k in range(3, 60) if k != 30]  # late, one dropped
+    c = [t0 + k * 2 * tick + 1_000_000 for k in range(30)]  # 10 Hz
+    for name, times in (("a", a), ("b", b), ("c", c)):
+        _stamped(tmp_path / name, times, tick_of)
+    with ImageFolderFrameSource({n: tmp_path / n for n in "abc"}) as src:
+        assert src.pairing == "time" and src.fps == pytest.approx(10.0, rel=1e-3)
+        # Time index t is 0.15 s (b's first frame) + t / 10 s: the moment 3 + 2 t of a's clock.
+        for t in (0, 5, 13, 26):
+            got = [_decode(im) for im in src.read(t).images]
+            assert got[0] == 3 + 2 * t and got[2] in (2 + 2 * t, 4 + 2 * t), (t, got)
+            assert got[1] == 3 + 2 * t or (3 + 2 * t == 30 and got[1] in (29, 31)), (t, got)
+    # The import says so.
+    from edgerecon.cli import main
+    from edgerecon.io.calibration import save_rig
+    from tests.conftest import ring_rig
+
+    rig = ring_rig(3, width=W, height_px=H, focal_px=30.0)
+    save_rig(tmp_path / "rig.json", rig)
+    sources = [f"{n}={tmp_path / f}" for n, f in zip(rig.names, "abc", strict=True)]
+    out = tmp_path / "ds"
+    assert main(["import", str(tmp_path / "rig.json"), *sources, "-o", str(out), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert any("named by capture times" in n for n in report["notes"]), report["notes"]
+    # Sequence numbers (not times) keep index pairing.
+    for name in ("d", "e", "f"):
+        (tmp_path / name).mkdir()
+        for k in range(5):
+            cv2.imwrite(str(tmp_path / name / f"{k:06d}.png"), _encode(k))
+    with ImageFolderFrameSource({n: tmp_path / n for n in "def"}) as src:
+        assert src.pairing == "index"

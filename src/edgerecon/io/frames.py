@@ -377,6 +377,27 @@ class _ImageReader(_CameraReader):
     def num_frames(self) -> int:
         return self._num
 
+    @functools.cached_property
+    def timestamps_s(self) -> NDArray[np.float64] | None:
+        """Capture times (seconds) when the folder's files are named by them, as ROS bag
+        exports and EuRoC-style datasets name them (``1403636579763555584.png``: 10 or more
+        digits, increasing, spaced like frames once read as ns, us, ms or s); else None."""
+        files = self._files
+        if files is None or len(files) < 2:
+            return None
+        stems = [p.stem for p in files]
+        if not all(x.isdigit() and 10 <= len(x) <= 19 for x in stems):
+            return None
+        raw = np.array([int(x) for x in stems], np.int64)
+        steps = np.diff(raw)
+        if np.any(steps <= 0):
+            return None
+        gap = float(np.median(steps))
+        unit = next((u for u in (1e-9, 1e-6, 1e-3, 1.0) if 1e-3 <= gap * u <= 10.0), None)
+        if unit is None:
+            return None
+        return np.asarray(raw * unit, np.float64)
+
     @property
     def location(self) -> str:
         return self._text
@@ -494,35 +515,50 @@ class _RectifiedReader(_CameraReader):
 
 
 class _TimedReader(_CameraReader):
-    """A video whose time index t is its frame nearest in time to ``t / fps`` seconds after
-    its frame ``offset`` (frame-rate and variable-frame-rate synchronisation, see
-    ``VideoFrameSource``)."""
+    """A camera whose time index t is its frame nearest in time to ``start + t / fps``
+    (frame-rate, variable-frame-rate and timestamp synchronisation, see ``VideoFrameSource``
+    and ``ImageFolderFrameSource``). ``times``: its frames' times on the clock of ``start``
+    (default: a video's timestamps with its frame ``offset`` at 0, and ``start`` 0)."""
 
-    def __init__(self, inner: _VideoReader, fps: float, offset: int = 0) -> None:
+    def __init__(
+        self,
+        inner: _CameraReader,
+        fps: float,
+        offset: int = 0,
+        *,
+        times: NDArray[np.float64] | None = None,
+        start: float = 0.0,
+    ) -> None:
         super().__init__(inner.camera)
-        ts = inner.info.timestamps_s
-        if ts is None:
-            rate = inner.info.fps or fps
-            ts = np.arange(inner.num_frames, dtype=np.float64) / rate
-        if not 0 <= offset < len(ts):
-            raise ValueError(f"camera {inner.camera!r}: frame offset {offset} out of range")
+        if times is None:
+            info = inner.info if isinstance(inner, _VideoReader) else None
+            ts = None if info is None else info.timestamps_s
+            if ts is None:
+                rate = (info.fps if info is not None else None) or fps
+                ts = np.arange(inner.num_frames, dtype=np.float64) / rate
+            if not 0 <= offset < len(ts):
+                raise ValueError(f"camera {inner.camera!r}: frame offset {offset} out of range")
+            times = ts - ts[offset]
         self.inner = inner
         self.offset = offset
         self.rate = fps
-        self._times = ts[offset:] - ts[offset]
+        self.start = float(start)
+        self._times = np.asarray(times, np.float64)
         # Half of the camera's own median frame interval past its last frame still maps to it.
-        step = float(np.median(np.diff(self._times))) if len(self._times) > 1 else 1.0 / fps
-        self._num = int(np.floor((self._times[-1] + 0.5 * step) * fps + 1e-9)) + 1
+        later = self._times[self._times >= self.start - 1e-9]
+        step = float(np.median(np.diff(later))) if len(later) > 1 else 1.0 / fps
+        span = self._times[-1] - self.start
+        self._num = max(0, int(np.floor((span + 0.5 * step) * fps + 1e-9)) + 1)
 
     def frame_of(self, t: int) -> int:
         """The camera's own frame index of time index ``t``."""
-        target = t / self.rate
+        target = self.start + t / self.rate
         k = int(np.searchsorted(self._times, target))
         if k > 0 and (
             k == len(self._times) or target - self._times[k - 1] <= self._times[k] - target
         ):
             k -= 1
-        return k + self.offset
+        return k
 
     @property
     def num_frames(self) -> int:
@@ -922,6 +958,9 @@ class ImageFolderFrameSource(_PerCameraSource):
     """Per camera an ``{index}`` pattern, a folder of images (sorted naturally) or one image.
 
     ``start`` is the file index of time index 0 for patterns (e.g. 1 for 1-based names).
+    Folders whose files are all named by capture times of one clock (ROS bag exports,
+    EuRoC: ``1403636579763555584.png``) are paired by those times (``pairing``), not by
+    their order: a camera that started late or dropped a frame stays in sync.
     """
 
     def __init__(
@@ -935,7 +974,42 @@ class ImageFolderFrameSource(_PerCameraSource):
         offsets: Mapping[str, int] | None = None,
         rectify: Mapping[str, Rectification] | None = None,
     ) -> None:
-        readers = [_ImageReader(name, p, start) for name, p in _order(cameras, rig)]
+        images = [_ImageReader(name, p, start) for name, p in _order(cameras, rig)]
+        readers: list[_CameraReader] = list(images)
+        self.pairing: Literal["index", "time"] = "index"
+        """"time" when every camera's files are named by their capture times (one clock):
+        time index t is then each camera's frame nearest to ``T0 + t / fps``, T0 the latest
+        first frame (a camera's offset moves its clock back by its first frames' duration)."""
+        stamps = [r.timestamps_s for r in images]
+        if len(images) > 1 and all(ts is not None for ts in stamps):
+            offsets = dict(offsets or {})
+            unknown = sorted(set(offsets) - {r.camera for r in images})
+            if unknown:
+                raise DataError(f"frame offsets given for unknown cameras {unknown}")
+            clocks = {}
+            for r, ts in zip(images, stamps, strict=True):
+                assert ts is not None
+                k = int(offsets.get(r.camera, 0))
+                if not 0 <= k < len(ts):
+                    raise DataError(f"camera {r.camera!r}: offset {k} skips all its frames")
+                clocks[r.camera] = ts - (ts[k] - ts[0])
+            rates = {c: (len(ts) - 1) / (ts[-1] - ts[0]) for c, ts in clocks.items()}
+            ref = fps if fps is not None else min(rates.values())
+            first = max(float(ts[0]) for ts in stamps if ts is not None)
+            readers = [
+                _TimedReader(
+                    r, ref, int(offsets.get(r.camera, 0)), times=clocks[r.camera], start=first
+                )
+                for r in images
+            ]
+            offsets, fps, self.pairing = None, ref, "time"
+            if _warn_once(("stamped", *(r.location for r in images))):
+                logger.info(
+                    "cameras paired by the capture times their files are named by, at %.3f fps "
+                    "from %.6f s",
+                    ref,
+                    first,
+                )
         super().__init__(
             readers, rig=rig, missing=missing, fps=fps, offsets=offsets, rectify=rectify
         )

@@ -568,9 +568,9 @@ def import_dataset(
     )
     dataset = open_dataset(out)
     counts = {c.name: c.num_frames for c in cameras}
-    if kind == "video":
+    if kind in ("video", "images"):
         with dataset.open_frames() as opened:
-            if getattr(opened, "pairing", "index") == "time":
+            if getattr(opened, "pairing", "index") == "time" and kind == "video":
                 notes.append(
                     "the videos' frame rates differ or vary ("
                     + ", ".join(f"{c.name} {c.fps:.3f}" for c in cameras if c.fps)
@@ -578,6 +578,13 @@ def import_dataset(
                     f"in time to t / {opened.fps:.3f} s (its frames' timestamps)"
                 )
                 counts = opened.frame_counts  # in time indices
+            elif getattr(opened, "pairing", "index") == "time":
+                notes.append(
+                    "every camera's image files are named by capture times: time index t "
+                    "pairs each camera's frame nearest to the latest first frame's time + t / "
+                    f"{opened.fps:.3f} s"
+                )
+                counts = opened.frame_counts
     if len(set(counts.values())) > 1:
         notes.append(
             f"cameras have different frame counts {counts}: the dataset uses the first "
