@@ -203,3 +203,29 @@ def test_image_folders_named_by_capture_times_pair_by_time(tmp_path, capsys):
             cv2.imwrite(str(tmp_path / name / f"{k:06d}.png"), _encode(k))
     with ImageFolderFrameSource({n: tmp_path / n for n in "def"}) as src:
         assert src.pairing == "index"
+
+
+def test_hevc_with_b_frames_reads_in_display_order(tmp_path):
+    # iPhones record HEVC with B-frames: decoded in display order, timestamps increasing,
+    # one constant rate (index pairing), every frame the right one.
+    av = pytest.importorskip("av")
+    if "libx265" not in av.codecs_available:
+        pytest.skip("no HEVC encoder in this PyAV")
+    path = tmp_path / "iphone.mov"
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("libx265", rate=30, options={"x265-params": "log-level=none"})
+        stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+        for k in range(40):
+            frame = av.VideoFrame.from_ndarray(_encode(k)[:, :, ::-1].copy(), format="rgb24")
+            for packet in stream.encode(frame):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    from edgerecon.io.frames import probe_video
+
+    info = probe_video(path)
+    assert info.num_frames == 40 and info.regular
+    others = {n: _video(tmp_path / f"{n}.avi", 30.0, 40) for n in ("b", "c")}
+    with VideoFrameSource({"a": path, **others}) as src:
+        assert src.pairing == "index"
+        assert [_decode(im) for im in src.read(23).images] == [23, 23, 23]
