@@ -750,3 +750,17 @@ def test_detect_format_errors(tmp_path):
         detect_calibration_format(tmp_path / "foo.txt")
     with pytest.raises(CalibrationError, match="no calibration found"):
         load_rig(tmp_path)
+
+
+def test_a_folder_with_two_calibrations_of_one_format_asks_for_one(tmp_path):
+    from tests.io.test_importer import anipose_toml
+
+    text = anipose_toml(ring_rig(3))
+    (tmp_path / "a.toml").write_text(text)
+    (tmp_path / "b.toml").write_text(text)
+    with pytest.raises(
+        CalibrationError, match=r"2 files of an anipose .*\(a.toml, b.toml\); pass one"
+    ):
+        load_rig(tmp_path)
+    (tmp_path / "b.toml").unlink()
+    assert len(load_rig(tmp_path)) == 3

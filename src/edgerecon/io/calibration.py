@@ -59,7 +59,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -559,63 +559,57 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
     raise CalibrationError(f"{path}: unknown calibration format (supported: {', '.join(FORMATS)})")
 
 
+def _one(path: Path | None) -> list[Path]:
+    return [] if path is None else [path]
+
+
+def _easymocap_intri(folder: Path) -> Path | None:
+    files = easymocap_files(folder)
+    return None if files is None else files[0]
+
+
+def _multical_files(folder: Path) -> list[Path]:
+    path = folder / "calibration.json"
+    return [path] if path.is_file() and is_multical(_read_json(path)) else []
+
+
+#: What a calibration folder may hold, in the order ``_detect_in_folder`` looks: (format,
+#: what it is called in messages, the files of it in a folder).
+_FOLDER_FORMATS: tuple[tuple[str, str, Callable[[Path], list[Path]]], ...] = (
+    (
+        "edgerecon",
+        "rig.json",
+        lambda f: _one(f / "rig.json" if (f / "rig.json").is_file() else None),
+    ),
+    ("colmap", "a COLMAP model", lambda f: _one(find_colmap_model(f))),
+    ("toml", "an anipose / Pose2Sim / caliscope *.toml", toml_calibrations),
+    ("middlebury", "*_par.txt", middlebury_par_files),
+    ("opencv-xml", "camN/config.xml", lambda f: [f] if opencv_xml_cameras(f) else []),
+    ("openmvg", "sfm_data*.json", lambda f: sorted(f.glob("sfm_data*.json"))),
+    ("easymocap", "EasyMocap's intri.yml + extri.yml", lambda f: _one(_easymocap_intri(f))),
+    ("kalibr", "a Kalibr camchain*.yaml", kalibr_files),
+    ("llff", "LLFF's poses_bounds.npy", lambda f: _one(llff_file(f))),
+    ("panoptic", "a Panoptic calibration_*.json", panoptic_files),
+    ("nerf", "a NeRF transforms.json", lambda f: _one(transforms_file(f))),
+    ("egoexo", "an Ego-Exo4D gopro_calibs.csv", lambda f: _one(egoexo_file(f))),
+    ("multical", "a multical calibration.json", _multical_files),
+)
+
+
 def _detect_in_folder(folder: Path) -> tuple[str, Path]:
-    if (folder / "rig.json").is_file():
-        return "edgerecon", folder / "rig.json"
-    colmap = find_colmap_model(folder)
-    if colmap is not None:
-        return "colmap", colmap
-    for fmt, found, what in (
-        ("toml", toml_calibrations(folder), "TOML calibrations"),
-        ("middlebury", middlebury_par_files(folder), "Middlebury parameter files"),
-    ):
+    for fmt, what, find in _FOLDER_FORMATS:
+        found = find(folder)
         if len(found) > 1:
             raise CalibrationError(
-                f"{folder}: several {what} ({', '.join(p.name for p in found)}); pass one of them"
+                f"{folder}: {len(found)} files of {what} ({', '.join(p.name for p in found)}); "
+                "pass one of them"
             )
         if found:
             return fmt, found[0]
-    if opencv_xml_cameras(folder):
-        return "opencv-xml", folder
-    sfm = sorted(folder.glob("sfm_data*.json"))
-    if len(sfm) == 1:
-        return "openmvg", sfm[0]
-    mocap = easymocap_files(folder)
-    if mocap is not None:
-        return "easymocap", mocap[0]
-    kalibr = kalibr_files(folder)
-    if len(kalibr) > 1:
-        raise CalibrationError(
-            f"{folder}: several Kalibr camera chains ({', '.join(p.name for p in kalibr)}); "
-            "pass one of them"
-        )
-    if kalibr:
-        return "kalibr", kalibr[0]
-    llff = llff_file(folder)
-    if llff is not None:
-        return "llff", llff
-    panoptic = panoptic_files(folder)
-    if len(panoptic) > 1:
-        raise CalibrationError(
-            f"{folder}: several Panoptic calibrations ({', '.join(p.name for p in panoptic)}); "
-            "pass one of them"
-        )
-    if panoptic:
-        return "panoptic", panoptic[0]
-    nerf = transforms_file(folder)
-    if nerf is not None:
-        return "nerf", nerf
-    egoexo = egoexo_file(folder)
-    if egoexo is not None:
-        return "egoexo", egoexo
-    multical = folder / "calibration.json"
-    if multical.is_file() and is_multical(_read_json(multical)):
-        return "multical", multical
     raise CalibrationError(
-        f"{folder}: no calibration found (looked for rig.json, a COLMAP model, an anipose / "
-        "Pose2Sim / caliscope *.toml, *_par.txt, camN/config.xml, sfm_data*.json, EasyMocap's "
-        "intri.yml + extri.yml, a Kalibr camchain*.yaml, LLFF's poses_bounds.npy, a Panoptic "
-        "calibration_*.json, a NeRF transforms.json, an Ego-Exo4D gopro_calibs.csv, a multical calibration.json)"
+        f"{folder}: no calibration found (looked for "
+        + ", ".join(what for _, what, _ in _FOLDER_FORMATS)
+        + ")"
     )
 
 
