@@ -19,6 +19,7 @@ than about 160 degrees keeps only the part of its view a pinhole camera can hold
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -183,6 +184,36 @@ class CalibratedRig:
                 "calibration with its frames (edgerecon import), which rectifies them"
             )
         return self.rig
+
+
+def lens_camera(
+    name: str,
+    width: int,
+    height: int,
+    K: NDArray[np.float64],
+    R: NDArray[np.float64],
+    t: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    *,
+    fisheye: bool,
+) -> tuple[Camera, FisheyeLens | None]:
+    """A calibrated camera as a rig holds it: with OpenCV's plumb-bob model (``dist`` k1 k2
+    p1 p2 [k3]) as it is; with OpenCV's fisheye model (``dist`` k1..k4) as the pinhole
+    camera its frames are rectified to, and its lens."""
+    if fisheye:
+        lens = FisheyeLens(width=width, height=height, K=K, D=dist)
+        return pinhole_camera(name, lens, R, t), lens
+    return Camera(name=name, width=width, height=height, K=K, R=R, t=t, dist=dist), None
+
+
+def calibrated_rig(made: Iterable[tuple[Camera, FisheyeLens | None]], **rig: Any) -> CalibratedRig:
+    """The rig of ``lens_camera``'s cameras (``rig``: ``Rig``'s other fields) and their
+    lenses."""
+    pairs = list(made)
+    return CalibratedRig(
+        rig=Rig(cameras=tuple(c for c, _ in pairs), **rig),
+        lenses={c.name: lens for c, lens in pairs if lens is not None},
+    )
 
 
 def pinhole_camera(

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from edgerecon.geometry.camera import Rig
-from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
+from edgerecon.geometry.camera import Camera
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
 from edgerecon.io._errors import in_file
 from edgerecon.types import CalibrationError
 
@@ -95,7 +95,8 @@ def egoexo_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
         rows = list(csv.DictReader(f))
     if not rows:
         raise CalibrationError(f"{file}: no cameras")
-    cameras, lenses, failed = [], {}, []
+    made: list[tuple[Camera, FisheyeLens | None]] = []
+    failed: list[str] = []
     for k, row in enumerate(rows):
         name = str(row.get("cam_uid") or f"cam{k}").strip()
         where = f"{file}: camera {name!r}"
@@ -115,18 +116,12 @@ def egoexo_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
             failed.append(name)
             continue
         fx, fy, cx, cy, *D = (values[c] for c in _INTRINSICS)
-        lens = FisheyeLens(
-            width=int(values["image_width"]),
-            height=int(values["image_height"]),
-            K=np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
-            D=np.asarray(D),
-        )
-        R_wc = _quaternion_matrix([values[c] for c in _QUAT], where)
-        R = R_wc.T
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        R = _quaternion_matrix([values[c] for c in _QUAT], where).T  # world -> camera
         t = -R @ np.array([values[c] for c in _POSE])
-        with in_file(file):
-            cameras.append(pinhole_camera(name, lens, R, t))
-        lenses[name] = lens
+        width, height = int(values["image_width"]), int(values["image_height"])
+        with in_file(where):
+            made.append(lens_camera(name, width, height, K, R, t, np.asarray(D), fisheye=True))
     if failed:
         logger.warning(
             "%s: cameras %s failed to localise (quality 0) and are left out",
@@ -134,5 +129,4 @@ def egoexo_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
             ", ".join(failed),
         )
     with in_file(file):
-        rig = Rig(cameras=tuple(cameras), unit="m", up=(0.0, 0.0, 1.0))
-    return CalibratedRig(rig=rig, lenses=lenses)
+        return calibrated_rig(made, unit="m", up=(0.0, 0.0, 1.0))

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
 from edgerecon.io._errors import in_file
 from edgerecon.types import CalibrationError
 
@@ -149,8 +149,7 @@ def kalibr_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
             f"{file}: {', '.join(missing)} without T_cn_cnm1 (and not every camera has "
             "T_cam_imu): the cameras' poses are unknown"
         )
-    cameras = []
-    lenses: dict[str, FisheyeLens] = {}
+    made: list[tuple[Camera, FisheyeLens | None]] = []
     pose = np.eye(4)  # world (camera 0, or the IMU) -> current camera
     for n, key in enumerate(keys):
         entry = data[key]
@@ -186,14 +185,6 @@ def kalibr_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
         K = np.array([[fu, 0.0, pu], [0.0, fv, pv], [0.0, 0.0, 1.0]])
         R, t = pose[:3, :3].copy(), pose[:3, 3].copy()
         with in_file(file):
-            if fisheye:
-                lens = FisheyeLens(width=width, height=height, K=K, D=dist)
-                lenses[key] = lens
-                cameras.append(pinhole_camera(key, lens, R, t))
-            else:
-                cameras.append(
-                    Camera(name=key, width=width, height=height, K=K, R=R, t=t, dist=dist)
-                )
+            made.append(lens_camera(key, width, height, K, R, t, dist, fisheye=fisheye))
     with in_file(file):
-        rig = Rig(cameras=tuple(cameras), unit="m", up=(0.0, -1.0, 0.0))
-    return CalibratedRig(rig=rig, lenses=lenses)
+        return calibrated_rig(made, unit="m", up=(0.0, -1.0, 0.0))

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
+from edgerecon.geometry.camera import Camera
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
 from edgerecon.io._errors import in_file
 from edgerecon.types import CalibrationError
 
@@ -114,7 +114,7 @@ def multical_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
         raise CalibrationError(f"{file}: not a multical calibration (cameras, camera_poses)")
     names = list(data["cameras"])
     poses = _poses(file, data["camera_poses"], names)
-    cameras, lenses = [], {}
+    made: list[tuple[Camera, FisheyeLens | None]] = []
     for name in names:
         entry = data["cameras"][name]
         where = f"{file}: camera {name!r}"
@@ -129,14 +129,7 @@ def multical_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
             raise CalibrationError(f"{where}: dist holds NaN or infinite values")
         R, t = poses[name][:3, :3], poses[name][:3, 3]
         with in_file(file):
-            if dist.size == 4:  # multical's fisheye cameras (cv2.fisheye's k1..k4)
-                lens = FisheyeLens(width=width, height=height, K=K, D=dist)
-                lenses[name] = lens
-                cameras.append(pinhole_camera(name, lens, R, t))
-            else:
-                cameras.append(
-                    Camera(name=name, width=width, height=height, K=K, R=R, t=t, dist=dist)
-                )
+            # multical's fisheye cameras have cv2.fisheye's 4 coefficients.
+            made.append(lens_camera(name, width, height, K, R, t, dist, fisheye=dist.size == 4))
     with in_file(file):
-        rig = Rig(cameras=tuple(cameras), unit="m", up=(0.0, -1.0, 0.0))
-    return CalibratedRig(rig=rig, lenses=lenses)
+        return calibrated_rig(made, unit="m", up=(0.0, -1.0, 0.0))

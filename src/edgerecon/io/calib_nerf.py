@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
 from edgerecon.io._errors import in_file
 from edgerecon.io.frames import probe_image_size
 from edgerecon.types import CalibrationError, DataError
@@ -289,8 +289,7 @@ def transforms_calibration(
     frames = [data["frames"][k] for k in firsts]
     paths = [str(f.get("file_path", f"frame{k:04d}")) for k, f in zip(firsts, frames, strict=True)]
     names = _names(paths)
-    cameras: list[Camera] = []
-    lenses: dict[str, FisheyeLens] = {}
+    made: list[tuple[Camera, FisheyeLens | None]] = []
     for k, frame, name, image, (R, t) in zip(firsts, frames, names, paths, poses, strict=True):
         if only is not None and name not in only:
             continue
@@ -311,17 +310,9 @@ def transforms_calibration(
                     raise CalibrationError(f"{where}: {exc}") from None
         (width, height), K, dist, fisheye = _intrinsics(params, size, where)
         with in_file(file):
-            if fisheye:
-                lens = FisheyeLens(width=width, height=height, K=K, D=dist)
-                lenses[name] = lens
-                cameras.append(pinhole_camera(name, lens, R, t))
-            else:
-                cameras.append(
-                    Camera(name=name, width=width, height=height, K=K, R=R, t=t, dist=dist)
-                )
+            made.append(lens_camera(name, width, height, K, R, t, dist, fisheye=fisheye))
     with in_file(file):
-        rig = Rig(cameras=tuple(cameras), unit="m", up=(0.0, 0.0, 1.0))
-    return CalibratedRig(rig=rig, lenses=lenses)
+        return calibrated_rig(made, unit="m", up=(0.0, 0.0, 1.0))
 
 
 def write_transforms(

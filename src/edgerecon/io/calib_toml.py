@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
-from edgerecon.io._errors import rotation_matrix
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
+from edgerecon.io._errors import in_file, rotation_matrix
 from edgerecon.types import CalibrationError
 
 logger = logging.getLogger(__name__)
@@ -134,8 +134,7 @@ def toml_calibration(
             f"{path}: not an anipose / Pose2Sim / caliscope calibration (no camera tables "
             "with 'matrix', 'distortions', 'rotation', 'translation', 'size')"
         )
-    cameras = []
-    lenses: dict[str, FisheyeLens] = {}
+    made: list[tuple[Camera, FisheyeLens | None]] = []
     for key, table in _camera_tables(data):
         name = _camera_name(flavour, key, table)
         if table.get("ignore") is True:
@@ -144,14 +143,10 @@ def toml_calibration(
         if table.get("rotation") is None or table.get("translation") is None:
             logger.warning("%s: camera %r has no extrinsics (not calibrated); skipped", path, name)
             continue
-        camera, lens = _camera(path, name, table)
-        cameras.append(camera)
-        if lens is not None:
-            lenses[name] = lens
-    try:
-        rig = Rig(cameras=tuple(cameras), unit=unit or "m", up=up or (0.0, 0.0, 1.0))
-    except CalibrationError as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
+        made.append(_camera(path, name, table))
+    with in_file(path):
+        cal = calibrated_rig(made, unit=unit or "m", up=up or (0.0, 0.0, 1.0))
+    rig = cal.rig
     if unit is None and flavour == "anipose":
         guessed = guess_unit(rig)
         if guessed is None:
@@ -163,7 +158,7 @@ def toml_calibration(
         else:
             logger.info("%s: anipose calibration, unit guessed from its size: %s", path, guessed)
             rig = Rig(cameras=rig.cameras, unit=guessed, up=rig.up)
-    return CalibratedRig(rig=rig, lenses=lenses)
+    return CalibratedRig(rig=rig, lenses=cal.lenses)
 
 
 def _camera_name(flavour: str, key: str, table: dict[str, Any]) -> str:
@@ -196,34 +191,17 @@ def _camera(path: Path, name: str, table: dict[str, Any]) -> tuple[Camera, Fishe
     if len(size) != 2 or any(v != int(v) or v <= 0 for v in size):
         raise CalibrationError(f"{where}: size must be [width, height] in pixels, got {size}")
     R = rotation_matrix(rot, where)
-    if fisheye:
-        if dist.size != 4:
-            raise CalibrationError(
-                f"{where}: a fisheye camera has 4 distortion coefficients (k1..k4), got {dist.size}"
-            )
-        try:
-            lens = FisheyeLens(width=int(size[0]), height=int(size[1]), K=K, D=dist)
-            return pinhole_camera(name, lens, R, t), lens
-        except CalibrationError as exc:
-            raise CalibrationError(f"{where}: {exc}") from None
-    if dist.size > 5:
+    if fisheye and dist.size != 4:
+        raise CalibrationError(
+            f"{where}: a fisheye camera has 4 distortion coefficients (k1..k4), got {dist.size}"
+        )
+    if not fisheye and dist.size > 5:
         raise CalibrationError(
             f"{where}: {dist.size} distortion coefficients; edgerecon supports OpenCV's "
             "k1 k2 p1 p2 k3"
         )
-    try:
-        camera = Camera(
-            name=name,
-            width=int(size[0]),
-            height=int(size[1]),
-            K=K,
-            R=R,
-            t=t,
-            dist=np.pad(dist, (0, 5 - dist.size)),
-        )
-    except CalibrationError as exc:
-        raise CalibrationError(f"{path}: {exc}") from None
-    return camera, None
+    with in_file(path):
+        return lens_camera(name, int(size[0]), int(size[1]), K, R, t, dist, fisheye=fisheye)
 
 
 def toml_calibrations(folder: str | os.PathLike[str]) -> list[Path]:

@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, pinhole_camera
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
 from edgerecon.io._errors import in_file
 from edgerecon.io.frames import IMAGE_EXTENSIONS, natural_key
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text
@@ -747,8 +747,7 @@ def rig_from_colmap(
     assert chosen is not None
     how, groups, spread = chosen
     names = _group_names(how, groups, images)
-    cameras = []
-    lenses: dict[str, FisheyeLens] = {}
+    made: list[tuple[Camera, FisheyeLens | None]] = []
     frames: dict[str, list[str]] = {}
     spreads: dict[str, tuple[float, float]] = {}
     for name, group, (d, a) in zip(names, groups, spread, strict=True):
@@ -765,10 +764,9 @@ def rig_from_colmap(
                     f"{source}: camera {name!r}: its images use COLMAP cameras {cam_ids} "
                     "with different intrinsics"
                 )
-        lens = None
         try:
             lens = colmap_fisheye(first)
-            K, dist = (np.eye(3), np.zeros(5)) if lens is not None else colmap_intrinsics(first)
+            K, dist = (lens.K, lens.D) if lens is not None else colmap_intrinsics(first)
         except CalibrationError as exc:
             raise CalibrationError(f"{first.origin or source}: camera {name!r}: {exc}") from None
         if len(group) == 1:  # exactly as written
@@ -776,23 +774,12 @@ def rig_from_colmap(
         else:
             R = _mean_rotation([rotations[k] for k in group])
             t = -R @ centers[group].mean(axis=0)
-        if lens is not None:
-            lenses[name] = lens
-            with in_file(source):
-                cameras.append(pinhole_camera(name, lens, R, t))
-        else:
-            with in_file(source):
-                cameras.append(
-                    Camera(
-                        name=name,
-                        width=first.width,
-                        height=first.height,
-                        K=K,
-                        R=R,
-                        t=t,
-                        dist=dist,
-                    )
+        with in_file(source):
+            made.append(
+                lens_camera(
+                    name, first.width, first.height, K, R, t, dist, fisheye=lens is not None
                 )
+            )
         frames[name] = [images[k].name for k in group]
         spreads[name] = (d, a)
     meta_up = model.meta.get("up")
@@ -802,11 +789,12 @@ def rig_from_colmap(
     elif meta_up:
         rig_up = tuple(float(v) for v in meta_up.split(","))
     with in_file(source):
-        rig = Rig(
-            cameras=tuple(cameras),
+        cal = calibrated_rig(
+            made,
             unit=unit if unit is not None else model.meta.get("unit", "m"),
-            up=rig_up,  # type: ignore[arg-type]
+            up=rig_up,
         )
+    rig = cal.rig
     if how != "image":
         logger.info(
             "%s: %d images grouped by %s into %d cameras (largest pose spread %.3g %s, %.3g deg)",
@@ -818,7 +806,7 @@ def rig_from_colmap(
             rig.unit,
             max(a for _, a in spreads.values()),
         )
-    return ColmapRig(rig=rig, frames=frames, grouping=how, pose_spread=spreads, lenses=lenses)
+    return ColmapRig(rig=rig, frames=frames, grouping=how, pose_spread=spreads, lenses=cal.lenses)
 
 
 def _strip_ext(name: str) -> str:
