@@ -438,55 +438,17 @@ class _ImageReader(_CameraReader):
         return _to_bgr8(image)
 
 
-class _OffsetReader(_CameraReader):
-    """A camera whose time index t is its own frame ``t + offset`` (synchronisation)."""
+class _WrappedReader(_CameraReader):
+    """A reader over another camera reader: time index t is the inner reader's frame
+    ``frame_of(t)`` (the same by default); everything else is the inner reader's."""
 
-    def __init__(self, inner: _CameraReader, offset: int) -> None:
-        super().__init__(inner.camera)
-        if offset < 0:
-            raise ValueError(f"camera {inner.camera!r}: frame offset must be >= 0, got {offset}")
-        self.inner = inner
-        self.offset = offset
-
-    @property
-    def num_frames(self) -> int:
-        return max(0, self.inner.num_frames - self.offset)
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self.inner.size
-
-    @property
-    def fps(self) -> float | None:
-        return self.inner.fps
-
-    @property
-    def location(self) -> str:
-        return f"{self.inner.location} (from its frame {self.offset})"
-
-    def frame_location(self, t: int) -> str:
-        return self.inner.frame_location(t + self.offset)
-
-    def read(self, t: int) -> Image:
-        return self.inner.read(t + self.offset)
-
-    def close(self) -> None:
-        self.inner.close()
-
-
-class _RectifiedReader(_CameraReader):
-    """A fisheye camera's frames remapped to its pinhole camera (``geometry.lens``)."""
-
-    def __init__(self, inner: _CameraReader, rectification: Rectification) -> None:
+    def __init__(self, inner: _CameraReader) -> None:
         super().__init__(inner.camera)
         self.inner = inner
-        self.rectification = rectification
-        if tuple(inner.size) != rectification.lens.size:
-            raise CalibrationError(
-                f"camera {inner.camera!r}: frames in {inner.location} are "
-                f"{inner.size[0]}x{inner.size[1]} but its fisheye lens is calibrated for "
-                f"{rectification.lens.width}x{rectification.lens.height}"
-            )
+
+    def frame_of(self, t: int) -> int:
+        """The inner reader's frame of time index ``t``."""
+        return t
 
     @property
     def num_frames(self) -> int:
@@ -505,16 +467,54 @@ class _RectifiedReader(_CameraReader):
         return self.inner.location
 
     def frame_location(self, t: int) -> str:
-        return self.inner.frame_location(t)
+        return self.inner.frame_location(self.frame_of(t))
 
     def read(self, t: int) -> Image:
-        return self.rectification(self.inner.read(t))
+        return self.inner.read(self.frame_of(t))
 
     def close(self) -> None:
         self.inner.close()
 
 
-class _TimedReader(_CameraReader):
+class _OffsetReader(_WrappedReader):
+    """A camera whose time index t is its own frame ``t + offset`` (synchronisation)."""
+
+    def __init__(self, inner: _CameraReader, offset: int) -> None:
+        super().__init__(inner)
+        if offset < 0:
+            raise ValueError(f"camera {inner.camera!r}: frame offset must be >= 0, got {offset}")
+        self.offset = offset
+
+    def frame_of(self, t: int) -> int:
+        return t + self.offset
+
+    @property
+    def num_frames(self) -> int:
+        return max(0, self.inner.num_frames - self.offset)
+
+    @property
+    def location(self) -> str:
+        return f"{self.inner.location} (from its frame {self.offset})"
+
+
+class _RectifiedReader(_WrappedReader):
+    """A fisheye camera's frames remapped to its pinhole camera (``geometry.lens``)."""
+
+    def __init__(self, inner: _CameraReader, rectification: Rectification) -> None:
+        super().__init__(inner)
+        self.rectification = rectification
+        if tuple(inner.size) != rectification.lens.size:
+            raise CalibrationError(
+                f"camera {inner.camera!r}: frames in {inner.location} are "
+                f"{inner.size[0]}x{inner.size[1]} but its fisheye lens is calibrated for "
+                f"{rectification.lens.width}x{rectification.lens.height}"
+            )
+
+    def read(self, t: int) -> Image:
+        return self.rectification(self.inner.read(t))
+
+
+class _TimedReader(_WrappedReader):
     """A camera whose time index t is its frame nearest in time to ``start + t / fps``
     (frame-rate, variable-frame-rate and timestamp synchronisation, see ``VideoFrameSource``
     and ``ImageFolderFrameSource``). ``times``: its frames' times on the clock of ``start``
@@ -529,7 +529,7 @@ class _TimedReader(_CameraReader):
         times: NDArray[np.float64] | None = None,
         start: float = 0.0,
     ) -> None:
-        super().__init__(inner.camera)
+        super().__init__(inner)
         if times is None:
             info = inner.info if isinstance(inner, _VideoReader) else None
             ts = None if info is None else info.timestamps_s
@@ -539,7 +539,6 @@ class _TimedReader(_CameraReader):
             if not 0 <= offset < len(ts):
                 raise ValueError(f"camera {inner.camera!r}: frame offset {offset} out of range")
             times = ts - ts[offset]
-        self.inner = inner
         self.offset = offset
         self.rate = fps
         self.start = float(start)
@@ -565,25 +564,12 @@ class _TimedReader(_CameraReader):
         return self._num
 
     @property
-    def size(self) -> tuple[int, int]:
-        return self.inner.size
-
-    @property
     def fps(self) -> float | None:
         return self.rate
 
     @property
     def location(self) -> str:
         return self.inner.location + (f" (from its frame {self.offset})" if self.offset else "")
-
-    def frame_location(self, t: int) -> str:
-        return self.inner.frame_location(self.frame_of(t))
-
-    def read(self, t: int) -> Image:
-        return self.inner.read(self.frame_of(t))
-
-    def close(self) -> None:
-        self.inner.close()
 
 
 def _count_pattern(pattern: str, start: int) -> int:
@@ -684,8 +670,8 @@ class FrameSource(ABC):
 
 def _innermost(reader: _CameraReader) -> _CameraReader:
     """The file reader under a reader's wrappers (offset, timing, rectification)."""
-    while isinstance(inner := getattr(reader, "inner", None), _CameraReader):
-        reader = inner
+    while isinstance(reader, _WrappedReader):
+        reader = reader.inner
     return reader
 
 
