@@ -186,18 +186,17 @@ def run(args: argparse.Namespace) -> int:
         model_dir=args.model_dir,
         lenses=lenses,
     )
-    if args.json:
-        emit_json(
-            {**report.to_dict(), "cloud": str(cloud_path), "time": time_index, "dropped": dropped}
-        )
+    if _said_json(args, report.to_dict(), cloud_path, time_index, dropped):
         return 0
-    if dropped:
-        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
     console.print(
         f"{cloud_path}: {report.num_points:,} of {report.num_points_in:,} points seen by >= "
         f"{args.min_track} images (mean track {report.mean_track_length:.2f}); "
         f"{len(dataset.rig)} cameras "
-        + ("(original frames, OPENCV)" if args.distorted else "(undistorted, PINHOLE)"),
+        + (
+            "(original frames, OPENCV" + (", OPENCV_FISHEYE" if lenses else "") + ")"
+            if args.distorted
+            else "(undistorted, PINHOLE)"
+        ),
         soft_wrap=True,
     )
     if report.transform:
@@ -208,6 +207,23 @@ def run(args: argparse.Namespace) -> int:
     )
     console.print(f"openMVS: InterfaceCOLMAP -i {args.out} -o {Path(args.out) / 'scene.mvs'}")
     return 0
+
+
+def _said_json(
+    args: argparse.Namespace,
+    report: dict[str, Any],
+    cloud_path: Path,
+    time_index: int | None,
+    dropped: int,
+) -> bool:
+    """With --json, the export's report (True: nothing else to print); else the line on the
+    points beyond --max-range, if any."""
+    if args.json:
+        emit_json({**report, "cloud": str(cloud_path), "time": time_index, "dropped": dropped})
+        return True
+    if dropped:
+        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
+    return False
 
 
 def _run_nerfstudio(
@@ -226,13 +242,8 @@ def _run_nerfstudio(
         frames,
         transform=z_up_metres(dataset.rig.unit, dataset.rig.up) if args.z_up_metres else None,
     )
-    if args.json:
-        emit_json(
-            {**report.to_dict(), "cloud": str(cloud_path), "time": time_index, "dropped": dropped}
-        )
+    if _said_json(args, report.to_dict(), cloud_path, time_index, dropped):
         return 0
-    if dropped:
-        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
     console.print(
         f"wrote {report.transforms}, {len(report.images)} undistorted images and {report.ply} "
         f"({report.num_points:,} points of {cloud_path.name})"
