@@ -10,12 +10,12 @@ import pytest
 
 from edgerecon.cli import main
 from edgerecon.geometry import Rig
-from edgerecon.io import load_rig, open_dataset, read_ply
+from edgerecon.io import load_rig, open_dataset
 from edgerecon.io.calib_kalibr import read_kalibr
 from edgerecon.io.calibration import detect_calibration_format
-from edgerecon.quality import evaluate_clouds
 from edgerecon.synth import GroundTruth
 from edgerecon.types import CalibrationError
+from tests.io.test_importer import from_camera0, reconstruct_score
 
 
 @pytest.fixture(scope="module")
@@ -121,14 +121,7 @@ def test_import_camchain_and_reconstruct(scene, tmp_path, capsys):
     report = json.loads(capsys.readouterr().out)
     assert report["calibration_format"] == "kalibr"
     assert report["unit_note"].startswith("m (Kalibr")
-    rec = tmp_path / "rec"
-    assert (
-        main(["reconstruct", "--dataset", str(out), "-t", "3", "--no-dense", "-o", str(rec)]) == 0
-    )
-    # Back to the truth's frame: X = R0^T (X0 - t0).
-    R0, t0 = ds.rig.cameras[0].R, ds.rig.cameras[0].t
-    points = (read_ply(rec / "sparse.ply").points3D - t0) @ R0
-    score = evaluate_clouds(points, gt.reference_cloud(3, "all", min_views=2), 0.03)[0]
+    score = reconstruct_score(out, tmp_path, gt, to_truth=from_camera0(ds.rig))
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from edgerecon.cli import main
-from edgerecon.io import load_rig, open_dataset, read_ply
+from edgerecon.io import load_rig, open_dataset
 from edgerecon.io.calib_multical import multical_calibration
 from edgerecon.io.calibration import detect_calibration_format
-from edgerecon.quality import evaluate_clouds
 from edgerecon.synth import GroundTruth
 from edgerecon.types import CalibrationError
+from tests.io.test_importer import from_camera0, reconstruct_score
 
 
 @pytest.fixture(scope="module")
@@ -89,14 +89,7 @@ def test_import_multical_and_reconstruct(scene, tmp_path, capsys):
         main(["import", str(tmp_path / "calibration.json"), *frames, "-o", str(out), "--json"]) == 0
     )
     assert json.loads(capsys.readouterr().out)["calibration_format"] == "multical"
-    rec = tmp_path / "rec"
-    assert (
-        main(["reconstruct", "--dataset", str(out), "-t", "3", "--no-dense", "-o", str(rec)]) == 0
-    )
-    # Back to the truth's frame (cam0's is the world here): X = R0^T (X0 - t0).
-    R0, t0 = ds.rig.cameras[0].R, ds.rig.cameras[0].t
-    points = (read_ply(rec / "sparse.ply").points3D - t0) @ R0
-    score = evaluate_clouds(points, gt.reference_cloud(3, "all", min_views=2), 0.03)[0]
+    score = reconstruct_score(out, tmp_path, gt, to_truth=from_camera0(ds.rig))
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 

@@ -18,9 +18,9 @@ from edgerecon.io import load_rig, open_dataset, read_ply
 from edgerecon.io.calib_nerf import read_transforms, transforms_camera_names
 from edgerecon.io.calibration import detect_calibration_format
 from edgerecon.io.importer import import_dataset
-from edgerecon.quality import evaluate_clouds
 from edgerecon.synth import GroundTruth
 from edgerecon.types import CalibrationError, DataError
+from tests.io.test_importer import reconstruct_score
 
 GL = np.diag([1.0, -1.0, -1.0])
 
@@ -180,12 +180,7 @@ def test_import_transforms_with_videos_and_reconstruct(scene, tmp_path, capsys):
     assert any("spare" in n for n in report["notes"])
     imported = open_dataset(out)
     _same(imported.rig, dataclasses.replace(ds.rig, up=imported.rig.up))
-    rec = tmp_path / "rec"
-    assert (
-        main(["reconstruct", "--dataset", str(out), "-t", "3", "--no-dense", "-o", str(rec)]) == 0
-    )
-    cloud = read_ply(rec / "sparse.ply")
-    score = evaluate_clouds(cloud.points3D, gt.reference_cloud(3, "all", min_views=2), 0.03)[0]
+    score = reconstruct_score(out, tmp_path, gt)
     assert score.precision > 0.85 and score.num_pred > 150, score
     with pytest.raises(CalibrationError, match="no image size"):
         load_rig(root)  # no frames to size the cameras

@@ -19,6 +19,7 @@ from edgerecon.io.calibration import detect_calibration_format, load_calibration
 from edgerecon.quality import evaluate_clouds
 from edgerecon.synth import GroundTruth
 from edgerecon.types import CalibrationError
+from tests.io.test_importer import reconstruct_score
 
 D = np.array([0.03, -0.01, 0.004, -0.001])  # k1..k4: a mild action-camera lens
 
@@ -176,15 +177,6 @@ def _write_egoexo_csv(path, rig, lenses) -> None:
             )  # fmt: skip
 
 
-def _score(out, tmp_path, gt):
-    rec = tmp_path / "rec"
-    assert (
-        main(["reconstruct", "--dataset", str(out), "-t", "3", "--no-dense", "-o", str(rec)]) == 0
-    )
-    cloud = read_ply(rec / "sparse.ply")
-    return evaluate_clouds(cloud.points3D, gt.reference_cloud(3, "all", min_views=2), 0.03)[0]
-
-
 def test_import_egoexo_fisheye_calibrated_at_twice_the_size(scene, tmp_path, capsys):
     # Ego-Exo4D calibrates at the native 4K and ships downscaled copies too: here the lens
     # is calibrated at 2x the frames' size, the import rescales it.
@@ -217,7 +209,7 @@ def test_import_egoexo_fisheye_calibrated_at_twice_the_size(scene, tmp_path, cap
     info = json.loads(capsys.readouterr().out)
     assert sorted(info["lenses"]) == sorted(ds.rig.names)
     np.testing.assert_allclose(info["lenses"]["cam0"]["D"], D)
-    score = _score(out, tmp_path, gt)
+    score = reconstruct_score(out, tmp_path, gt)
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 
@@ -245,7 +237,7 @@ def test_import_nerfstudio_fisheye(scene, tmp_path, capsys):
     sources = [f"{n}={p}" for n, p in frames.items()]
     assert main(["import", str(root), *sources, "-o", str(out), "--json"]) == 0
     capsys.readouterr()
-    score = _score(out, tmp_path, gt)
+    score = reconstruct_score(out, tmp_path, gt)
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 

@@ -184,15 +184,24 @@ def _colmap_binary_of(rig: Rig, num_frames: int, noise: float = 2e-5) -> ColmapM
     return ColmapModel(cameras=cameras, images=images)
 
 
-def _reconstruct_score(dataset, tmp_path, gt, scale, t=3, dense=False):
+def reconstruct_score(dataset, tmp_path, gt, scale=1.0, t=3, dense=False, to_truth=None):
     """Reconstruct time t of an imported dataset with the CLI; score of its cloud (dense, or
-    sparse: cheaper) against the scene's ground truth (in metres) at 3 cm."""
+    sparse: cheaper) against the scene's ground truth (in metres) at 3 cm. ``scale``: the
+    dataset's units per metre; ``to_truth``: maps its points into the truth's frame (a
+    calibration whose world is one camera's)."""
     out = tmp_path / "rec"
     args = ["reconstruct", "--dataset", str(dataset), "--time", str(t), "--out", str(out)]
     assert main(args + ([] if dense else ["--no-dense"])) == 0
-    cloud = read_ply(out / ("dense.ply" if dense else "sparse.ply"))
+    points = read_ply(out / ("dense.ply" if dense else "sparse.ply")).points3D
+    points = points if to_truth is None else to_truth(points)
     ref = gt.reference_cloud(t, "all", min_views=2)
-    return evaluate_clouds(cloud.points3D / scale, ref, 0.03)[0]
+    return evaluate_clouds(points / scale, ref, 0.03)[0]
+
+
+def from_camera0(rig):
+    """``to_truth`` for a calibration whose world is camera 0's frame: X = R0^T (X0 - t0)."""
+    R0, t0 = rig.cameras[0].R, rig.cameras[0].t
+    return lambda points: (points - t0) @ R0
 
 
 @pytest.fixture(scope="module")
@@ -228,7 +237,7 @@ def test_import_colmap_binary_with_many_images_per_camera(scene, tmp_path, capsy
     # Poses: the mean of each camera's 8 images, within the SfM noise.
     _assert_same_rig(imported.rig, ds.rig, atol=1e-4)
     # The original rig gives P 0.81 / R 0.43 here (sparse: P 0.93, 287 points).
-    score = _reconstruct_score(out, tmp_path, gt, 1.0, dense=True)
+    score = reconstruct_score(out, tmp_path, gt, 1.0, dense=True)
     assert score.precision > 0.7 and score.recall > 0.35, score
 
 
@@ -244,7 +253,7 @@ def test_import_anipose_toml_in_millimetres(scene, tmp_path, capsys):
     imported = open_dataset(out)
     assert imported.rig.unit == "mm"
     _assert_same_rig(imported.rig, ds.rig, scale=1000.0)
-    score = _reconstruct_score(out, tmp_path, gt, 1000.0)
+    score = reconstruct_score(out, tmp_path, gt, 1000.0)
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 
@@ -265,7 +274,7 @@ def test_import_caliscope_toml(scene, tmp_path):
     assert all(c.matched_by == "name" for c in report.cameras)
     assert report.calibration_format == "toml" and "caliscope" in report.unit_note
     assert report.dataset.rig.up == (0.0, 0.0, 1.0)  # the level horizons point at +Z
-    score = _reconstruct_score(tmp_path / "cs", tmp_path, gt, 1.0)
+    score = reconstruct_score(tmp_path / "cs", tmp_path, gt, 1.0)
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 
@@ -437,7 +446,7 @@ def test_import_easymocap_layout(scene, tmp_path, capsys):
     imported = open_dataset(out)
     assert imported.rig.names == names and imported.rig.up == (0.0, 0.0, 1.0)
     _assert_same_rig(imported.rig, ds.rig, atol=1e-8)
-    score = _reconstruct_score(out, tmp_path, gt, 1.0)
+    score = reconstruct_score(out, tmp_path, gt, 1.0)
     assert score.precision > 0.85 and score.num_pred > 150, score
 
 
@@ -469,7 +478,7 @@ def test_import_panoptic_keeps_the_filmed_cameras(scene, tmp_path):
     assert load_rig(metres).unit == "m"
     report_m = import_dataset(tmp_path / "p4", calibration=metres, frames=[str(frames)])
     assert report_m.dataset.rig.unit == "m" and "guessed from the rig's size" in report_m.unit_note
-    score = _reconstruct_score(tmp_path / "pan", tmp_path, gt, 100.0)
+    score = reconstruct_score(tmp_path / "pan", tmp_path, gt, 100.0)
     assert score.precision > 0.85 and score.num_pred > 100, score
     # Fewer than three filmed cameras, or frames that names do not tell: errors, as before.
     for extra in sorted(frames.iterdir())[2:]:
@@ -522,7 +531,7 @@ def test_import_llff_poses_bounds(scene, tmp_path, capsys):
     assert [c["matched_by"] for c in report["cameras"]] == ["order"] * 5
     assert "SfM scales are arbitrary" in report["unit_note"]
     assert open_dataset(out).rig.up == (0.0, 0.0, 1.0)  # the cameras' horizons
-    score = _reconstruct_score(out, tmp_path, gt, 1.0)
+    score = reconstruct_score(out, tmp_path, gt, 1.0)
     assert score.precision > 0.85 and score.num_pred > 150, score
     with pytest.raises(CalibrationError, match="5 cameras .rows. but 4"):
         import_dataset(
