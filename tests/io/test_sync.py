@@ -124,17 +124,24 @@ def test_estimate_offsets_of_cameras_started_apart(tmp_path):
     assert result.ok and all(p.confident for p in result.pairs)
 
 
-def test_import_offset_auto(tmp_path, capsys):
+def _started_apart(tmp_path):
+    """A rig's calibration and three cameras' videos started 4, 0 and 9 frames late: (rig,
+    import arguments without --out, the offsets that synchronise them)."""
     starts = {"cam0": 4, "cam1": 0, "cam2": 9}
     paths = _videos(tmp_path, starts)
     rig = ring_rig(3, width=W, height_px=H, focal_px=40.0)
     save_rig(tmp_path / "rig.json", rig)
     sources = [f"{n}={paths[c]}" for n, c in zip(rig.names, starts, strict=True)]
+    want = dict(zip(rig.names, (5, 9, 0), strict=True))
+    return rig, ["import", str(tmp_path / "rig.json"), *sources], want
+
+
+def test_import_offset_auto(tmp_path, capsys):
+    _, args, want = _started_apart(tmp_path)
     out = tmp_path / "ds"
-    args = ["import", str(tmp_path / "rig.json"), *sources, "--offset", "auto", "--out", str(out)]
+    args = [*args, "--offset", "auto", "--out", str(out)]
     assert main([*args, "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
-    want = dict(zip(rig.names, (5, 9, 0), strict=True))
     assert {c["name"]: c["offset"] for c in report["cameras"]} == want
     assert report["sync"]["offsets"] == want
     assert any("offsets estimated from the cameras' motion" in n for n in report["notes"])
@@ -145,15 +152,10 @@ def test_import_offset_auto(tmp_path, capsys):
 
 
 def test_sync_command_checks_and_writes_a_datasets_offsets(tmp_path, capsys):
-    starts = {"cam0": 4, "cam1": 0, "cam2": 9}
-    paths = _videos(tmp_path, starts)
-    rig = ring_rig(3, width=W, height_px=H, focal_px=40.0)
-    save_rig(tmp_path / "rig.json", rig)
-    sources = [f"{n}={paths[c]}" for n, c in zip(rig.names, starts, strict=True)]
+    rig, args, want = _started_apart(tmp_path)
     out = tmp_path / "ds"
-    assert main(["import", str(tmp_path / "rig.json"), *sources, "-o", str(out), "-q"]) == 0
+    assert main([*args, "-o", str(out), "-q"]) == 0
     capsys.readouterr()
-    want = dict(zip(rig.names, (5, 9, 0), strict=True))
     assert main(["sync", "--dataset", str(out), "--json"]) == 3  # out of sync
     report = json.loads(capsys.readouterr().out)
     assert report["new"] == want and sorted(report["out_of_sync"]) == sorted(rig.names[:2])
