@@ -4,8 +4,10 @@ format needs."""
 from __future__ import annotations
 
 import contextlib
+import json
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -51,3 +53,15 @@ def check_distortion(dist: NDArray[np.float64], where: str) -> NDArray[np.float6
             f"{where}: distortion must have 4, 5, 8, 12 or 14 coefficients, got {dist.size}"
         )
     return dist
+
+
+def read_json(path: Path | str) -> Any:
+    """A calibration file's JSON; ``CalibrationError`` naming the file when it is missing or
+    not readable JSON."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise CalibrationError(f"calibration file not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None

@@ -26,7 +26,6 @@ inconsistent file raises ``CalibrationError`` naming the file, the camera and th
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 from collections.abc import Collection, Mapping
@@ -38,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
-from edgerecon.io._errors import check_distortion, in_file, rotation_matrix
+from edgerecon.io._errors import check_distortion, in_file, read_json, rotation_matrix
 from edgerecon.io.frames import VIDEO_EXTENSIONS, probe_video
 from edgerecon.types import CalibrationError
 
@@ -276,12 +275,7 @@ def read_panoptic(path: str | os.PathLike[str]) -> Rig:
     """Read a CMU Panoptic Studio ``calibration_<sequence>.json`` (every camera it lists;
     see the module docstring): unit "cm", up (0, -1, 0)."""
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None
+    data = read_json(path)
     if not is_panoptic(data):
         raise CalibrationError(
             f"{path}: not a Panoptic calibration (a 'cameras' list with K, distCoef, R, t)"

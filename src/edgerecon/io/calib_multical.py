@@ -17,7 +17,6 @@ cameras and boards at once).
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
@@ -27,7 +26,7 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
 from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
-from edgerecon.io._errors import in_file
+from edgerecon.io._errors import in_file, read_json
 from edgerecon.types import CalibrationError
 
 
@@ -104,12 +103,7 @@ def multical_calibration(path: str | os.PathLike[str]) -> CalibratedRig:
     """Read a multical ``calibration.json`` (the file) as a rig with the lenses of its
     fisheye cameras; see the module docstring."""
     file = Path(path)
-    try:
-        data = json.loads(file.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {file}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"{file}: not a readable JSON file ({exc})") from None
+    data = read_json(file)
     if not is_multical(data):
         raise CalibrationError(f"{file}: not a multical calibration (cameras, camera_poses)")
     names = list(data["cameras"])

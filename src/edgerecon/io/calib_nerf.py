@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
-from edgerecon.io._errors import in_file
+from edgerecon.io._errors import in_file, read_json
 from edgerecon.io.frames import probe_image_size
 from edgerecon.types import CalibrationError, DataError
 
@@ -81,12 +81,7 @@ def transforms_file(path: str | os.PathLike[str]) -> Path | None:
 
 
 def _load(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"{path}: not a readable JSON file ({exc})") from None
+    data = read_json(path)
     if not is_transforms(data):
         raise CalibrationError(
             f"{path}: not a NeRF transforms file (a 'frames' list whose items each have a "

@@ -69,7 +69,7 @@ from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.geometry.lens import CalibratedRig
-from edgerecon.io._errors import check_distortion, rotation_matrix
+from edgerecon.io._errors import check_distortion, read_json, rotation_matrix
 from edgerecon.io._errors import in_file as _in_file
 from edgerecon.io.calib_egoexo import egoexo_calibration, egoexo_file, is_egoexo_file
 from edgerecon.io.calib_kalibr import is_kalibr_file, kalibr_calibration, kalibr_files
@@ -154,7 +154,7 @@ def save_rig(path: str | os.PathLike[str], rig: Rig) -> Path:
 def read_rig_json(path: str | os.PathLike[str]) -> Rig:
     """Read an edgerecon rig JSON file (``save_rig``'s output)."""
     path = Path(path)
-    data = _read_json(path)
+    data = read_json(path)
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: not an edgerecon rig file (top level is not an object)")
     with _in_file(path):
@@ -169,16 +169,6 @@ def read_rig_json(path: str | os.PathLike[str]) -> Rig:
             raise CalibrationError(f"malformed rig file ({exc})") from None
 
 
-def _read_json(path: Path) -> Any:
-    try:
-        with open(path, encoding="utf-8") as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise CalibrationError(f"calibration file not found: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None
-
-
 # ============================================================================== openMVG
 _OPENMVG_UNDEFINED = 4294967295  # openMVG's UndefinedIndexT
 
@@ -186,7 +176,7 @@ _OPENMVG_UNDEFINED = 4294967295  # openMVG's UndefinedIndexT
 def read_openmvg_sfm_data(path: str | os.PathLike[str], *, unit: str = "m") -> Rig:
     """Read the posed views of an openMVG ``sfm_data.json`` as a rig."""
     path = Path(path)
-    data = _read_json(path)
+    data = read_json(path)
     with _in_file(path):
         if not isinstance(data, dict) or "views" not in data:
             raise CalibrationError("not an openMVG sfm_data file (no 'views')")
@@ -540,7 +530,7 @@ def detect_calibration_format(path: str | os.PathLike[str]) -> str:
             )
         return "toml"
     if path.suffix.lower() == ".json":
-        data = _read_json(path)
+        data = read_json(path)
         if isinstance(data, dict) and data.get("format") == "edgerecon-rig":
             return "edgerecon"
         if isinstance(data, dict) and "views" in data and "sfm_data_version" in data:
@@ -570,7 +560,7 @@ def _easymocap_intri(folder: Path) -> Path | None:
 
 def _multical_files(folder: Path) -> list[Path]:
     path = folder / "calibration.json"
-    return [path] if path.is_file() and is_multical(_read_json(path)) else []
+    return [path] if path.is_file() and is_multical(read_json(path)) else []
 
 
 #: What a calibration folder may hold, in the order ``_detect_in_folder`` looks: (format,
