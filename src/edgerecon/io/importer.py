@@ -28,7 +28,7 @@ import logging
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 
 from edgerecon.geometry.camera import Rig
-from edgerecon.geometry.lens import FisheyeLens, Rectification, pinhole_camera
+from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, Rectification, pinhole_camera
 from edgerecon.io.calib_llff import read_llff
 from edgerecon.io.calib_mocap import easymocap_camera_names, read_easymocap
 from edgerecon.io.calib_nerf import transforms_calibration, transforms_camera_names
@@ -359,6 +359,30 @@ def _probe(src: _Source) -> tuple[int, tuple[int, int], float | None]:
 
 
 # ============================================================================== import
+#: Formats that may record no image size (EasyMocap without ``H_`` / ``W_``, the Blender
+#: scenes' ``transforms.json``): their cameras' names, then the calibration read at the
+#: sizes of the frames matched to them (only the filmed cameras).
+_SIZED_BY_FRAMES: dict[
+    str,
+    tuple[
+        Callable[[Path], list[str]],
+        Callable[[Path, dict[str, tuple[int, int]], Collection[str]], CalibratedRig],
+    ],
+] = {
+    "easymocap": (
+        easymocap_camera_names,
+        lambda c, sizes, only: CalibratedRig(rig=read_easymocap(c, sizes, only=only), lenses={}),
+    ),
+    "nerf": (
+        transforms_camera_names,
+        lambda c, sizes, only: transforms_calibration(c, sizes, only=only),
+    ),
+}
+
+#: Formats whose tools write metres, and the tools' names.
+_IN_METRES = {"easymocap": "EasyMocap", "kalibr": "Kalibr", "egoexo": "Ego-Exo4D"}
+
+
 def import_dataset(
     out: str | os.PathLike[str],
     *,
@@ -395,18 +419,13 @@ def import_dataset(
         ordered = sorted(sources, key=lambda s: natural_key(s.label))
         rig = read_llff(calib, [s.label for s in ordered])
         matched = {s.label: (s, "order") for s in ordered}
-    elif fmt == "easymocap":
-        # intri.yml may record no image size: the frames' own, before the cameras are read.
-        listed = easymocap_camera_names(calib)
+    elif fmt in _SIZED_BY_FRAMES:
+        # The file may record no image size: the frames' own, before the cameras are read.
+        names_of, read = _SIZED_BY_FRAMES[fmt]
+        listed = names_of(calib)
         matched = match_sources(listed, sources, subset_min=3)
         sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
-        rig = read_easymocap(calib, sizes, only=matched.keys())
-    elif fmt == "nerf":
-        # A transforms.json may record no image size (the Blender scenes'): the frames' own.
-        listed = transforms_camera_names(calib)
-        matched = match_sources(listed, sources, subset_min=3)
-        sizes = {n: _probe(src)[1] for n, (src, _) in matched.items()}
-        cal = transforms_calibration(calib, sizes, only=matched.keys())
+        cal = read(calib, sizes, matched.keys())
         rig, lenses = cal.rig, dict(cal.lenses)
     else:
         cal = load_calibration(calib)
@@ -425,12 +444,8 @@ def import_dataset(
         )
     elif fmt in ("openmvg", "colmap", "llff", "nerf") and rig.unit == "m":
         unit_note = "m (assumed: the format stores no unit; SfM scales are arbitrary)"
-    elif fmt == "easymocap":
-        unit_note = "m (EasyMocap calibrations are in metres)"
-    elif fmt == "kalibr":
-        unit_note = "m (Kalibr calibrations are in metres)"
-    elif fmt == "egoexo":
-        unit_note = "m (Ego-Exo4D calibrations are in metres)"
+    elif fmt in _IN_METRES:
+        unit_note = f"m ({_IN_METRES[fmt]} calibrations are in metres)"
     elif fmt == "multical":
         unit_note = "m (multical: the boards' unit, metres in its board files; give --unit)"
     elif fmt == "panoptic":
