@@ -165,3 +165,14 @@ def test_sync_command_checks_and_writes_a_datasets_offsets(tmp_path, capsys):
     assert main(["sync", "--dataset", str(out), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["out_of_sync"] == [] and set(report["change"].values()) == {0}
+
+
+def test_two_groups_linked_apart_are_not_one_clock():
+    # a-b and c-d-e agree among themselves, nothing links the groups: the larger group is
+    # the linked one, the other's cameras are not claimed.
+    names = ["a", "b", "c", "d", "e"]
+    pairs = [_pair("a", "b", 3), _pair("c", "d", -2), _pair("d", "e", 5), _pair("c", "e", 3)]
+    lags, unlinked, used = _solve(names, pairs)
+    assert sorted(unlinked) == ["a", "b"] and used == {1, 2, 3}
+    assert lags["c"] - lags["d"] == -2 and lags["d"] - lags["e"] == 5
+    assert lags["a"] == lags["b"] == 0

@@ -247,7 +247,8 @@ def _solve(names: list[str], pairs: list[PairLag]) -> tuple[dict[str, int], list
     """Offsets (time indices) from the confident pairs (step 3 of the module docstring): per
     connected group of cameras, weighted least squares with its best-linked camera at 0; the
     pair furthest off the solution, when more than one frame off, is dropped and the groups
-    solved again. Returns the offsets, the unlinked cameras and the pairs kept."""
+    solved again. The largest group is the linked one (two groups' offsets are on different
+    clocks). Returns the offsets, the unlinked cameras and the pairs kept."""
     active = {k for k, p in enumerate(pairs) if p.confident}
     while True:
         group = _groups(names, [(pairs[k].a, pairs[k].b) for k in active])
@@ -274,13 +275,23 @@ def _solve(names: list[str], pairs: list[PairLag]) -> tuple[dict[str, int], list
         off = {k: abs(lags[pairs[k].a] - lags[pairs[k].b] - pairs[k].lag) for k in active}
         worst = max(off, key=lambda k: off[k], default=None)
         if worst is None or off[worst] <= 1.0:
-            linked = {n for k in active for n in (pairs[k].a, pairs[k].b)}
-            return (
-                {n: round(v) for n, v in lags.items()},
-                [n for n in names if n not in linked],
-                active,
-            )
+            break
         active.discard(worst)
+    # Only one group's offsets are on one clock: the largest (then the strongest) one's.
+    # Another group's cameras are unlinked (the consensus may still join them).
+    strength: dict[str, tuple[int, float]] = {}
+    for rep in set(group.values()):
+        members = [n for n in names if group[n] == rep]
+        weight = sum(pairs[k].peak for k in active if group[pairs[k].a] == rep)
+        strength[rep] = (len(members) if weight > 0 else 0, weight)
+    main = max(strength, key=lambda r: strength[r])
+    kept = {k for k in active if group[pairs[k].a] == main}
+    linked = {n for n in names if group[n] == main} if kept else set()
+    return (
+        {n: round(lags[n]) if n in linked else 0 for n in names},
+        [n for n in names if n not in linked],
+        kept,
+    )
 
 
 def _zscore(x: NDArray[np.float64]) -> NDArray[np.float64]:
