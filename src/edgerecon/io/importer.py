@@ -639,8 +639,12 @@ def _estimate_offsets(
         "offsets estimated from the cameras' motion over their first "
         f"{result.frames_read} frames: "
         + ", ".join(f"{n} {k}" for n, k in result.offsets.items())
-        + f" (from {len(used)} of {len(result.pairs)} camera pairs, correlation "
-        + (f"{min(p.peak for p in used):.2f}-{max(p.peak for p in used):.2f})" if used else "-)")
+        + f" (from {len(used)} of {len(result.pairs)} camera pairs, peaks "
+        + (
+            f"{min(p.peak for p in used):.1f}-{max(p.peak for p in used):.1f} sigma)"
+            if used
+            else "-)"
+        )
     )
     if result.unlinked:
         notes.append(
