@@ -20,7 +20,8 @@ sees: when people or things move, every camera that sees them sees motion at the
 3. **Offsets** from the confident pairs (peak >= ``min_peak`` and margin >= ``min_margin``)
    by least squares over the pairs' lags (``o_i - o_j = d_ij``), camera by camera from the
    best-linked one; a pair whose lag disagrees with the solution by more than a frame is
-   dropped and the solve repeated.
+   dropped and the solve repeated. When the confident pairs link the cameras in separate
+   groups, only the largest group's offsets are taken (the groups are on different clocks).
 4. **Consensus**: a camera no confident pair links is matched once more, against the linked
    cameras' signals aligned by their offsets and averaged (what they all saw adds up, their
    own noise does not), with the same confidence test. (Counting the votes of its weak pairs
