@@ -9,6 +9,7 @@ import time
 import pytest
 
 import edgerecon.pipeline
+import edgerecon.runtime.online
 import edgerecon.runtime.session
 from edgerecon.cli import build_parser, main
 
@@ -153,3 +154,77 @@ def test_export_of_a_run_task_composes_its_merged_cloud(tiny_dataset, tmp_path, 
     ]
     assert main(cmd) == 0
     assert len(read_ply(fg)) == int((merged.labels > 0).sum())
+
+
+def test_a_deadline_as_a_share_of_the_original_pipeline(
+    tiny_dataset, tmp_path, capsys, monkeypatch
+):
+    """``--deadline 40%``: the original pipeline is timed on the first timestamp before the
+    first task, the deadline is 40 % of it, the summary gives the online / original ratio,
+    and a resumed run keeps that measurement (it is not timed again)."""
+    out = tmp_path / "run"
+    args = ["--frames", "1:3", "--deadline", "40%", "--json"]
+    assert _run(tiny_dataset, out, *args) == 0
+    summary = json.loads(capsys.readouterr().out)["summary"]
+    original = summary["original_s"]
+    assert original > 0 and summary["deadline_share"] == 0.4
+    assert summary["deadline_s"] == pytest.approx(round(0.4 * original, 3))
+    assert summary["online_over_original"] == pytest.approx(
+        summary["avg_time_s"] / original, abs=1e-3
+    )
+    state = json.loads((out / "state.json").read_text())
+    assert state["original"]["time_index"] == 1 and state["original"]["seconds"] == original
+    assert state["original"]["stages"]["dense.depth"] > 0
+    # The effective configuration keeps the share (loaded again, it measures again).
+    assert "deadline_share = 0.4" in (out / "config.toml").read_text()
+
+    def timed_again(*a, **k):
+        raise AssertionError("a resumed run measured the original pipeline again")
+
+    monkeypatch.setattr(edgerecon.runtime.online, "measure_original", timed_again)
+    assert (
+        _run(tiny_dataset, out, "--frames", "1:4", "--deadline", "40%", "--json", "--resume") == 0
+    )
+    resumed = json.loads(capsys.readouterr().out)
+    assert resumed["summary"]["tasks"] == 3
+    assert resumed["summary"]["deadline_s"] == summary["deadline_s"]
+    assert resumed["summary"]["original_s"] == original
+    assert {t["deadline_s"] for t in resumed["tasks"]} == {summary["deadline_s"]}
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [("0%", "a share in (0%, 1000%]"), ("-1", "must be > 0 seconds"), ("fast", "seconds (0.6)")],
+)
+def test_bad_deadlines_are_refused(tiny_dataset, tmp_path, capsys, value, message):
+    with pytest.raises(SystemExit) as exc:
+        _run(tiny_dataset, tmp_path / "out", "--deadline", value)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_the_resume_command_repeats_a_share():
+    from edgerecon.cli._config import parse_deadline
+    from edgerecon.cli.run import resume_command
+
+    args = build_parser().parse_args(
+        ["run", "--dataset", "d", "--out", "o", "--deadline", "35%", "--frames", "0:9:2"]
+    )
+    assert args.deadline == parse_deadline("35%")
+    assert "--deadline 35% --frames 0:9:2" in resume_command(args)
+    args.deadline = parse_deadline("0.75")
+    assert "--deadline 0.75 " in resume_command(args)
+
+
+def test_a_share_from_the_config_file(tiny_dataset, tmp_path, capsys):
+    cfg = tmp_path / "share.toml"
+    cfg.write_text("[runtime]\ndeadline_share = 0.5\nbackground_updates = false\n")
+    out = tmp_path / "run"
+    words = ["run", "--dataset", str(tiny_dataset), "--out", str(out), "--frames", "0:1"]
+    assert main([*words, "--config", str(cfg), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)["summary"]
+    assert summary["deadline_s"] == pytest.approx(round(0.5 * summary["original_s"], 3))
+    # Seconds typed on the command line win over the file's share: nothing is measured.
+    assert main([*words, "--config", str(cfg), "--deadline", "9", "--overwrite", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)["summary"]
+    assert summary["deadline_s"] == 9 and summary["original_s"] is None

@@ -4,7 +4,9 @@ effective configuration written next to the outputs (see ``edgerecon.configfile`
 from __future__ import annotations
 
 import argparse
+import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +15,41 @@ from edgerecon.configfile import load_config_file, write_config
 
 #: File name of the effective configuration in an output folder.
 CONFIG_NAME = "config.toml"
+
+
+@dataclass(frozen=True)
+class DeadlineShare:
+    """``--deadline 40%``: the deadline as a share of the original pipeline's time, measured
+    when the run starts (``RuntimeConfig.deadline_share``)."""
+
+    fraction: float
+
+    def __str__(self) -> str:
+        return f"{100 * self.fraction:g}%"
+
+
+def parse_deadline(text: str) -> float | DeadlineShare:
+    """``--deadline``: seconds (``0.6``) or a share of the original pipeline (``40%``)."""
+    from edgerecon.runtime.config import MAX_DEADLINE_SHARE
+
+    word = text.strip()
+    share = word.endswith("%")
+    try:
+        value = float(word[:-1] if share else word)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: seconds (0.6) or a share of the original pipeline's time (40%)"
+        ) from None
+    if share:
+        fraction = value / 100
+        if not 0 < fraction <= MAX_DEADLINE_SHARE:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: a share in (0%, {100 * MAX_DEADLINE_SHARE:g}%]"
+            )
+        return DeadlineShare(fraction)
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text!r}: a deadline must be > 0 seconds")
+    return value
 
 
 def add_config_flag(p: argparse.ArgumentParser) -> None:
@@ -86,12 +123,16 @@ def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, 
             setattr(args, key, section(cfg, "run")[key])
     rt = section(cfg, "runtime")
     over: dict[str, Any] = {}
-    if args.deadline is not None:
+    if isinstance(args.deadline, DeadlineShare):
+        over["deadline_share"] = args.deadline.fraction
+        over["deadline_s"] = math.nan
+    elif args.deadline is not None:
         over["deadline_s"] = args.deadline
-    elif "deadline_s" not in rt:
+        rt = {k: v for k, v in rt.items() if k != "deadline_share"}  # seconds typed win
+    elif "deadline_s" not in rt and rt.get("deadline_share") is None:
         raise ValueError(
-            "--deadline is required (seconds per task), or deadline_s in the [runtime] table "
-            "of --config"
+            "--deadline is required (seconds per task, or a share of the original pipeline's "
+            "time such as 40%), or deadline_s / deadline_share in the [runtime] table of --config"
         )
     if getattr(args, "no_background_updates", False):
         over["background_updates"] = False
@@ -101,8 +142,10 @@ def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, 
         if hasattr(args, dest) and (given(args, dest) or dest not in rt):
             over[dest] = getattr(args, dest)
     runtime = build(RuntimeConfig, rt, where="runtime", overrides=over)
-    # The runtime's adjust_target unless the [controller] table sets its own.
-    ctrl_over: dict[str, Any] = {"deadline_s": runtime.deadline_s}
+    # The runtime's adjust_target unless the [controller] table sets its own; a deadline
+    # given as a share is the runtime's once measured (``run_online``: 1 s until then).
+    deadline = 1.0 if runtime.deadline_share is not None else runtime.deadline_s
+    ctrl_over: dict[str, Any] = {"deadline_s": deadline}
     if "adjust_target" not in section(cfg, "controller"):
         ctrl_over["adjust_target"] = runtime.adjust_target
     controller = build(

@@ -15,7 +15,13 @@ import time
 from pathlib import Path
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli._config import load_config, online_configs, run_options_table, write_effective
+from edgerecon.cli._config import (
+    DeadlineShare,
+    load_config,
+    online_configs,
+    run_options_table,
+    write_effective,
+)
 from edgerecon.cli.run import (
     EXIT_OK,
     EXIT_TASKS_FAILED,
@@ -34,6 +40,7 @@ from edgerecon.quality import evaluate_clouds
 from edgerecon.report import write_report
 from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.online import run_online
+from edgerecon.runtime.state import OriginalTiming
 from edgerecon.synth import GroundTruth, preset_config, write_dataset
 
 
@@ -96,16 +103,23 @@ def run(args: argparse.Namespace) -> int:
         frames = source.read(t_mid)
     warm_up()  # the kernels load (or compile, on a first run) before anything is timed
     golden = reconstruct(frames, dataset.rig)
-    rt = RuntimeConfig(deadline_s=args.deadline or 1.0)
-    threshold = rt.eval_threshold_for(dataset.rig)
+    threshold = RuntimeConfig(deadline_s=1.0).eval_threshold_for(dataset.rig)
     ref_all = gt.reference_cloud(t_mid, "all", min_views=2)
     golden_score = evaluate_clouds(
         golden.dense.cloud if golden.dense else golden.sparse.cloud, ref_all, threshold
     )[0]
     cfg = load_config(args)
-    if args.deadline is None and "deadline_s" not in section(cfg, "runtime"):
-        args.deadline = round(args.deadline_fraction * golden.timings.total, 2)
+    if args.deadline is None and not {"deadline_s", "deadline_share"} & set(
+        section(cfg, "runtime")
+    ):
+        args.deadline = DeadlineShare(args.deadline_fraction)
     rt, controller_config = online_configs(args, cfg)
+    original = OriginalTiming(
+        time_index=t_mid,
+        seconds=round(golden.timings.total, 4),
+        stages={k: round(float(v), 4) for k, v in golden.timings.seconds.items()},
+    )
+    rt = rt.with_original(original.seconds)
     deadline = rt.deadline_s
     if not args.json:
         console.print(
@@ -132,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
             fixed=fixed,
             controller_config=controller_config,
             on_task=on_task,
+            original=original,
         )
     effective = {"runtime": rt, "controller": controller_config, "run": run_options_table(args)}
     write_effective(out / "run", "demo", effective)

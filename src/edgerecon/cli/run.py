@@ -12,9 +12,11 @@ from typing import Any
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, error_console, print_table
 from edgerecon.cli._config import (
+    DeadlineShare,
     add_config_flag,
     load_config,
     online_configs,
+    parse_deadline,
     run_options_table,
     write_effective,
 )
@@ -51,11 +53,13 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by ``run`` and ``demo``."""
     p.add_argument(
         "--deadline",
-        type=float,
+        type=parse_deadline,
         required=False,
-        metavar="S",
-        help="deadline per task in seconds (the average critical path aims at it); required "
-        "by run unless --config's [runtime] sets deadline_s",
+        metavar="S|P%",
+        help="deadline per task (the average critical path aims at it): seconds, or a share "
+        "of the original pipeline's time (r = 1, every camera, the whole scene: the paper's "
+        "baseline) such as 40%%, measured on the first timestamp before the first task; "
+        "required by run unless --config's [runtime] sets deadline_s or deadline_share",
     )
     add_config_flag(p)
     p.add_argument("--frames", default=None, help="timestamps A:B:STEP (default: the whole stream)")
@@ -257,7 +261,7 @@ def print_summary(title: str, s: RunSummary) -> None:
         return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
 
     rows = [
-        ("deadline (s)", f(s.deadline_s, ".2f")),
+        ("deadline (s)", f(s.deadline_s, ".3g")),
         ("avg. resolution scale", f(s.avg_scale, ".2f")),
         ("# cameras (avg / last subset)", f"{f(s.avg_cameras, '.1f')} / {s.cameras_used}"),
         ("avg. processing time (s)", f(s.avg_time_s, ".2f")),
@@ -276,6 +280,12 @@ def print_summary(title: str, s: RunSummary) -> None:
         ),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
+    if s.original_s is not None:  # measured by the run (--deadline P%)
+        share = "" if s.deadline_share is None else f" ({100 * s.deadline_share:g} % of it)"
+        rows[1:1] = [
+            (f"original pipeline, r = 1, whole scene (s){share}", f(s.original_s, ".2f")),
+            ("online / original (avg. processing time)", f(s.online_over_original)),
+        ]
     if s.stream:
         st = s.stream
         spread = (
@@ -341,7 +351,11 @@ def parse_fixed(
 def resume_command(args: argparse.Namespace) -> str:
     """The command line that continues this run."""
     words = ["edgerecon", "run", "--dataset", args.dataset, "--out", args.out]
-    words += ["--deadline", f"{args.deadline:g}"]
+    deadline = args.deadline
+    words += [
+        "--deadline",
+        str(deadline) if isinstance(deadline, DeadlineShare) else f"{deadline:g}",
+    ]
     for flag, value in (
         ("--frames", args.frames),
         ("--engine", None if args.engine == "embedded" else args.engine),
@@ -385,7 +399,9 @@ def sigterm_as_interrupt() -> Iterator[None]:
 def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
     config, controller_config = online_configs(args, load_config(args))
-    args.deadline = config.deadline_s  # (from --config too) the resume command repeats it
+    # (from --config too) the resume command repeats it
+    share = config.deadline_share
+    args.deadline = config.deadline_s if share is None else DeadlineShare(share)
     fixed = parse_fixed(args, dataset)
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))
     code = run_and_report(
@@ -402,7 +418,8 @@ def run(args: argparse.Namespace) -> int:
             on_task=on_task,
             command=resume_command(args).removesuffix(" --resume"),
         ),
-        title=f"{dataset.name}: online run, deadline {config.deadline_s:g} s",
+        title=f"{dataset.name}: online run, deadline "
+        + (f"{config.deadline_s:g} s" if share is None else f"{args.deadline} of the original"),
         total=num_tasks(args, dataset),
     )
     effective = {"runtime": config, "controller": controller_config, "run": run_options_table(args)}

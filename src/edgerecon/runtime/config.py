@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -15,6 +16,9 @@ from edgerecon.quality.frames import FrameCheckConfig
 from edgerecon.scene.foreground import ForegroundConfig
 from edgerecon.sparse import SparseConfig
 
+#: The largest ``RuntimeConfig.deadline_share`` (a deadline of 10 golden tasks).
+MAX_DEADLINE_SHARE = 10.0
+
 #: Values of ``RuntimeConfig.online_quality``.
 ONLINE_QUALITIES = ("silhouette", "golden")
 
@@ -23,8 +27,15 @@ ONLINE_QUALITIES = ("silhouette", "golden")
 class RuntimeConfig:
     """Settings of the front-end, the back-end and the online session."""
 
-    deadline_s: float
-    """User deadline Δt on the average critical-path time of a task, seconds."""
+    deadline_s: float = math.nan
+    """User deadline Δt on the average critical-path time of a task, seconds (NaN with
+    ``deadline_share``: the run sets it before its first task)."""
+    deadline_share: float | None = None
+    """The deadline as a share of the original pipeline's time (r = 1, every camera, the
+    whole scene: the paper's baseline) on this rig and machine, measured on the run's first
+    timestamp before any task (``run --deadline 40%``; ``runtime.online.measure_original``);
+    it replaces ``deadline_s``. A resumed run keeps the measurement it started with. None:
+    ``deadline_s`` as given."""
     eval_threshold: float | None = None
     """Distance threshold d of the online F-score, in rig units; None = ``eval_threshold_rel``
     x the rig's median camera distance."""
@@ -115,9 +126,27 @@ class RuntimeConfig:
     split: SplitPipelineConfig = field(default_factory=SplitPipelineConfig)
     foreground: ForegroundConfig = field(default_factory=ForegroundConfig)
 
+    def with_original(self, seconds: float) -> RuntimeConfig:
+        """This configuration with ``deadline_s`` = ``deadline_share`` x ``seconds``, the
+        original pipeline's measured time (unchanged without a share)."""
+        if self.deadline_share is None:
+            return self
+        if not (seconds > 0 and math.isfinite(seconds)):
+            raise ValueError(f"the original pipeline's time must be > 0 s, got {seconds!r}")
+        return dataclasses.replace(self, deadline_s=round(self.deadline_share * seconds, 3))
+
     def __post_init__(self) -> None:
-        if not (self.deadline_s > 0 and math.isfinite(self.deadline_s)):
-            raise ValueError(f"RuntimeConfig.deadline_s must be > 0, got {self.deadline_s!r}")
+        if self.deadline_share is not None:
+            if not 0 < self.deadline_share <= MAX_DEADLINE_SHARE:
+                raise ValueError(
+                    f"RuntimeConfig.deadline_share must be in (0, {MAX_DEADLINE_SHARE:g}], got "
+                    f"{self.deadline_share!r}"
+                )
+        elif not (self.deadline_s > 0 and math.isfinite(self.deadline_s)):
+            raise ValueError(
+                f"RuntimeConfig.deadline_s must be > 0 (or deadline_share given), got "
+                f"{self.deadline_s!r}"
+            )
         if not 0 < self.adjust_target <= 1.5:
             raise ValueError(
                 f"RuntimeConfig.adjust_target must be in (0, 1.5], got {self.adjust_target}"

@@ -13,6 +13,13 @@ back-end epoch (the new back-end counts on from the next one); the background mo
 rebuilt from the stream up to the next task (they are a function of the stream alone,
 :mod:`edgerecon.scene.stream`), so the resumed run segments the next frame as an
 uninterrupted run would.
+
+A deadline given as a share of the original pipeline (``run --deadline 40%``,
+``RuntimeConfig.deadline_share``) is set here, before the controller exists: the original
+pipeline (r = 1, every camera, the whole scene; the paper's baseline and the ``reconstruct``
+command's) runs once on the first timestamp to run, timed by its own stage timings, while
+nothing else runs (:func:`measure_original`); a resumed run takes the time it started with
+from the run state.
 """
 
 from __future__ import annotations
@@ -23,9 +30,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from edgerecon import progress
+from edgerecon.config import ReconstructionConfig
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
-from edgerecon.pipeline import fine_scale_limit
+from edgerecon.pipeline import fine_scale_limit, reconstruct, warm_up
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.engine import (
     EmbeddedEngine,
@@ -37,7 +46,7 @@ from edgerecon.runtime.frontend import FixedController
 from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
-from edgerecon.runtime.state import DatasetIdentity, OutputFolder
+from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder
 
 logger = logging.getLogger(__name__)
 
@@ -83,6 +92,40 @@ def make_controller(
     if fine_or_none != cc.r_fine:
         cc = dataclasses.replace(cc, r_fine=fine_or_none)
     return BisectionController(cc, None, n)
+
+
+#: Runs of the original pipeline behind ``measure_original``: the least time counts (load
+#: only adds time; one run on this 2-core machine varied by 1.55-1.91 s on one capture).
+ORIGINAL_RUNS = 2
+
+
+def measure_original(
+    dataset: Dataset, config: RuntimeConfig, time_index: int, runs: int = ORIGINAL_RUNS
+) -> OriginalTiming:
+    """The original pipeline (r = 1, every camera, the whole scene, the run's sparse and
+    whole-scene dense settings) on the frames of ``time_index``, timed by its own stages
+    after the compiled kernels are loaded: the fastest of ``runs`` runs."""
+    warm_up()
+    with dataset.open_frames() as source:
+        frames = source.read(time_index)
+    n = len(dataset.rig)
+    rc = ReconstructionConfig(
+        scale=1.0, sparse_config=config.sparse, dense_config=config.background_dense
+    )
+    best = None
+    for i in range(max(1, runs)):
+        with progress.phase(
+            f"the original pipeline at time {time_index} (r = 1, {n} cameras), run {i + 1}"
+        ):
+            timings = reconstruct(frames, dataset.rig, rc).timings
+        if best is None or timings.total < best.total:
+            best = timings
+    assert best is not None
+    return OriginalTiming(
+        time_index=frames.time_index,
+        seconds=round(best.total, 4),
+        stages={k: round(float(v), 4) for k, v in best.seconds.items()},
+    )
 
 
 def check_options(
@@ -133,9 +176,14 @@ def run_online(
     on_task: Callable[[TaskMetrics], None] | None = None,
     on_ready: Callable[[SceneModel], None] | None = None,
     command: str = "",
+    original: OriginalTiming | None = None,
 ) -> tuple[RunSummary, list[TaskMetrics]]:
     """Run the online system on ``dataset`` and return its summary and per-task metrics
-    (:class:`~edgerecon.runtime.session.RunInterrupted` after Ctrl-C, summary written)."""
+    (:class:`~edgerecon.runtime.session.RunInterrupted` after Ctrl-C, summary written).
+
+    ``original``: the original pipeline's time when the caller measured it (``demo``);
+    otherwise a run whose deadline is a share measures it (:func:`measure_original`), and a
+    resumed one takes it from its state."""
     check_options(dataset, options, engine=engine, fixed=fixed)
     limit_malloc_arenas()  # before the roles' threads and processes start (runtime.memory)
     start_heap_trimmer()
@@ -148,6 +196,34 @@ def run_online(
             frames=(fr.start, fr.stop, fr.step),
         )
         previous = [] if saved is None else folder.read_metrics(saved.tasks_done)
+        done = {m.time_index for m in previous}
+        if dataset.is_live:  # tasks are numbered on: no frame index to catch up to
+            first = max(done, default=fr.start - 1) + 1
+        else:
+            todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
+            first = todo[0] if todo else 0
+        if original is None and saved is not None:
+            original = saved.original
+        share = config.deadline_share
+        if share is not None:
+            measured_before = original is not None
+            if original is None:
+                original = measure_original(dataset, config, first)
+            config = config.with_original(original.seconds)
+            logger.warning(
+                "deadline %.3g s: %.0f %% of the original pipeline's %.3f s (r = 1, %d cameras, "
+                "the whole scene at time %d%s)",
+                config.deadline_s,
+                100 * share,
+                original.seconds,
+                len(dataset.rig),
+                original.time_index,
+                ", as measured when the run started"
+                if saved is not None and measured_before
+                else "",
+            )
+        if controller_config is not None and controller_config.deadline_s != config.deadline_s:
+            controller_config = dataclasses.replace(controller_config, deadline_s=config.deadline_s)
         controller = make_controller(
             dataset,
             config,
@@ -159,12 +235,6 @@ def run_online(
             # The background models as they are at the first task still to run (the one
             # stream definition of edgerecon.scene.stream: a resumed run continues with the
             # models an uninterrupted run would have).
-            done = {m.time_index for m in previous}
-            if dataset.is_live:  # tasks are numbered on: no frame index to catch up to
-                first = max(done, default=fr.start - 1) + 1
-            else:
-                todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
-                first = todo[0] if todo else 0
             scene = learn_scene_model(dataset, config.foreground, first)
         if on_ready is not None:
             on_ready(scene)
@@ -210,6 +280,8 @@ def run_online(
                 options,
                 folder,
                 deadline_s=config.deadline_s,
+                deadline_share=config.deadline_share,
+                original=original,
                 frame_check=config.frame_check,
                 previous=previous,
                 on_task=on_task,
@@ -220,4 +292,4 @@ def run_online(
             eng.close()
 
 
-__all__ = ["ENGINES", "check_options", "make_controller", "run_online"]
+__all__ = ["ENGINES", "check_options", "make_controller", "measure_original", "run_online"]

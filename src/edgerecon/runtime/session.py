@@ -70,7 +70,7 @@ from edgerecon.runtime.engine import Engine
 from edgerecon.runtime.frontend import TaskOutput
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.retention import CloudRetention, RetentionConfig
-from edgerecon.runtime.state import DatasetIdentity, OutputFolder, RunState
+from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder, RunState
 from edgerecon.scene.merge import foreground_part
 from edgerecon.types import EdgereconError, FrameSet
 
@@ -187,6 +187,14 @@ class RunSummary:
     avg_time_converged_s: float = math.nan
     """Average critical path after the search ended (adjust phase)."""
     deadline_s: float = math.nan
+    deadline_share: float | None = None
+    """The deadline as a share of ``original_s`` (``run --deadline 40%``), None when given
+    in seconds."""
+    original_s: float | None = None
+    """The original pipeline's time (r = 1, every camera, the whole scene) measured on the
+    run's first timestamp before its first task; None: not measured."""
+    online_over_original: float | None = None
+    """The average critical path over ``original_s`` (the paper: 0.46 at its deadlines)."""
     deadline_misses_converged: int = 0
     avg_online_fscore: float | None = None
     avg_offline_fscore: float | None = None
@@ -328,6 +336,8 @@ class Session:
         folder: OutputFolder,
         *,
         deadline_s: float,
+        deadline_share: float | None = None,
+        original: OriginalTiming | None = None,
         frame_check: FrameCheckConfig | None = None,
         previous: list[TaskMetrics] | None = None,
         on_task: Callable[[TaskMetrics], None] | None = None,
@@ -338,6 +348,8 @@ class Session:
         self.folder = folder
         self.out = folder.path
         self.deadline_s = deadline_s
+        self.deadline_share = deadline_share
+        self.original = original
         self.frame_check = frame_check or FrameCheckConfig()
         self.on_task = on_task
         previous = list(previous or [])
@@ -522,6 +534,7 @@ class Session:
                 deadline_s=self.deadline_s,
                 tasks_done=self.totals.tasks,
                 frontend=self.engine.state(),
+                original=self.original,
             ).save(self.out)
             if m.status == "ok":  # after the commit point: older clouds beyond --keep-clouds
                 self.retention.committed((m.bg_epoch, m.bg_version))
@@ -628,6 +641,8 @@ class Session:
             empty=t.empty,
             frames_dropped=self.frames_dropped,
             deadline_s=self.deadline_s,
+            deadline_share=self.deadline_share,
+            original_s=None if self.original is None else self.original.seconds,
             engine=getattr(self.engine, "name", ""),
             stream=dict(self._stream),
             clouds_written=t.clouds_written,
@@ -640,6 +655,8 @@ class Session:
             s.avg_cameras = t.cameras.value
             s.cameras_used = list(t.cameras_used)
             s.avg_time_s = t.time.value
+            if s.original_s is not None:
+                s.online_over_original = round(s.avg_time_s / s.original_s, 3)
             conv, misses = (
                 (t.adjust_time, t.adjust_misses)
                 if t.adjust_time.count

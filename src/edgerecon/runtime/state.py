@@ -1,7 +1,8 @@
 """The run's state and its output folder: one owner, saved atomically, restored together.
 
 :class:`RunState` is everything ``--resume`` needs, in one record (``state.json``): the
-dataset's identity and the frame range, the deadline, the number of tasks committed and the
+dataset's identity and the frame range, the deadline (and, for a deadline given as a share,
+the original pipeline's time it came from), the number of tasks committed and the
 front-end's state (controller with its configuration and pi(N'), where pi came from, the
 background version as (back-end epoch, counter), the last back-end epoch). It is written after
 each task, after the task's cloud and its metrics line: ``state.json`` is the commit point,
@@ -147,6 +148,30 @@ class DatasetIdentity:
         return None
 
 
+@dataclass(frozen=True)
+class OriginalTiming:
+    """The original pipeline (r = 1, every camera, the whole scene: the paper's baseline)
+    measured on one timestamp of the run's data, on this machine, before the run's first
+    task (``runtime.online.measure_original``): the reference of ``run --deadline 40%`` and
+    of the summary's online / original ratio."""
+
+    time_index: int
+    seconds: float
+    """The product's own stage timings, added up (``timings.json``'s total)."""
+    stages: dict[str, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"time_index": self.time_index, "seconds": self.seconds, "stages": self.stages}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> OriginalTiming:
+        return cls(
+            time_index=int(d["time_index"]),
+            seconds=float(d["seconds"]),
+            stages={str(k): float(v) for k, v in dict(d.get("stages", {})).items()},
+        )
+
+
 @dataclass(frozen=True, kw_only=True)
 class RunState:
     """The one record ``--resume`` restores (see module docstring)."""
@@ -159,6 +184,9 @@ class RunState:
     tasks_done: int
     """Tasks committed: the first ``tasks_done`` lines of metrics.jsonl."""
     frontend: FrontEndState
+    original: OriginalTiming | None = None
+    """The original pipeline's measured time, when the run measured it (``--deadline P%``):
+    a resumed run keeps its deadline."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -170,6 +198,7 @@ class RunState:
             "deadline_s": self.deadline_s,
             "tasks_done": self.tasks_done,
             "frontend": self.frontend.to_dict(),
+            "original": None if self.original is None else self.original.to_dict(),
             "saved_at": time.time(),
         }
 
@@ -190,6 +219,7 @@ class RunState:
             deadline_s=float(d["deadline_s"]),
             tasks_done=int(d["tasks_done"]),
             frontend=FrontEndState.from_dict(d["frontend"]),
+            original=None if d.get("original") is None else OriginalTiming.from_dict(d["original"]),
         )
 
     def save(self, folder: Path) -> None:
