@@ -148,6 +148,8 @@ def online_configs(args: argparse.Namespace, cfg: dict[str, Any]) -> tuple[Any, 
     ctrl_over: dict[str, Any] = {"deadline_s": deadline}
     if "adjust_target" not in section(cfg, "controller"):
         ctrl_over["adjust_target"] = runtime.adjust_target
+    if getattr(args, "late_share", None) is not None:
+        ctrl_over["late_share"] = args.late_share
     controller = build(
         ControllerConfig,
         section(cfg, "controller"),

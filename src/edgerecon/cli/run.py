@@ -61,6 +61,16 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "baseline) such as 40%%, measured on the first timestamp before the first task; "
         "required by run unless --config's [runtime] sets deadline_s or deadline_share",
     )
+    p.add_argument(
+        "--late-share",
+        type=float,
+        default=None,
+        metavar="P",
+        help="about this share of the tasks may run past the deadline (e.g. 0.1): the "
+        "controller steers the average below the deadline by what the tasks' measured spread "
+        "asks, instead of to the deadline, where a third of them can run late ([controller] "
+        "late_share)",
+    )
     add_config_flag(p)
     p.add_argument("--frames", default=None, help="timestamps A:B:STEP (default: the whole stream)")
     p.add_argument(
@@ -364,6 +374,7 @@ def resume_command(args: argparse.Namespace) -> str:
         ("--fixed", None if args.fixed is None else f"{args.fixed:g}"),
         ("--cameras", args.cameras),
         ("--sparse-scope", None if args.sparse_scope == "hull" else args.sparse_scope),
+        ("--late-share", None if args.late_share is None else f"{args.late_share:g}"),
     ):
         if value is not None:
             words += [flag, str(value)]

@@ -69,6 +69,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=5,
         help="tasks in the minor adjustment's running average (0 = all, as in the paper)",
     )
+    p.add_argument(
+        "--late-share",
+        type=float,
+        default=None,
+        metavar="P",
+        help="about this share of the adjusted tasks may run late ([controller] late_share; "
+        "default: the average steered to the deadline)",
+    )
     p.add_argument("--drift", type=float, default=0.0, help="load growth per task (e.g. 0.003)")
     p.add_argument(
         "--load-step",
@@ -93,7 +101,10 @@ def _run_one(args: argparse.Namespace, deadline: float) -> tuple[SimulationResul
             load_steps=tuple(args.load_step),
         )
         cfg = ControllerConfig(
-            deadline_s=deadline, margin_s=args.margin, adjust_window=args.adjust_window
+            deadline_s=deadline,
+            margin_s=args.margin,
+            adjust_window=args.adjust_window,
+            late_share=args.late_share,
         )
     except ValueError as exc:
         raise SimulateError(str(exc)) from None

@@ -23,6 +23,7 @@ import copy
 import dataclasses
 import logging
 import math
+import statistics
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -50,6 +51,8 @@ _FINE_CLIMB = 0.25
 #: The adjustment goes up when the last two tasks both took less than this share of its
 #: target, whatever the window's mean (which lags behind a slow stretch that is over).
 _CLEARLY_UNDER = 0.8
+# Adjusted tasks measured before ``late_share`` moves the target (until then: adjust_target).
+_LATE_MIN = 8
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,6 +116,18 @@ class ControllerConfig:
     adjust_target: float = 1.0
     """The adjustment steers the running average to adjust_target * Δt (1.0 = the paper;
     e.g. 0.9 trades some quality for fewer deadline misses under noisy timings)."""
+    late_share: float | None = None
+    """Beyond the paper (None: off, the average is steered to ``adjust_target`` x Δt and,
+    with the tasks' times spread around it, a third of them can run late). About this
+    share of the adjusted tasks may run past Δt (e.g. 0.1): the adjustment steers the
+    average to Δt / (1 + z s) instead, s the spread of the adjusted tasks' times around the
+    running average each of them met (1.4826 x the median absolute deviation of t / avg - 1
+    over the last ``late_window``, from ``_LATE_MIN`` of them on), z the standard normal
+    quantile of 1 - late_share; never above ``adjust_target`` x Δt. The average then sits
+    below Δt by what the spread asks (a deadline for every task rather than for their
+    mean)."""
+    late_window: int = 30
+    """Adjusted tasks whose spread ``late_share`` measures."""
     research_window: int = 5
     """Tasks in the median the jump trigger looks at, and the count the saturation trigger
     needs (see ``docs/OPTIMIZER.md``)."""
@@ -205,6 +220,10 @@ class ControllerConfig:
             raise ValueError(f"adjust_target must be in (0, 1.5], got {self.adjust_target}")
         if not 0 < self.guide_margin <= 0.5:
             raise ValueError(f"guide_margin must be in (0, 0.5], got {self.guide_margin}")
+        if self.late_share is not None and not 0 < self.late_share < 0.5:
+            raise ValueError(f"late_share must be None or in (0, 0.5), got {self.late_share}")
+        if self.late_window < _LATE_MIN:
+            raise ValueError(f"late_window must be >= {_LATE_MIN}, got {self.late_window}")
         if self.research_jump >= 1.0:
             raise ValueError(f"research_jump must be < 1, got {self.research_jump}")
 
@@ -292,6 +311,9 @@ class _State:
     adjust_times: list[float] = field(default_factory=list)
     adjust_sum: float = 0.0
     adjust_count: int = 0
+    late_residuals: list[float] = field(default_factory=list)
+    """t / avg - 1 of the last ``late_window`` adjusted tasks, avg the running average
+    before each (``late_share``)."""
     recent: list[float] = field(default_factory=list)
     recent_scales: list[float] = field(default_factory=list)
     """The r of each of the ``recent`` adjusted tasks (``start_from_measurement``)."""
@@ -348,6 +370,20 @@ class BisectionController:
     @property
     def phase(self) -> Phase:
         return self.s.phase
+
+    @property
+    def target_s(self) -> float:
+        """The average time the adjustment steers to: ``adjust_target`` x Δt, or with
+        ``late_share`` Δt / (1 + z s) from the adjusted tasks' spread, whichever is less."""
+        c = self.config
+        base = c.deadline_s * c.adjust_target
+        res = self.s.late_residuals
+        if c.late_share is None or len(res) < _LATE_MIN:
+            return base
+        r = np.asarray(res[-c.late_window :], np.float64)
+        spread = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        z = statistics.NormalDist().inv_cdf(1.0 - c.late_share)
+        return min(base, c.deadline_s / (1.0 + z * spread))
 
     @property
     def search_steps(self) -> int:
@@ -824,7 +860,7 @@ class BisectionController:
         at 0.64-1.5 s against 2.14)."""
         s = self.s
         c = self.config
-        dl = c.deadline_s * c.adjust_target
+        dl = self.target_s
         ceiling = self._r_ceiling(best.num_cameras)
         if (
             best.scale >= c.r_max - _EPS
@@ -844,7 +880,15 @@ class BisectionController:
     def _observe_adjust(self, t: float) -> None:
         s = self.s
         c = self.config
-        dl = c.deadline_s * c.adjust_target
+        dl = self.target_s
+        if c.late_share is not None and s.adjust_count:
+            # The task's time against the running average it was steered by.
+            before = (
+                float(np.mean(s.adjust_times)) if c.adjust_window else s.adjust_sum / s.adjust_count
+            )
+            if before > 0:
+                s.late_residuals.append(t / before - 1.0)
+                del s.late_residuals[: -c.late_window]
         s.adjust_count += 1
         s.adjust_sum += t
         if c.adjust_window:

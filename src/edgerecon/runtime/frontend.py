@@ -687,7 +687,7 @@ class FrontEnd:
             return plan.scale
         if not isinstance(ctrl, BisectionController):
             return plan.scale
-        target = ctrl.config.deadline_s * ctrl.config.adjust_target
+        target = ctrl.target_s
         factor = self.workload.factor(area, spent_s, target, plan.scale)
         if factor == 1.0:
             return plan.scale
