@@ -427,7 +427,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--section", nargs="+", default=["table3", "exact", "adjust", "late", "triggers"])
+    ap.add_argument(
+        "--section", nargs="+", default=["table3", "exact", "adjust", "late", "triggers"]
+    )
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--tasks", type=int, default=200)
     ap.add_argument("--models", type=int, default=500, help="random models in 'exact'")

@@ -214,6 +214,16 @@ def test_the_resume_command_repeats_a_share():
     assert "--deadline 35% --frames 0:9:2" in resume_command(args)
     args.deadline = parse_deadline("0.75")
     assert "--deadline 0.75 " in resume_command(args)
+    args.late_share = 0.1
+    assert "--late-share 0.1" in resume_command(args)
+
+
+def test_late_share_reaches_the_controller(tiny_dataset, tmp_path):
+    out = tmp_path / "run"
+    assert _run(tiny_dataset, out, "--frames", "0:1", "--late-share", "0.15") == 0
+    state = json.loads((out / "state.json").read_text())
+    assert state["frontend"]["controller"]["config"]["late_share"] == 0.15
+    assert "late_share = 0.15" in (out / "config.toml").read_text()
 
 
 def test_a_share_from_the_config_file(tiny_dataset, tmp_path, capsys):
