@@ -238,3 +238,30 @@ def test_a_share_from_the_config_file(tiny_dataset, tmp_path, capsys):
     assert main([*words, "--config", str(cfg), "--deadline", "9", "--overwrite", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)["summary"]
     assert summary["deadline_s"] == 9 and summary["original_s"] is None
+
+
+def test_the_original_pipeline_is_timed_on_usable_frames(
+    tiny_dataset, tmp_path_factory, tmp_path, capsys
+):
+    """Lights out at the first timestamp, a camera blinded at the next: the original
+    pipeline is timed on the first frames every camera can use (said), and a stream with
+    none is refused with the way out."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    src = tmp_path_factory.mktemp("dark") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    black = np.zeros((240, 320, 3), np.uint8)
+    for cam in range(5):
+        cv2.imwrite(str(src / "frames" / f"cam{cam}" / "000003.png"), black)
+    cv2.imwrite(str(src / "frames" / "cam2" / "000004.png"), black)
+    words = ["run", "--dataset", str(src), "--deadline", "50%", "--no-background-updates"]
+    assert main([*words, "--out", str(tmp_path / "a"), "--frames", "3:6", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads((tmp_path / "a" / "state.json").read_text())["original"]["time_index"] == 5
+    assert "time 3: cam0 black" in captured.err and "time 4: cam2 black" in captured.err
+    assert main([*words, "--out", str(tmp_path / "b"), "--frames", "3:4"]) == 2
+    err = capsys.readouterr().err
+    assert "could not be measured" in err and "give --deadline in seconds" in err

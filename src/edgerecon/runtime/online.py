@@ -26,15 +26,18 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from edgerecon import progress
 from edgerecon.config import ReconstructionConfig
 from edgerecon.io.dataset import Dataset
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
 from edgerecon.pipeline import fine_scale_limit, reconstruct, warm_up
+from edgerecon.quality.frames import frame_defects
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.engine import (
     EmbeddedEngine,
@@ -47,6 +50,7 @@ from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
 from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder
+from edgerecon.types import EdgereconError
 
 logger = logging.getLogger(__name__)
 
@@ -97,35 +101,84 @@ def make_controller(
 #: Runs of the original pipeline behind ``measure_original``: the least time counts (load
 #: only adds time; one run on this 2-core machine varied by 1.55-1.91 s on one capture).
 ORIGINAL_RUNS = 2
+#: Timestamps ``measure_original`` may try over a recorded stream.
+_ORIGINAL_TRIES = 5
 
 
 def measure_original(
-    dataset: Dataset, config: RuntimeConfig, time_index: int, runs: int = ORIGINAL_RUNS
+    dataset: Dataset,
+    config: RuntimeConfig,
+    times: Sequence[int],
+    runs: int = ORIGINAL_RUNS,
 ) -> OriginalTiming:
     """The original pipeline (r = 1, every camera, the whole scene, the run's sparse and
-    whole-scene dense settings) on the frames of ``time_index``, timed by its own stages
-    after the compiled kernels are loaded: the fastest of ``runs`` runs."""
+    whole-scene dense settings) timed by its own stages after the compiled kernels are
+    loaded, the fastest of ``runs`` runs, on the first of ``times`` (ascending) whose frames
+    every camera can use (none missing, black, saturated or textureless:
+    ``quality.frames``) and whose dense cloud is not empty: the lights out or a covered lens
+    at the first timestamp would time a pipeline that finds nothing. ``EdgereconError``
+    when none of them serves (the deadline must then be given in seconds)."""
     warm_up()
-    with dataset.open_frames() as source:
-        frames = source.read(time_index)
     n = len(dataset.rig)
     rc = ReconstructionConfig(
         scale=1.0, sparse_config=config.sparse, dense_config=config.background_dense
     )
-    best = None
-    for i in range(max(1, runs)):
-        with progress.phase(
-            f"the original pipeline at time {time_index} (r = 1, {n} cameras), run {i + 1}"
-        ):
-            timings = reconstruct(frames, dataset.rig, rc).timings
-        if best is None or timings.total < best.total:
-            best = timings
-    assert best is not None
-    return OriginalTiming(
-        time_index=frames.time_index,
-        seconds=round(best.total, 4),
-        stages={k: round(float(v), 4) for k, v in best.seconds.items()},
+    skipped: list[str] = []
+    with dataset.open_frames(missing="skip_camera") as source:
+        for t in times:
+            frames = source.read(t)
+            defects = frame_defects(frames, config.frame_check)
+            unusable = [
+                f"{cam.name} {'no frame' if im is None else d}"
+                for cam, im, d in zip(dataset.rig, frames.images, defects, strict=True)
+                if im is None or d is not None
+            ]
+            if unusable:
+                skipped.append(f"time {frames.time_index}: {', '.join(unusable)}")
+                continue
+            best = None
+            for i in range(max(1, runs)):
+                with progress.phase(
+                    f"the original pipeline at time {frames.time_index} (r = 1, {n} cameras), "
+                    f"run {i + 1}"
+                ):
+                    try:
+                        result = reconstruct(frames, dataset.rig, rc)
+                    except EdgereconError as exc:
+                        skipped.append(f"time {frames.time_index}: {exc}")
+                        break
+                if result.dense is None or not result.dense.num_points:
+                    skipped.append(f"time {frames.time_index}: an empty dense cloud")
+                    break
+                if best is None or result.timings.total < best.total:
+                    best = result.timings
+            if best is not None:
+                if skipped:
+                    logger.warning(
+                        "the original pipeline timed at time %d (%s)",
+                        frames.time_index,
+                        "; ".join(skipped),
+                    )
+                return OriginalTiming(
+                    time_index=frames.time_index,
+                    seconds=round(best.total, 4),
+                    stages={k: round(float(v), 4) for k, v in best.seconds.items()},
+                )
+    raise EdgereconError(
+        "the deadline is a share of the original pipeline's time, which could not be "
+        f"measured ({'; '.join(skipped)}): give --deadline in seconds"
     )
+
+
+def original_times(dataset: Dataset, todo: Sequence[int], first: int) -> list[int]:
+    """The timestamps ``measure_original`` tries: the first task's, then four more spread
+    over the tasks to run (a live stream: its newest frames, three times)."""
+    if dataset.is_live:
+        return [first, first + 1, first + 2]
+    if not todo:
+        return [first]
+    picks = np.linspace(0, len(todo) - 1, _ORIGINAL_TRIES).round().astype(int)
+    return sorted({todo[int(i)] for i in picks})
 
 
 def check_options(
@@ -197,6 +250,7 @@ def run_online(
         )
         previous = [] if saved is None else folder.read_metrics(saved.tasks_done)
         done = {m.time_index for m in previous}
+        todo: list[int] = []
         if dataset.is_live:  # tasks are numbered on: no frame index to catch up to
             first = max(done, default=fr.start - 1) + 1
         else:
@@ -208,7 +262,7 @@ def run_online(
         if share is not None:
             measured_before = original is not None
             if original is None:
-                original = measure_original(dataset, config, first)
+                original = measure_original(dataset, config, original_times(dataset, todo, first))
             config = config.with_original(original.seconds)
             logger.warning(
                 "deadline %.3g s: %.0f %% of the original pipeline's %.3f s (r = 1, %d cameras, "
