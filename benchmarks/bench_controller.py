@@ -30,6 +30,7 @@ import json
 import platform
 import subprocess
 import sys
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -141,34 +142,47 @@ def exact(args: argparse.Namespace) -> None:
     )
 
 
+def _converged(
+    args: argparse.Namespace,
+    controller: Callable[[float], ControllerConfig],
+    simulator: SimulatorConfig,
+) -> list[Any]:
+    """The simulations at deadlines 5 / 7.5 / 10 s and ``args.seeds`` seeds that converged."""
+    out = []
+    for deadline in (5.0, 7.5, 10.0):
+        cfg = controller(deadline)
+        for seed in range(args.seeds):
+            res = run_simulation(
+                deadline, args.tasks, seed=seed, controller=cfg, simulator=simulator
+            )
+            if res.summary.tasks_converged:
+                out.append(res)
+    return out
+
+
+def _late_share(res: Any) -> float:
+    return res.summary.misses_converged / res.summary.tasks_converged
+
+
 def adjust(args: argparse.Namespace) -> None:
     for window in (0, 5, 10):
         for target in (1.0, 0.9):
-            err, miss, rstd = [], [], []
-            for deadline in (5.0, 7.5, 10.0):
-                cfg = ControllerConfig(
-                    deadline_s=deadline, adjust_window=window, adjust_target=target
-                )
-                for seed in range(args.seeds):
-                    res = run_simulation(
-                        deadline,
-                        args.tasks,
-                        seed=seed,
-                        controller=cfg,
-                        simulator=SimulatorConfig(time_noise=args.noise),
-                    )
-                    s = res.summary
-                    if s.tasks_converged:
-                        err.append(s.time_error)
-                        miss.append(s.misses_converged / s.tasks_converged)
-                        rstd.append(np.std([r.scale for r in res.rows[-s.tasks_converged :]]))
+            runs = _converged(
+                args,
+                lambda d, w=window, a=target: ControllerConfig(
+                    deadline_s=d, adjust_window=w, adjust_target=a
+                ),
+                SimulatorConfig(time_noise=args.noise),
+            )
+            err = [r.summary.time_error for r in runs]
+            rstd = [np.std([x.scale for x in r.rows[-r.summary.tasks_converged :]]) for r in runs]
             emit(
                 "adjust",
                 window=window,
                 target=target,
                 time_err_pct_mean=100 * float(np.mean(err)),
                 time_err_pct_max=100 * float(np.max(np.abs(err))),
-                miss_pct=100 * float(np.mean(miss)),
+                miss_pct=100 * float(np.mean([_late_share(r) for r in runs])),
                 r_std=float(np.mean(rstd)),
             )
 
@@ -395,31 +409,23 @@ def table4(args: argparse.Namespace) -> None:
 def late(args: argparse.Namespace) -> None:
     for kind, noise in (("uniform", args.noise), ("lognormal", args.noise * 2 / 3)):
         for share, target in ((None, 1.0), (None, 0.95), (0.2, 1.0), (0.1, 1.0), (0.05, 1.0)):
-            err, miss, quality = [], [], []
-            for deadline in (5.0, 7.5, 10.0):
-                cfg = ControllerConfig(deadline_s=deadline, adjust_target=target, late_share=share)
-                for seed in range(args.seeds):
-                    res = run_simulation(
-                        deadline,
-                        args.tasks,
-                        seed=seed,
-                        controller=cfg,
-                        simulator=SimulatorConfig(time_noise=noise, noise_kind=kind),
-                    )
-                    s = res.summary
-                    if s.tasks_converged:
-                        err.append(s.time_error)
-                        miss.append(s.misses_converged / s.tasks_converged)
-                        quality.append(s.avg_quality_converged)
+            runs = _converged(
+                args,
+                lambda d, p=share, a=target: ControllerConfig(
+                    deadline_s=d, adjust_target=a, late_share=p
+                ),
+                SimulatorConfig(time_noise=noise, noise_kind=kind),
+            )
+            miss = [_late_share(r) for r in runs]
             emit(
                 "late",
                 noise=f"{kind} {noise:g}",
                 late_share=share,
                 target=target,
-                time_err_pct_mean=100 * float(np.mean(err)),
+                time_err_pct_mean=100 * float(np.mean([r.summary.time_error for r in runs])),
                 late_pct=100 * float(np.mean(miss)),
                 late_pct_p90=100 * float(np.percentile(miss, 90)),
-                quality=float(np.mean(quality)),
+                quality=float(np.mean([r.summary.avg_quality_converged for r in runs])),
             )
 
 
