@@ -114,11 +114,7 @@ def run(args: argparse.Namespace) -> int:
     ):
         args.deadline = DeadlineShare(args.deadline_fraction)
     rt, controller_config = online_configs(args, cfg)
-    original = OriginalTiming(
-        time_index=t_mid,
-        seconds=round(golden.timings.total, 4),
-        stages={k: round(float(v), 4) for k, v in golden.timings.seconds.items()},
-    )
+    original = OriginalTiming.of(t_mid, golden.timings)
     rt = rt.with_original(original.seconds)
     deadline = rt.deadline_s
     if not args.json:

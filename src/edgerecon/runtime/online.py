@@ -17,9 +17,9 @@ uninterrupted run would.
 A deadline given as a share of the original pipeline (``run --deadline 40%``,
 ``RuntimeConfig.deadline_share``) is set here, before the controller exists: the original
 pipeline (r = 1, every camera, the whole scene; the paper's baseline and the ``reconstruct``
-command's) runs once on the first timestamp to run, timed by its own stage timings, while
-nothing else runs (:func:`measure_original`); a resumed run takes the time it started with
-from the run state.
+command's) runs twice on the first timestamp to run whose frames every camera can use,
+timed by its own stage timings (the faster counts), while nothing else runs
+(:func:`measure_original`); a resumed run takes the time it started with from the run state.
 """
 
 from __future__ import annotations
@@ -159,11 +159,7 @@ def measure_original(
                         frames.time_index,
                         "; ".join(skipped),
                     )
-                return OriginalTiming(
-                    time_index=frames.time_index,
-                    seconds=round(best.total, 4),
-                    stages={k: round(float(v), 4) for k, v in best.seconds.items()},
-                )
+                return OriginalTiming.of(frames.time_index, best)
     raise EdgereconError(
         "the deadline is a share of the original pipeline's time, which could not be "
         f"measured ({'; '.join(skipped)}): give --deadline in seconds"

@@ -38,7 +38,7 @@ from edgerecon.io.dataset import Dataset
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, read_ply, write_ply
 from edgerecon.runtime.frontend import FrontEndState
 from edgerecon.runtime.messages import TaskMetrics
-from edgerecon.types import EdgereconError, PointCloud
+from edgerecon.types import EdgereconError, PointCloud, StageTimings
 
 logger = logging.getLogger(__name__)
 
@@ -159,6 +159,15 @@ class OriginalTiming:
     seconds: float
     """The product's own stage timings, added up (``timings.json``'s total)."""
     stages: dict[str, float]
+
+    @classmethod
+    def of(cls, time_index: int, timings: StageTimings) -> OriginalTiming:
+        """From a reconstruction's stage timings."""
+        return cls(
+            time_index=int(time_index),
+            seconds=round(timings.total, 4),
+            stages={k: round(float(v), 4) for k, v in timings.seconds.items()},
+        )
 
     def to_dict(self) -> dict[str, Any]:
         return {"time_index": self.time_index, "seconds": self.seconds, "stages": self.stages}
