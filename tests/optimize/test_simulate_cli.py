@@ -52,3 +52,14 @@ def test_select_cameras_from_a_visibility_file(tmp_path, capsys):
     np.save(tmp_path / "bad.npy", np.full((4, 5), 3))
     assert main(["select-cameras", str(tmp_path / "bad.npy")]) == 2
     assert "0/1" in capsys.readouterr().err
+
+
+def test_simulate_late_share(capsys):
+    def misses(*extra):
+        assert main(["simulate", "--deadline", "7.5", "--tasks", "200", "--json", *extra]) == 0
+        summary = json.loads(capsys.readouterr().out)["runs"][0]["summary"]
+        return summary["misses_converged"] / summary["tasks_converged"]
+
+    assert misses("--late-share", "0.1") < 0.18 < 0.3 < misses()
+    assert main(["simulate", "--deadline", "7.5", "--late-share", "0.6"]) == 2
+    assert "late_share" in capsys.readouterr().err
