@@ -106,3 +106,19 @@ def test_the_stage_figure_is_the_critical_path(tmp_path):
     assert stage_means(runs[0]) == pytest.approx({"scene": 0.4, "fg_dense.depth": 0.2})
     ax = figure("stages", runs).axes[0]
     assert [t.get_text() for t in ax.get_yticklabels()] == ["scene", "fg_dense.depth"]
+
+
+def test_the_original_pipeline_measured_by_the_run_is_drawn_and_summed_up(tmp_path):
+    import json
+
+    run = write_run(tmp_path / "run", num_tasks=5, finished=False)
+    assert load_runs([run])[0].original_s is None
+    (run / "state.json").write_text(json.dumps({"original": {"seconds": 6.0}}))
+    runs = load_runs([run])  # in progress: from the run state
+    assert runs[0].original_s == 6.0
+    ax = figure("latency", runs).axes[0]
+    assert any(ln.get_linestyle() == ":" and ln.get_ydata()[0] == 6.0 for ln in ax.lines)
+    rows = dict(summary_rows(runs[0]))
+    assert rows["online / original"] == "0.250"  # tasks of 1.0-2.0 s, 1.5 s on average
+    (run / "summary.json").write_text(json.dumps({"tasks": 5, "original_s": 3.0}))
+    assert load_runs([run])[0].original_s == 3.0

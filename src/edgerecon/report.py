@@ -5,7 +5,7 @@ writes, atomically, PNG figures and a one-page summary:
 
 * ``latency.png``: critical path per task against the deadline (the paper's processing time
   per task), missed deadlines marked, failed tasks as ticks on the axis, degraded tasks
-  hollow;
+  hollow, and the original pipeline's time where the run measured it (``--deadline P%``);
 * ``configuration.png``: image scale r and number of cameras N' over tasks (the paper's
   resolution adaptation), the controller's phase as a background band;
 * ``quality.png``: online F-score (against the golden sparse reference) and, on synthetic
@@ -23,6 +23,7 @@ display is needed.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import os
@@ -58,6 +59,8 @@ class RunData:
     tasks: list[TaskMetrics]
     summary: dict[str, Any] | None
     """``summary.json`` (None while the run is in progress)."""
+    original_s: float | None = None
+    """The original pipeline's time the run measured (``run --deadline P%``), else None."""
 
     @property
     def ok(self) -> list[TaskMetrics]:
@@ -77,7 +80,13 @@ def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[RunData]:
         if not folder.tasks:
             raise EdgereconError(f"{folder.path}: the run has no task yet")
         runs.append(
-            RunData(path=folder.path, label="", tasks=folder.tasks, summary=folder.summary())
+            RunData(
+                path=folder.path,
+                label="",
+                tasks=folder.tasks,
+                summary=folder.summary(),
+                original_s=folder.original_s(),
+            )
         )
     deadlines = [r.deadline_s for r in runs]
     distinct = len({round(d, 3) for d in deadlines}) == len(runs)
@@ -87,7 +96,7 @@ def load_runs(paths: Sequence[str | os.PathLike[str]]) -> list[RunData]:
         label = f"deadline {r.deadline_s:g} s" if distinct and len(runs) > 1 else name
         if len(runs) == 1:
             label = f"{name} (deadline {r.deadline_s:g} s)"
-        out.append(RunData(path=r.path, label=label, tasks=r.tasks, summary=r.summary))
+        out.append(dataclasses.replace(r, label=label))
     return out
 
 
@@ -119,13 +128,21 @@ def plot_latency(ax: Axes, runs: Sequence[RunData]) -> None:
         miss = np.array([not m.deadline_met for m in ok], bool)
         ax.plot(x[miss], y[miss], "x", color="black", ms=5)
         ax.axhline(run.deadline_s, color=color, ls="--", lw=1)
+        if run.original_s is not None:
+            ax.axhline(run.original_s, color=color, ls=":", lw=1)
         failed = [m.task for m in run.tasks if m.status != "ok"]
         if failed:
             ax.plot(failed, np.zeros(len(failed)), "|", color=color, ms=12, mew=2)
     ax.set_xlabel("task")
     ax.set_ylabel("critical path (s)")
     ax.set_ylim(bottom=0)
-    ax.set_title("processing time per task (dashed: deadline, x: missed, o: degraded)")
+    original = any(r.original_s is not None for r in runs)
+    ax.set_title(
+        "processing time per task (dashed: deadline, "
+        + ("dotted: original pipeline,\n" if original else "")
+        + "x: missed, o: degraded)",
+        fontsize=10 if original else None,
+    )
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
 
@@ -290,9 +307,17 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
             "wall_s": None,
         }
     misses = sum(not m.deadline_met for m in ok)
+    original = []
+    if run.original_s is not None:
+        avg = mean([m.critical_path_s for m in ok])
+        original = [
+            ("original pipeline, r = 1, whole scene (s)", fmt(run.original_s, ".2f")),
+            ("online / original", fmt(None if avg is None else avg / run.original_s)),
+        ]
     return [
         ("run", f"{run.path}" + ("" if run.summary is not None else " (in progress)")),
-        ("deadline (s)", fmt(run.deadline_s, ".2f")),
+        ("deadline (s)", fmt(run.deadline_s, ".3g")),
+        *original,
         ("avg. resolution scale r", fmt(s.get("avg_scale"), ".2f")),
         (
             "# cameras (avg / last subset)",

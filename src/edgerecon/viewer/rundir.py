@@ -200,6 +200,21 @@ class RunFolder:
             return None
         return data if isinstance(data, dict) else None
 
+    def original_s(self) -> float | None:
+        """The original pipeline's time the run measured (``--deadline P%``): from
+        ``summary.json``, or while the run goes on from ``state.json``; None when it did
+        not measure it."""
+        summary = self.summary()
+        if summary is not None:
+            value = summary.get("original_s")
+        else:
+            try:
+                original = json.loads((self.path / STATE).read_text()).get("original")
+            except (OSError, json.JSONDecodeError, AttributeError):
+                return None
+            value = original.get("seconds") if isinstance(original, dict) else None
+        return float(value) if isinstance(value, int | float) and value > 0 else None
+
     @property
     def finished(self) -> bool:
         return (self.path / SUMMARY).exists()
