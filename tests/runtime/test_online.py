@@ -276,3 +276,28 @@ def test_a_background_update_that_raises_is_skipped_and_the_run_goes_on(
     assert all("scene_update" not in m.stages for m in metrics)
     skipped = [r.getMessage() for r in caplog.records if "skipped, the models miss" in r.message]
     assert any("time 4" in m for m in skipped)
+
+
+def test_the_original_pipeline_is_run_twice_unless_it_is_long(tiny, monkeypatch):
+    """``measure_original``: the faster of two runs; a run past 20 s is not repeated."""
+    import edgerecon.runtime.online as online
+
+    real = online.reconstruct
+    extra = iter([0.5, 0.1, 25.0])
+    calls = []
+
+    def timed(*args, **kwargs):
+        result = real(*args, **kwargs)
+        result.timings.add("padding", next(extra))
+        calls.append(result.timings.total)
+        return result
+
+    monkeypatch.setattr(online, "reconstruct", timed)
+    ds = tiny[0]
+    first = online.measure_original(ds, runtime_config(), [2])
+    assert len(calls) == 2 and first.time_index == 2
+    assert first.seconds == pytest.approx(min(calls), abs=1e-4)
+    assert first.stages["padding"] == pytest.approx(0.1)
+    long = online.measure_original(ds, runtime_config(), [3])
+    assert len(calls) == 3 and long.seconds > 25.0
+    assert online.original_times(ds, list(range(0, 8)), 0) == [0, 2, 4, 5, 7]
