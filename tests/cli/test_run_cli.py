@@ -154,6 +154,25 @@ def test_export_of_a_run_task_composes_its_merged_cloud(tiny_dataset, tmp_path, 
     ]
     assert main(cmd) == 0
     assert len(read_ply(fg)) == int((merged.labels > 0).sum())
+    # The whole run as a PLY sequence (Blender, Houdini, Open3D): one file per kept task.
+    seq = tmp_path / "seq"
+    capsys.readouterr()
+    cmd = ["export", str(out), "--to", "ply", "-o", str(seq), "--max-range", "none", "--json"]
+    assert main(cmd) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert sorted(p.name for p in seq.iterdir()) == ["000000.ply", "000001.ply", "000002.ply"]
+    assert report["unit"] == "m" and report["missing"] == 0
+    np.testing.assert_array_equal(
+        read_ply(seq / "000002.ply").points3D, merged.points3D.astype(got.points3D.dtype)
+    )
+    # The foreground alone, one task; a task the retention removed is said, not an error.
+    (out / "tasks" / "000001" / "fg.ply").unlink()
+    assert main([*cmd[:-1], "--cloud", "fg", "-o", str(tmp_path / "seqfg"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["missing"] == 1 and len(report["clouds"]) == 2
+    assert len(read_ply(tmp_path / "seqfg" / "000002.ply")) == int((merged.labels > 0).sum())
+    assert main([*cmd, "--time", "7"]) == 2
+    assert "no task cloud to export at time 7" in capsys.readouterr().err
 
 
 def test_a_deadline_as_a_share_of_the_original_pipeline(

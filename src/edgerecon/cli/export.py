@@ -11,13 +11,15 @@ from typing import Any
 
 import numpy as np
 
+from edgerecon import progress
 from edgerecon.cli._common import add_json_flag, console, emit_json
+from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.export import export_colmap, export_nerfstudio, z_up_metres
 from edgerecon.io.ply import PlyMeta, read_ply, read_ply_meta, write_ply
-from edgerecon.runtime.state import TASK_DROPPED, TASK_FOREGROUND
+from edgerecon.runtime.state import TASK_DROPPED, TASK_FOREGROUND, task_dir
 from edgerecon.types import DataError, PointCloud
-from edgerecon.viewer.rundir import RunFolder
+from edgerecon.viewer.rundir import RunFolder, read_run
 
 #: Clouds a reconstruction folder may hold, in the order ``--cloud auto`` picks them for
 #: each format (COLMAP: the SfM points first, as COLMAP's own models hold).
@@ -36,9 +38,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "tracks): openMVS reads it with `InterfaceCOLMAP -i OUT -o scene.mvs`. --to "
         "nerfstudio writes OUT/images/, OUT/transforms.json (pinhole cameras, OpenGL poses) "
         "and OUT/points3D.ply (the splats' start): `ns-train splatfacto --data OUT`. --to ply "
-        "writes one PLY with its unit and up direction in the header.",
+        "writes one PLY with its unit and up direction in the header; from a run folder "
+        "(RUN), one per task whose cloud the run kept, OUT/<time>.ply (a PLY sequence for "
+        "Blender, Houdini, CloudCompare, Open3D).",
     )
-    p.add_argument("source", help="reconstruction folder, run task folder, or a PLY file")
+    p.add_argument(
+        "source", help="reconstruction folder, run folder or run task folder, or a PLY file"
+    )
     p.add_argument("--out", "-o", required=True, help="output folder (colmap) or file (ply)")
     p.add_argument(
         "--to", choices=("colmap", "nerfstudio", "ply"), default="colmap", help="format (colmap)"
@@ -153,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
     dataset_path = args.dataset or recorded.get("dataset")
     time_index = args.time if args.time is not None else recorded.get("time")
     if args.to == "ply":
+        if _is_run(source):
+            return _run_ply_sequence(args, source, args.dataset)
         return _run_ply(args, source, dataset_path)
     if dataset_path is None:
         raise DataError(
@@ -288,45 +296,129 @@ def _occluders(source: Path, cloud_path: Path) -> PointCloud | None:
     return None
 
 
-def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
-    cloud_path = _cloud_path(source, args.cloud, _PLY_ORDER)
-    cloud = _read_cloud(cloud_path)
-    meta = _read_meta(cloud_path)
-    dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
+def _is_run(folder: Path) -> bool:
+    """The output folder of ``run`` (its tasks' clouds under ``tasks/``)."""
+    return folder.is_dir() and (folder / "metrics.jsonl").is_file() and (folder / "tasks").is_dir()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Written:
+    path: Path
+    points: int
+    dropped: int
+    unit: str | None
+    up: tuple[float, ...] | None
+    note: str
+
+
+def _write_ply_as_asked(
+    args: argparse.Namespace,
+    cloud: PointCloud,
+    meta: PlyMeta,
+    rig: Rig | None,
+    out: Path,
+    name: str,
+) -> _Written:
+    """``cloud`` (read from ``name``, its header ``meta``) cropped by ``--max-range`` with
+    the ``rig``, converted by ``--z-up-metres``, written to ``out`` with its unit, up
+    direction and origin (the rig's, else the header's)."""
     dropped = 0
-    if dataset is not None:
-        cloud, dropped = crop_range(cloud, dataset.rig, args.max_range)
-    unit = dataset.rig.unit if dataset else meta.unit
-    up = tuple(dataset.rig.up) if dataset else meta.up
-    origin = np.asarray(dataset.rig.origin if dataset else meta.origin or (0.0, 0.0, 0.0))
+    if rig is not None:
+        cloud, dropped = crop_range(cloud, rig, args.max_range)
+    unit = rig.unit if rig else meta.unit
+    up = tuple(rig.up) if rig else meta.up
+    origin = np.asarray(rig.origin if rig else meta.origin or (0.0, 0.0, 0.0))
     note = ""
     if args.z_up_metres:
         if unit is None or up is None:
-            raise DataError(
-                f"{cloud_path} does not record its unit and up direction: give --dataset"
-            )
+            raise DataError(f"{name} does not record its unit and up direction: give --dataset")
         sim = z_up_metres(unit, up)
         cloud = sim.cloud(cloud)
         origin = sim.points(origin[None])[0]
         unit, up, note = sim.unit, sim.up, sim.describe()
-    out = Path(args.out)
-    if out.suffix.lower() != ".ply":
-        out = out / cloud_path.name
-    comments = [f"exported by edgerecon from {cloud_path.name}"]
+    comments = [f"exported by edgerecon from {name}"]
     if note:
         comments.append(f"world frame {note}")
     write_ply(out, cloud, unit=unit, up=up, origin=tuple(origin), comments=comments)
+    return _Written(path=out, points=len(cloud), dropped=dropped, unit=unit, up=up, note=note)
+
+
+def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
+    cloud_path = _cloud_path(source, args.cloud, _PLY_ORDER)
+    dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
+    out = Path(args.out)
+    if out.suffix.lower() != ".ply":
+        out = out / cloud_path.name
+    rig = dataset.rig if dataset is not None else None
+    w = _write_ply_as_asked(
+        args, _read_cloud(cloud_path), _read_meta(cloud_path), rig, out, cloud_path.name
+    )
     if args.json:
         emit_json(
-            {"ply": str(out), "points": len(cloud), "unit": unit, "up": up, "note": note,
-             "dropped": dropped}
+            {"ply": str(w.path), "points": w.points, "unit": w.unit, "up": w.up, "note": w.note,
+             "dropped": w.dropped}
         )  # fmt: skip
         return 0
-    if dropped:
-        console.print(f"left out {dropped:,} points beyond --max-range", soft_wrap=True)
+    if w.dropped:
+        console.print(f"left out {w.dropped:,} points beyond --max-range", soft_wrap=True)
     console.print(
-        f"wrote {out}: {len(cloud):,} points, unit {unit or 'unknown'}, up {up or 'unknown'}"
-        + (f" ({note})" if note else ""),
+        f"wrote {w.path}: {w.points:,} points, unit {w.unit or 'unknown'}, up "
+        f"{w.up or 'unknown'}" + (f" ({w.note})" if w.note else ""),
+        soft_wrap=True,
+    )
+    return 0
+
+
+def _run_ply_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: str | None) -> int:
+    """Every task of a run whose cloud it kept, as ``OUT/<time>.ply`` (``--time T``: that
+    task's alone): the merged cloud, or ``--cloud fg`` its foreground."""
+    if args.cloud not in ("auto", "merged", "fg"):
+        raise DataError(f"a run folder's tasks hold merged and fg clouds, not {args.cloud!r}")
+    folder = read_run(run_dir)
+    dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
+    rig = dataset.rig if dataset is not None else folder.rig()
+    times = [m.time_index for m in folder.tasks if m.status == "ok" and m.cloud_written]
+    if args.time is not None:
+        times = [t for t in times if t == args.time]
+    out = Path(args.out)
+    written: list[_Written] = []
+    missing = 0
+    for t in progress.track(times, "export the task clouds"):
+        if args.cloud == "fg":
+            path = task_dir(run_dir, t) / TASK_FOREGROUND
+            cloud = read_ply(path) if path.is_file() else None
+        else:
+            cloud = folder.cloud(t)
+        if cloud is None:  # removed by --keep-clouds or --min-free-mb
+            missing += 1
+            continue
+        name = f"{run_dir.name}/tasks/{t:06d}"
+        written.append(_write_ply_as_asked(args, cloud, PlyMeta(), rig, out / f"{t:06d}.ply", name))
+    if not written:
+        raise DataError(
+            f"{run_dir}: no task cloud to export"
+            + (f" at time {args.time}" if args.time is not None else "")
+            + (f" ({missing} removed by the run's retention)" if missing else "")
+        )
+    if args.json:
+        emit_json(
+            {
+                "folder": str(out),
+                "clouds": [{"ply": str(w.path), "points": w.points} for w in written],
+                "missing": missing,
+                "unit": written[0].unit,
+                "up": written[0].up,
+                "note": written[0].note,
+                "dropped": sum(w.dropped for w in written),
+            }
+        )
+        return 0
+    console.print(
+        f"wrote {len(written)} clouds to {out} ({written[0].path.name} .. {written[-1].path.name}, "
+        f"{int(np.mean([w.points for w in written])):,} points on average, unit "
+        f"{written[0].unit or 'unknown'})"
+        + (f"; {missing} tasks' clouds were removed by the run's retention" if missing else "")
+        + (f"; {written[0].note}" if written[0].note else ""),
         soft_wrap=True,
     )
     return 0
