@@ -16,6 +16,7 @@ from edgerecon.cli._common import add_json_flag, console, emit_json
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.export import export_colmap, export_nerfstudio, z_up_metres
+from edgerecon.io.las import write_las
 from edgerecon.io.ply import PlyMeta, read_ply, read_ply_meta, write_ply
 from edgerecon.runtime.state import TASK_DROPPED, TASK_FOREGROUND, task_dir
 from edgerecon.types import DataError, PointCloud
@@ -25,6 +26,8 @@ from edgerecon.viewer.rundir import RunFolder, read_run
 #: each format (COLMAP: the SfM points first, as COLMAP's own models hold).
 _COLMAP_ORDER = ("sparse.ply", "merged.ply", "dense.ply")
 _PLY_ORDER = ("merged.ply", "dense.ply", "sparse.ply")
+#: The formats of one cloud per file, and their file extensions.
+_CLOUD_FORMATS = {"ply": ".ply", "las": ".las", "laz": ".laz"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,16 +41,26 @@ def register(sub: argparse._SubParsersAction) -> None:
         "tracks): openMVS reads it with `InterfaceCOLMAP -i OUT -o scene.mvs`. --to "
         "nerfstudio writes OUT/images/, OUT/transforms.json (pinhole cameras, OpenGL poses) "
         "and OUT/points3D.ply (the splats' start): `ns-train splatfacto --data OUT`. --to ply "
-        "writes one PLY with its unit and up direction in the header; from a run folder "
-        "(RUN), one per task whose cloud the run kept, OUT/<time>.ply (a PLY sequence for "
-        "Blender, Houdini, CloudCompare, Open3D).",
+        "writes one PLY with its unit and up direction in the header, --to las / laz one LAS "
+        "file (QGIS, PDAL, Potree, CloudCompare); from a run folder (RUN), one per task whose "
+        "cloud the run kept, OUT/<time>.ply (a sequence for Blender, Houdini, Open3D) or "
+        ".las / .laz.",
     )
     p.add_argument(
         "source", help="reconstruction folder, run folder or run task folder, or a PLY file"
     )
-    p.add_argument("--out", "-o", required=True, help="output folder (colmap) or file (ply)")
     p.add_argument(
-        "--to", choices=("colmap", "nerfstudio", "ply"), default="colmap", help="format (colmap)"
+        "--out",
+        "-o",
+        required=True,
+        help="output folder (colmap, nerfstudio, a run's clouds) or file (ply, las, laz)",
+    )
+    p.add_argument(
+        "--to",
+        choices=("colmap", "nerfstudio", "ply", "las", "laz"),
+        default="colmap",
+        help="format (colmap); las / laz: ASPRS LAS 1.4 for GIS and survey tools (metres, "
+        "RGB, foreground class 64, object label in user_data, inferred points synthetic)",
     )
     p.add_argument(
         "--cloud",
@@ -158,10 +171,10 @@ def run(args: argparse.Namespace) -> int:
     recorded = _recorded(source if source.is_dir() else source.parent)
     dataset_path = args.dataset or recorded.get("dataset")
     time_index = args.time if args.time is not None else recorded.get("time")
-    if args.to == "ply":
+    if args.to in _CLOUD_FORMATS:
         if _is_run(source):
-            return _run_ply_sequence(args, source, args.dataset)
-        return _run_ply(args, source, dataset_path)
+            return _run_cloud_sequence(args, source, args.dataset)
+        return _run_cloud_file(args, source, dataset_path)
     if dataset_path is None:
         raise DataError(
             f"--to {args.to} needs the dataset (--dataset DIR): the cameras come from it"
@@ -311,7 +324,7 @@ class _Written:
     note: str
 
 
-def _write_ply_as_asked(
+def _write_cloud(
     args: argparse.Namespace,
     cloud: PointCloud,
     meta: PlyMeta,
@@ -320,8 +333,8 @@ def _write_ply_as_asked(
     name: str,
 ) -> _Written:
     """``cloud`` (read from ``name``, its header ``meta``) cropped by ``--max-range`` with
-    the ``rig``, converted by ``--z-up-metres``, written to ``out`` with its unit, up
-    direction and origin (the rig's, else the header's)."""
+    the ``rig``, converted by ``--z-up-metres``, written to ``out`` in ``--to``'s format
+    with its unit, up direction and origin (the rig's, else the header's; LAS: metres)."""
     dropped = 0
     if rig is not None:
         cloud, dropped = crop_range(cloud, rig, args.max_range)
@@ -336,27 +349,32 @@ def _write_ply_as_asked(
         cloud = sim.cloud(cloud)
         origin = sim.points(origin[None])[0]
         unit, up, note = sim.unit, sim.up, sim.describe()
-    comments = [f"exported by edgerecon from {name}"]
-    if note:
-        comments.append(f"world frame {note}")
-    write_ply(out, cloud, unit=unit, up=up, origin=tuple(origin), comments=comments)
+    if args.to in ("las", "laz"):
+        write_las(out, cloud, unit=unit, origin=tuple(origin))
+        unit = "m"  # LAS coordinates are metres
+    else:
+        comments = [f"exported by edgerecon from {name}"]
+        if note:
+            comments.append(f"world frame {note}")
+        write_ply(out, cloud, unit=unit, up=up, origin=tuple(origin), comments=comments)
     return _Written(path=out, points=len(cloud), dropped=dropped, unit=unit, up=up, note=note)
 
 
-def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
+def _run_cloud_file(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
     cloud_path = _cloud_path(source, args.cloud, _PLY_ORDER)
     dataset: Dataset | None = open_dataset(dataset_path) if dataset_path else None
     out = Path(args.out)
-    if out.suffix.lower() != ".ply":
-        out = out / cloud_path.name
+    ext = _CLOUD_FORMATS[args.to]
+    if out.suffix.lower() != ext:
+        out = out / (cloud_path.stem + ext)
     rig = dataset.rig if dataset is not None else None
-    w = _write_ply_as_asked(
+    w = _write_cloud(
         args, _read_cloud(cloud_path), _read_meta(cloud_path), rig, out, cloud_path.name
     )
     if args.json:
         emit_json(
-            {"ply": str(w.path), "points": w.points, "unit": w.unit, "up": w.up, "note": w.note,
-             "dropped": w.dropped}
+            {args.to: str(w.path), "points": w.points, "unit": w.unit, "up": w.up,
+             "note": w.note, "dropped": w.dropped}
         )  # fmt: skip
         return 0
     if w.dropped:
@@ -369,9 +387,10 @@ def _run_ply(args: argparse.Namespace, source: Path, dataset_path: str | None) -
     return 0
 
 
-def _run_ply_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: str | None) -> int:
-    """Every task of a run whose cloud it kept, as ``OUT/<time>.ply`` (``--time T``: that
-    task's alone): the merged cloud, or ``--cloud fg`` its foreground."""
+def _run_cloud_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: str | None) -> int:
+    """Every task of a run whose cloud it kept, as ``OUT/<time>.ply`` (or ``.las`` /
+    ``.laz``; ``--time T``: that task's alone): the merged cloud, or ``--cloud fg`` its
+    foreground."""
     if args.cloud not in ("auto", "merged", "fg"):
         raise DataError(f"a run folder's tasks hold merged and fg clouds, not {args.cloud!r}")
     folder = read_run(run_dir)
@@ -393,7 +412,8 @@ def _run_ply_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: str
             missing += 1
             continue
         name = f"{run_dir.name}/tasks/{t:06d}"
-        written.append(_write_ply_as_asked(args, cloud, PlyMeta(), rig, out / f"{t:06d}.ply", name))
+        path = out / f"{t:06d}{_CLOUD_FORMATS[args.to]}"
+        written.append(_write_cloud(args, cloud, PlyMeta(), rig, path, name))
     if not written:
         raise DataError(
             f"{run_dir}: no task cloud to export"
@@ -404,17 +424,22 @@ def _run_ply_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: str
         emit_json(
             {
                 "folder": str(out),
-                "clouds": [{"ply": str(w.path), "points": w.points} for w in written],
+                "clouds": [{args.to: str(w.path), "points": w.points} for w in written],
                 "missing": missing,
                 "unit": written[0].unit,
                 "up": written[0].up,
                 "note": written[0].note,
-                "dropped": sum(w.dropped for w in written),
+                "dropped": sum(w.dropped for w in written),  # the points beyond --max-range
             }
         )
         return 0
+    dropped = sum(w.dropped for w in written)
+    if dropped:
+        console.print(
+            f"left out {dropped:,} points beyond --max-range (all tasks together)", soft_wrap=True
+        )
     console.print(
-        f"wrote {len(written)} clouds to {out} ({written[0].path.name} .. {written[-1].path.name}, "
+        f"wrote {len(written)} cloud{'s' if len(written) != 1 else ''} to {out} ({written[0].path.name} .. {written[-1].path.name}, "
         f"{int(np.mean([w.points for w in written])):,} points on average, unit "
         f"{written[0].unit or 'unknown'})"
         + (f"; {missing} tasks' clouds were removed by the run's retention" if missing else "")
