@@ -71,3 +71,20 @@ def test_export_to_las_from_a_reconstruction(tiny_dataset, tmp_path, capsys):
     got, _ = read_las(report["laz"])
     assert len(got) == len(dense) == report["points"]
     assert np.abs(got.points3D - dense.points3D).max() <= 0.0005 + 1e-6
+
+
+def test_evaluate_against_a_laser_scan_in_metres(tmp_path, capsys):
+    """A reference scan as LAS (metres, world coordinates) against a rig's PLY in
+    millimetres about an origin: converted, scored in the PLY's unit."""
+    from edgerecon.io.ply import write_ply
+
+    cloud = _cloud(2000)
+    origin = (1000.0, -2000.0, 500.0)
+    write_ply(tmp_path / "pred.ply", cloud, unit="mm", origin=origin)
+    write_las(tmp_path / "scan.laz", cloud, unit="mm", origin=origin)
+    args = ["evaluate", str(tmp_path / "pred.ply"), str(tmp_path / "scan.laz"), "-d", "2", "--json"]
+    assert main(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["unit"] == "mm" and report["ref_converted_from"] == "m"
+    assert report["scores"][0]["fscore"] == 1.0
+    assert report["scores"][0]["accuracy_mean"] < 0.6  # the LAS millimetre's rounding

@@ -14,6 +14,7 @@ import numpy as np
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.geometry.camera import Rig
+from edgerecon.io.clouds import read_cloud_file
 from edgerecon.io.ply import read_ply, read_ply_meta
 from edgerecon.quality.metrics import QualityScore, evaluate_against, evaluate_nested
 from edgerecon.types import DataError, PointCloud
@@ -45,8 +46,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "seen by at least --min-views cameras. Reads any PLY (list properties such as "
         "openMVS's 'views' are skipped).",
     )
-    p.add_argument("pred", help="predicted cloud (PLY)")
-    p.add_argument("ref", nargs="?", help="reference cloud (PLY); omit with --gt")
+    p.add_argument("pred", help="predicted cloud (PLY, LAS or LAZ)")
+    p.add_argument(
+        "ref",
+        nargs="?",
+        help="reference cloud (PLY, or LAS / LAZ such as a laser scan of the site, in "
+        "metres: converted to PRED's unit); omit with --gt",
+    )
     p.add_argument(
         "--threshold",
         "-d",
@@ -197,7 +203,11 @@ def _dataset_rig(path: str | None) -> Rig | None:
 def read_pred(path: str, measured_only: bool) -> tuple[PointCloud, dict[str, Any]]:
     """PRED, without its inferred points when ``measured_only``, and the counts: ``inferred``
     (points PRED marks inferred), ``measured_only`` and ``num_pred_read``."""
-    cloud = read_ply(path)
+    return drop_inferred(read_ply(path), measured_only)
+
+
+def drop_inferred(cloud: PointCloud, measured_only: bool) -> tuple[PointCloud, dict[str, Any]]:
+    """``cloud`` without its inferred points when ``measured_only``, and the counts."""
     info = {
         "num_pred_read": len(cloud),
         "inferred": cloud.num_inferred,
@@ -222,12 +232,14 @@ def run(args: argparse.Namespace) -> int:
     if args.ref is None:
         raise DataError("give a reference cloud REF or a synthetic scene with --gt SCENE_DIR")
     t0 = time.perf_counter()
-    pred, inferred = read_pred(args.pred, args.measured_only)
-    ref = read_ply(args.ref)
-    ref_meta, pred_meta = read_ply_meta(args.ref), read_ply_meta(args.pred)
-    unit = ref_meta.unit or pred_meta.unit
+    pred_file, ref_file = read_cloud_file(args.pred), read_cloud_file(args.ref)
+    pred, inferred = drop_inferred(pred_file.cloud, args.measured_only)
+    # REF in PRED's unit (a LAS scan is in metres, a rig's PLY may be in millimetres).
+    unit = pred_file.unit or ref_file.unit
+    ref, ref_origin = ref_file.world(unit)
+    converted = ref_file.unit if ref_file.unit and ref_file.unit != unit else None
     # Clouds of a localised rig are read relative to their origin (io.ply): PRED into REF's.
-    shift = np.subtract(pred_meta.origin or (0.0, 0.0, 0.0), ref_meta.origin or (0.0, 0.0, 0.0))
+    shift = np.subtract(pred_file.origin or (0.0, 0.0, 0.0), ref_origin)
     if shift.any():
         pred = dataclasses.replace(pred, points3D=pred.points3D + shift)
     th = resolve_thresholds(args.threshold, _dataset_rig(args.dataset), ref, args.max_distance)
@@ -239,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
                 "pred": args.pred,
                 "ref": args.ref,
                 "unit": unit,
+                "ref_converted_from": converted,
                 **th.to_dict(),
                 "seconds": round(seconds, 3),
                 "num_pred": len(pred),
@@ -253,6 +266,8 @@ def run(args: argparse.Namespace) -> int:
         _rows(scores),
     )
     console.print(_inferred_note(inferred), soft_wrap=True)
+    if converted:
+        console.print(f"REF converted from {converted} to {unit}", soft_wrap=True)
     console.print(f"{th.describe(unit)}; {seconds:.1f} s", soft_wrap=True)
     return 0
 
