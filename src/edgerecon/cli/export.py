@@ -404,8 +404,8 @@ def _run_cloud_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: s
     missing = 0
     for t in progress.track(times, "export the task clouds"):
         if args.cloud == "fg":
-            path = task_dir(run_dir, t) / TASK_FOREGROUND
-            cloud = read_ply(path) if path.is_file() else None
+            fg_path = task_dir(run_dir, t) / TASK_FOREGROUND
+            cloud = read_ply(fg_path) if fg_path.is_file() else None
         else:
             cloud = folder.cloud(t)
         if cloud is None:  # removed by --keep-clouds or --min-free-mb
@@ -420,6 +420,7 @@ def _run_cloud_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: s
             + (f" at time {args.time}" if args.time is not None else "")
             + (f" ({missing} removed by the run's retention)" if missing else "")
         )
+    dropped = sum(w.dropped for w in written)  # the points beyond --max-range
     if args.json:
         emit_json(
             {
@@ -429,18 +430,18 @@ def _run_cloud_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: s
                 "unit": written[0].unit,
                 "up": written[0].up,
                 "note": written[0].note,
-                "dropped": sum(w.dropped for w in written),  # the points beyond --max-range
+                "dropped": dropped,
             }
         )
         return 0
-    dropped = sum(w.dropped for w in written)
     if dropped:
         console.print(
             f"left out {dropped:,} points beyond --max-range (all tasks together)", soft_wrap=True
         )
+    first, last = written[0].path.name, written[-1].path.name
     console.print(
-        f"wrote {len(written)} cloud{'s' if len(written) != 1 else ''} to {out} ({written[0].path.name} .. {written[-1].path.name}, "
-        f"{int(np.mean([w.points for w in written])):,} points on average, unit "
+        f"wrote {len(written)} cloud{'s' if len(written) != 1 else ''} to {out} ({first} .. "
+        f"{last}, {int(np.mean([w.points for w in written])):,} points on average, unit "
         f"{written[0].unit or 'unknown'})"
         + (f"; {missing} tasks' clouds were removed by the run's retention" if missing else "")
         + (f"; {written[0].note}" if written[0].note else ""),
