@@ -149,6 +149,79 @@ def test_a_georeferenced_run_writes_world_clouds_and_reads_them_back(far_dataset
     assert float(np.abs(stored.points3D + np.asarray(meta.origin) - OFFSET).max()) < 50
 
 
+def test_a_coordinate_reference_system_reaches_the_las_files(far_dataset, tmp_path, capsys):
+    """`import --crs` records the rig's CRS; a run's clouds and their LAS / PLY exports carry
+    it (QGIS places them), `export --crs` overrides it, bad ones are refused."""
+    import laspy
+
+    from edgerecon.io.las import read_las
+
+    geo = tmp_path / "geo"
+    frames = json.loads((far_dataset / "dataset.json").read_text())["frames"]["cameras"]
+    sources = [f"{n}={p}" for n, p in frames.items()]
+    calib = far_dataset / "rig.json"
+    assert main(["import", str(calib), *sources, "-o", str(geo), "--crs", "EPSG:32633"]) == 0
+    assert "UTM zone 33N" in capsys.readouterr().out
+    assert json.loads((geo / "rig.json").read_text())["crs"] == "EPSG:32633"
+    assert open_dataset(geo).rig.crs == "EPSG:32633"
+    run = tmp_path / "run"
+    args = ["run", "--dataset", str(geo), "--out", str(run), "--deadline", "20", "-q"]
+    assert main([*args, "--frames", "2:4", "--fixed", "0.6"]) == 0
+    assert read_ply_meta(run / "tasks" / "000003" / "fg.ply").crs == "EPSG:32633"
+    capsys.readouterr()
+    assert main(["export", str(run), "--to", "laz", "-o", str(tmp_path / "seq"), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["crs"] == "WGS 84 / UTM zone 33N" and len(report["clouds"]) == 2
+    path = report["clouds"][1]["laz"]
+    assert laspy.read(path).header.parse_crs().to_epsg() == 32633
+    cloud, info = read_las(path)
+    assert info["crs"] == "WGS 84 / UTM zone 33N"
+    assert float(np.abs(cloud.points3D - OFFSET).max()) < 50  # metres in the UTM zone
+    # A PLY keeps it as a comment; a LAS made from that PLY alone (no dataset) has it too.
+    ply = tmp_path / "t3.ply"
+    assert main(["export", str(run), "--to", "ply", "-t", "3", "-o", str(tmp_path / "p")]) == 0
+    (tmp_path / "p" / "000003.ply").rename(ply)
+    assert read_ply_meta(ply).crs == "EPSG:32633"
+    assert main(["export", str(ply), "--to", "las", "-o", str(tmp_path / "t3.las")]) == 0
+    assert read_las(tmp_path / "t3.las")[1]["crs"] == "WGS 84 / UTM zone 33N"
+    # --crs overrides the rig's (the same zone in ETRS89); bad ones: the reason, exit 2.
+    over = tmp_path / "over.las"
+    assert main(["export", str(ply), "--to", "las", "-o", str(over), "--crs", "25833"]) == 0
+    assert laspy.read(over).header.parse_crs().to_epsg() == 25833
+    capsys.readouterr()
+    for crs, why in (
+        ("EPSG:4326", "geographic"),
+        ("EPSG:2263", "US survey foot"),
+        ("no such crs", "not a coordinate reference system"),
+    ):
+        assert main(["export", str(ply), "--to", "las", "-o", str(over), "--crs", crs]) == 2
+        assert why in capsys.readouterr().err
+        assert main(["import", str(calib), *sources, "-o", str(tmp_path / "x"), "--crs", crs]) == 2
+        assert why in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+    assert main(["export", str(run / "tasks" / "000003"), "--to", "colmap", "--crs", "25833",
+                 "-o", str(tmp_path / "c")]) == 2  # fmt: skip
+    assert "--crs is for ply / las / laz" in capsys.readouterr().err
+
+
+def test_a_turned_world_leaves_the_rig_crs_out(tmp_path, capsys):
+    """--z-up-metres turns a rig whose up is not +Z: its CRS no longer applies."""
+    from edgerecon.io.las import read_las
+
+    cloud = PointCloud(points3D=np.random.default_rng(0).uniform(-1, 1, (50, 3)))
+    src = write_ply(tmp_path / "c.ply", cloud, unit="m", up=(0, -1, 0), crs="EPSG:32633")
+    out = tmp_path / "c.las"
+    assert main(["export", str(src), "--to", "las", "-o", str(out), "--z-up-metres"]) == 0
+    assert "reference system left out" in capsys.readouterr().out
+    assert read_las(out)[1]["crs"] is None
+    args = ["export", str(src), "--to", "las", "-o", str(out), "--z-up-metres"]
+    assert main([*args, "--crs", "EPSG:32633"]) == 2
+    assert "turns this rig's world frame" in capsys.readouterr().err
+    up = write_ply(tmp_path / "u.ply", cloud, unit="mm", up=(0, 0, 1), crs="EPSG:32633")
+    assert main(["export", str(up), "--to", "las", "-o", str(out), "--z-up-metres"]) == 0
+    assert read_las(out)[1]["crs"] == "WGS 84 / UTM zone 33N"  # millimetres to metres: kept
+
+
 def test_evaluate_against_the_truth_in_world_coordinates(tiny_dataset, tmp_path, capsys):
     """A PLY with an origin is scored against a synthetic scene's truth in world coordinates."""
     from edgerecon.synth import GroundTruth

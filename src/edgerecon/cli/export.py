@@ -14,6 +14,7 @@ import numpy as np
 from edgerecon import progress
 from edgerecon.cli._common import add_json_flag, console, emit_json
 from edgerecon.geometry.camera import Rig
+from edgerecon.io.crs import check_crs, crs_name
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.io.export import export_colmap, export_nerfstudio, z_up_metres
 from edgerecon.io.las import write_las
@@ -104,6 +105,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="convert to metres with the rig's up along +Z (viewers' convention); the COLMAP "
         "poses follow",
     )
+    p.add_argument(
+        "--crs",
+        metavar="CRS",
+        help="ply / las / laz: the world frame's coordinate reference system (EPSG:32633, "
+        "WKT; default: the rig's, set by `import --crs`): written into LAS as its WKT record "
+        "for QGIS / PDAL, into PLY as a comment; projected or geocentric, in metres",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -171,6 +179,10 @@ def run(args: argparse.Namespace) -> int:
     recorded = _recorded(source if source.is_dir() else source.parent)
     dataset_path = args.dataset or recorded.get("dataset")
     time_index = args.time if args.time is not None else recorded.get("time")
+    if args.crs is not None:
+        if args.to not in _CLOUD_FORMATS:
+            raise DataError(f"--crs is for ply / las / laz exports, not --to {args.to}")
+        check_crs(args.crs)
     if args.to in _CLOUD_FORMATS:
         if _is_run(source):
             return _run_cloud_sequence(args, source, args.dataset)
@@ -322,6 +334,7 @@ class _Written:
     unit: str | None
     up: tuple[float, ...] | None
     note: str
+    crs: str | None = None
 
 
 def _write_cloud(
@@ -341,6 +354,7 @@ def _write_cloud(
     unit = rig.unit if rig else meta.unit
     up = tuple(rig.up) if rig else meta.up
     origin = np.asarray(rig.origin if rig else meta.origin or (0.0, 0.0, 0.0))
+    crs = args.crs or (rig.crs if rig else meta.crs)
     note = ""
     if args.z_up_metres:
         if unit is None or up is None:
@@ -349,15 +363,23 @@ def _write_cloud(
         cloud = sim.cloud(cloud)
         origin = sim.points(origin[None])[0]
         unit, up, note = sim.unit, sim.up, sim.describe()
+        if crs and not np.allclose(sim.R, np.eye(3)):  # turned: the CRS no longer applies
+            if args.crs:
+                raise DataError(
+                    "--z-up-metres turns this rig's world frame: --crs would not apply to it"
+                )
+            crs, note = None, note + "; its coordinate reference system left out (turned)"
     if args.to in ("las", "laz"):
-        write_las(out, cloud, unit=unit, origin=tuple(origin))
+        write_las(out, cloud, unit=unit, origin=tuple(origin), crs=crs)
         unit = "m"  # LAS coordinates are metres
     else:
         comments = [f"exported by edgerecon from {name}"]
         if note:
             comments.append(f"world frame {note}")
-        write_ply(out, cloud, unit=unit, up=up, origin=tuple(origin), comments=comments)
-    return _Written(path=out, points=len(cloud), dropped=dropped, unit=unit, up=up, note=note)
+        write_ply(out, cloud, unit=unit, up=up, origin=tuple(origin), crs=crs, comments=comments)
+    return _Written(
+        path=out, points=len(cloud), dropped=dropped, unit=unit, up=up, note=note, crs=crs
+    )
 
 
 def _run_cloud_file(args: argparse.Namespace, source: Path, dataset_path: str | None) -> int:
@@ -374,14 +396,16 @@ def _run_cloud_file(args: argparse.Namespace, source: Path, dataset_path: str | 
     if args.json:
         emit_json(
             {args.to: str(w.path), "points": w.points, "unit": w.unit, "up": w.up,
-             "note": w.note, "dropped": w.dropped}
+             "note": w.note, "dropped": w.dropped, "crs": crs_name(w.crs)}
         )  # fmt: skip
         return 0
     if w.dropped:
         console.print(f"left out {w.dropped:,} points beyond --max-range", soft_wrap=True)
     console.print(
         f"wrote {w.path}: {w.points:,} points, unit {w.unit or 'unknown'}, up "
-        f"{w.up or 'unknown'}" + (f" ({w.note})" if w.note else ""),
+        f"{w.up or 'unknown'}"
+        + (f", {crs_name(w.crs)}" if w.crs else "")
+        + (f" ({w.note})" if w.note else ""),
         soft_wrap=True,
     )
     return 0
@@ -431,6 +455,7 @@ def _run_cloud_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: s
                 "up": written[0].up,
                 "note": written[0].note,
                 "dropped": dropped,
+                "crs": crs_name(written[0].crs),
             }
         )
         return 0
@@ -442,7 +467,9 @@ def _run_cloud_sequence(args: argparse.Namespace, run_dir: Path, dataset_path: s
     console.print(
         f"wrote {len(written)} cloud{'s' if len(written) != 1 else ''} to {out} ({first} .. "
         f"{last}, {int(np.mean([w.points for w in written])):,} points on average, unit "
-        f"{written[0].unit or 'unknown'})"
+        f"{written[0].unit or 'unknown'}"
+        + (f", {crs_name(written[0].crs)}" if written[0].crs else "")
+        + ")"
         + (f"; {missing} tasks' clouds were removed by the run's retention" if missing else "")
         + (f"; {written[0].note}" if written[0].note else ""),
         soft_wrap=True,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.io.crs import crs_name
 from edgerecon.io.importer import import_dataset, parse_offsets, parse_up
 
 
@@ -77,6 +78,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--fps", type=float, help="frame rate (images have none; videos: override)")
     p.add_argument("--name", help="dataset name (default: the folder name)")
+    p.add_argument(
+        "--crs",
+        metavar="CRS",
+        help="the calibration's world frame is georeferenced in this coordinate reference "
+        "system (EPSG:32633, WKT; projected or geocentric, in metres): recorded in rig.json "
+        "and written into LAS exports, for QGIS / PDAL",
+    )
     p.add_argument("--force", action="store_true", help="replace an existing dataset.json")
     add_json_flag(p)
     p.set_defaults(func=run)
@@ -94,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         up=parse_up(args.up),
         fps=args.fps,
         name=args.name,
+        crs=args.crs,
         overwrite=args.force,
     )
     if args.json:
@@ -109,6 +118,8 @@ def run(args: argparse.Namespace) -> int:
     )
     console.print(f"unit: {report.unit_note}", soft_wrap=True)
     console.print(f"up: {report.up_note}", soft_wrap=True)
+    if rig.crs:
+        console.print(f"coordinate reference system: {crs_name(rig.crs)} ({rig.crs})")
     console.print(f"scene scale (median camera distance apart): {rig.scene_scale():.4g} {rig.unit}")
     print_table(
         "cameras (id = index for --cameras)",

@@ -200,6 +200,7 @@ def run(args: argparse.Namespace) -> int:
             unit=rig.unit,
             up=rig.up,
             origin=rig.origin,
+            crs=rig.crs,
         )
     atomic_write_text(out / "masks.json", to_json(summary) + "\n")
     if args.json:

@@ -180,11 +180,21 @@ def _run_whole(
     out = Path(args.out)
     with progress.phase("write the outputs"):
         write_ply(
-            out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up, origin=rig.origin
+            out / "sparse.ply",
+            result.sparse.cloud,
+            unit=rig.unit,
+            up=rig.up,
+            origin=rig.origin,
+            crs=rig.crs,
         )
         if result.dense is not None:
             write_ply(
-                out / "dense.ply", result.dense.cloud, unit=rig.unit, up=rig.up, origin=rig.origin
+                out / "dense.ply",
+                result.dense.cloud,
+                unit=rig.unit,
+                up=rig.up,
+                origin=rig.origin,
+                crs=rig.crs,
             )
         write_effective(out, "reconstruct", {"reconstruction": config})
     summary = {
@@ -237,9 +247,14 @@ def _run_split(
         )
     out = Path(args.out)
     with progress.phase("write the outputs"):
-        write_merged(out, result.merged, unit=rig.unit, up=rig.up, origin=rig.origin)
+        write_merged(out, result.merged, unit=rig.unit, up=rig.up, origin=rig.origin, crs=rig.crs)
         write_ply(
-            out / "sparse.ply", result.sparse.cloud, unit=rig.unit, up=rig.up, origin=rig.origin
+            out / "sparse.ply",
+            result.sparse.cloud,
+            unit=rig.unit,
+            up=rig.up,
+            origin=rig.origin,
+            crs=rig.crs,
         )
         write_effective(
             out,

@@ -465,6 +465,10 @@ class Rig:
     """World position of the frame the cameras are given in: a point's world coordinates are
     its coordinates in this frame plus ``origin``. Zero unless the rig was ``localised`` (a
     rig far from its world's origin, in georeferenced UTM or ECEF coordinates)."""
+    crs: str | None = None
+    """The coordinate reference system of the world frame, as the user gave it ("EPSG:32633",
+    WKT): a georeferenced rig's; written into LAS exports (``io.crs`` checks it). None: a
+    local frame."""
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -587,6 +591,8 @@ class Rig:
         }
         if any(self.origin):
             d["origin"] = list(self.origin)
+        if self.crs:
+            d["crs"] = self.crs
         return d
 
     @classmethod
@@ -599,6 +605,7 @@ class Rig:
             unit=str(d.get("unit", "m")),
             up=tuple(d.get("up", (0.0, 0.0, 1.0))),
             origin=tuple(d.get("origin", (0.0, 0.0, 0.0))),
+            crs=str(d["crs"]) if d.get("crs") else None,
         )
 
 

@@ -115,6 +115,7 @@ class Dataset:
             "num_frames": None if self.is_live else self.num_frames,
             "fps": self.fps,
             "unit": self.rig.unit,
+            "crs": self.rig.crs,
             "frames_kind": self.frames.kind,
             "background": self.background is not None,
             "ground_truth": None if self.ground_truth is None else str(self.ground_truth),

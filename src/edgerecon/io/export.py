@@ -404,6 +404,7 @@ def export_nerfstudio(
         unit=rig.unit,
         up=rig.up,
         origin=rig.origin,
+        crs=rig.crs,
         min_cameras=1,
     ).in_world()
     ply = write_ply(
@@ -412,6 +413,7 @@ def export_nerfstudio(
         unit=rig.unit,
         up=rig.up,
         origin=rig.origin,
+        crs=rig.crs,
         comments=["exported by edgerecon for nerfstudio"],
     )
     written = write_transforms(

@@ -42,6 +42,7 @@ from edgerecon.io.calib_mocap import easymocap_camera_names, read_easymocap
 from edgerecon.io.calib_nerf import transforms_calibration, transforms_camera_names
 from edgerecon.io.calibration import detect_calibration_format, load_calibration
 from edgerecon.io.colmap import find_colmap_model, read_colmap_model, rig_from_colmap
+from edgerecon.io.crs import check_crs
 from edgerecon.io.dataset import DESCRIPTOR, Dataset, open_dataset, write_dataset_descriptor
 from edgerecon.io.frames import (
     IMAGE_EXTENSIONS,
@@ -395,6 +396,7 @@ def import_dataset(
     up: str | tuple[float, float, float] = "auto",
     fps: float | None = None,
     name: str | None = None,
+    crs: str | None = None,
     overwrite: bool = False,
 ) -> ImportReport:
     """Write a dataset folder ``out`` from a calibration and per-camera frames (see the module
@@ -404,6 +406,8 @@ def import_dataset(
     calib = Path(calibration)
     if (out / DESCRIPTOR).exists() and not overwrite:
         raise DataError(f"{out / DESCRIPTOR} exists; pass overwrite=True (--force) to replace it")
+    if crs:
+        check_crs(crs)  # before any work
     fmt = detect_calibration_format(calib)
     if images is not None and fmt != "colmap":
         raise DataError("--images goes with a COLMAP model (its image names are the frames)")
@@ -430,6 +434,8 @@ def import_dataset(
     else:
         cal = load_calibration(calib)
         rig, lenses = cal.rig, dict(cal.lenses)
+    if crs:
+        rig = dataclasses.replace(rig, crs=crs)
     notes: list[str] = []
     unit_note = f"{rig.unit} (from the calibration)"
     if unit is not None:

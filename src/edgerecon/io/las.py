@@ -8,7 +8,9 @@ their millimetres), 16-bit RGB, and what edgerecon knows of each point: classifi
 the object label in ``user_data`` (0: background; labels above 255 are clipped), and the
 *synthetic* flag for points no stereo depth measured (``PointCloud.inferred``, the floor's
 completion). LAS records no unit of length: coordinates are written in metres (the rig's
-unit converted), and the header's generating software names edgerecon.
+unit converted), and the header's generating software names edgerecon. A georeferenced
+rig's coordinate reference system (``Rig.crs``, ``--crs``) is written as LAS 1.4's OGC WKT
+record (``io.crs`` checks it: metres, Cartesian); without one the file has none.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from edgerecon.io.crs import check_crs
 from edgerecon.io.export import METRES_PER_UNIT
 from edgerecon.io.ply import atomic_write_bytes
 from edgerecon.types import INFERRED, DataError, PointCloud
@@ -48,18 +51,23 @@ def write_las(
     *,
     unit: str | None,
     origin: Sequence[float] = (0.0, 0.0, 0.0),
+    crs: str | None = None,
 ) -> Path:
     """Write ``cloud`` (local coordinates in ``unit`` about ``origin``, the rig's) as LAS,
-    or LAZ when ``path`` ends in ``.laz``; atomically. Returns the path."""
+    or LAZ when ``path`` ends in ``.laz``; atomically; ``crs``: the world frame's coordinate
+    reference system (a WKT record). Returns the path."""
     import laspy
 
     path = Path(path)
+    checked = None if not crs else check_crs(crs)
     m = metres_per(unit)
     origin_m = np.asarray(origin, np.float64).reshape(3) * m
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.scales = np.full(3, SCALE_M)
     header.offsets = np.round(origin_m, 3)
     header.generating_software = "edgerecon"
+    if checked is not None:
+        header.add_crs(checked)
     las = laspy.LasData(header)
     n = len(cloud)
     xyz = cloud.points3D * m + origin_m
@@ -81,8 +89,9 @@ def write_las(
 
 def read_las(path: str | os.PathLike[str]) -> tuple[PointCloud, dict[str, object]]:
     """A LAS / LAZ file as a cloud in metres (world coordinates) and what its header says
-    (``generating_software``, ``point_format``, ``version``); labels from ``user_data``,
-    inferred from the synthetic flag."""
+    (``generating_software``, ``point_format``, ``version``, ``crs``: the name of its
+    coordinate reference system or None); labels from ``user_data``, inferred from the
+    synthetic flag."""
     import laspy
 
     try:
@@ -106,8 +115,19 @@ def read_las(path: str | os.PathLike[str]) -> tuple[PointCloud, dict[str, object
         "point_format": las.header.point_format.id,
         "version": str(las.header.version),
         "classification": np.asarray(las.classification).astype(np.uint8),
+        "crs": _crs_of(las.header),
     }
     return cloud, info
+
+
+def _crs_of(header: object) -> str | None:
+    """The name of the CRS a LAS header records (WKT or GeoTIFF keys), None without one or
+    without pyproj."""
+    try:
+        crs = header.parse_crs()  # type: ignore[attr-defined]
+    except Exception:  # an unreadable record is no CRS, not a bad file
+        return None
+    return None if crs is None else str(crs.name)
 
 
 __all__ = ["FOREGROUND_CLASS", "SCALE_M", "metres_per", "read_las", "write_las"]

@@ -106,6 +106,8 @@ class PlyMeta:
     origin: tuple[float, float, float] | None = None
     """``comment origin X Y Z``: the coordinates in the file are world coordinates and
     ``read_ply`` subtracts this (the local frame of a localised rig); None when absent."""
+    crs: str | None = None
+    """``comment crs TEXT``: the world frame's coordinate reference system (``Rig.crs``)."""
     comments: tuple[str, ...] = ()
     """Every comment line, in order."""
     num_vertices: int = 0
@@ -117,8 +119,10 @@ def ply_comments(
     unit: str | None = None,
     up: Sequence[float] | None = None,
     origin: Sequence[float] | None = None,
+    crs: str | None = None,
 ) -> list[str]:
-    """Header comments that record a cloud's unit, up direction and (non-zero) origin."""
+    """Header comments that record a cloud's unit, up direction, (non-zero) origin and
+    coordinate reference system (on one line)."""
     out = []
     if unit is not None:
         out.append(f"unit {unit}")
@@ -126,6 +130,8 @@ def ply_comments(
         out.append("up " + " ".join(repr(float(v)) for v in up))
     if origin is not None and any(origin):
         out.append("origin " + " ".join(repr(float(v)) for v in origin))
+    if crs:
+        out.append("crs " + " ".join(crs.encode("ascii", "replace").decode().split()))
     return out
 
 
@@ -137,12 +143,14 @@ def write_ply(
     unit: str | None = None,
     up: Sequence[float] | None = None,
     origin: Sequence[float] | None = None,
+    crs: str | None = None,
     comments: Sequence[str] = (),
 ) -> Path:
     """Write ``cloud`` as binary PLY, atomically. ``unit`` and ``up`` are recorded as header
     comments (``comment unit mm``, ``comment up 0 0 -1``) with any other ``comments``.
     ``origin`` (a localised rig's, non-zero): the points are relative to it; the file gets
-    world coordinates (``origin`` added) as float64 and ``comment origin X Y Z``.
+    world coordinates (``origin`` added) as float64 and ``comment origin X Y Z``; ``crs``
+    (a georeferenced rig's) as ``comment crs TEXT``.
     Every cloud gets the ``inferred`` property (all 0 when the cloud has no such attribute):
     readers can tell measured points from inferred ones in any file edgerecon writes.
     Returns the path."""
@@ -191,7 +199,7 @@ def write_ply(
         "ply",
         "format binary_little_endian 1.0",
         "comment written by edgerecon",
-        *(f"comment {c}" for c in [*ply_comments(unit, up, origin), *comments]),
+        *(f"comment {c}" for c in [*ply_comments(unit, up, origin, crs), *comments]),
         f"element vertex {n}",
     ]
     for name, code in fields:
@@ -288,11 +296,13 @@ def _parse_header(f: BinaryIO, path: Path) -> tuple[PlyMeta, str, list[_Element]
     vertex = next((e for e in elements if e[0] == "vertex"), None)
     if vertex is None:
         raise DataError(f"{path}: no 'vertex' element")
-    unit = up = origin = None
+    unit = up = origin = crs = None
     for c in comments:
         w = c.split()
         if len(w) == 2 and w[0] == "unit":
             unit = w[1]
+        elif len(w) >= 2 and w[0] == "crs":
+            crs = c.split(None, 1)[1]
         elif len(w) == 4 and w[0] in ("up", "origin"):
             with contextlib.suppress(ValueError):
                 vec = (float(w[1]), float(w[2]), float(w[3]))
@@ -304,6 +314,7 @@ def _parse_header(f: BinaryIO, path: Path) -> tuple[PlyMeta, str, list[_Element]
         unit=unit,
         up=up,
         origin=origin,
+        crs=crs,
         comments=tuple(comments),
         num_vertices=vertex[1],
         vertex_properties=tuple(

@@ -305,6 +305,7 @@ def run_online(
                 unit=rig.unit,
                 up=rig.up,
                 origin=rig.origin,
+                crs=rig.crs,
             )
             logger.warning(
                 "resuming after %d tasks (background %s, back-end epoch %d)",

@@ -505,7 +505,12 @@ class Session:
                 m.cloud_skipped = cloud and not room
                 if out.background is not None:  # before the task that refers to it
                     self.folder.write_background(
-                        out.background, version, unit=rig.unit, up=rig.up, origin=rig.origin
+                        out.background,
+                        version,
+                        unit=rig.unit,
+                        up=rig.up,
+                        origin=rig.origin,
+                        crs=rig.crs,
                     )
                     self.retention.background_written(version, len(out.background))
                 if cloud and room and out.foreground is not None:
@@ -517,6 +522,7 @@ class Session:
                         unit=rig.unit,
                         up=rig.up,
                         origin=rig.origin,
+                        crs=rig.crs,
                     )
                     self.retention.cloud_written(t, version)
                     m.cloud_written = True
