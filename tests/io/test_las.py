@@ -88,3 +88,32 @@ def test_evaluate_against_a_laser_scan_in_metres(tmp_path, capsys):
     assert report["unit"] == "mm" and report["ref_converted_from"] == "m"
     assert report["scores"][0]["fscore"] == 1.0
     assert report["scores"][0]["accuracy_mean"] < 0.6  # the LAS millimetre's rounding
+
+
+def test_evaluate_reprojects_a_scan_in_another_crs(tmp_path, capsys):
+    """A scan in the neighbouring UTM zone (its LAS record says so) against a rig's PLY in
+    UTM 33N (its comment): REF is moved into PRED's CRS before scoring."""
+    import pyproj
+
+    from edgerecon.io.ply import write_ply
+
+    rng = np.random.default_rng(1)
+    local = PointCloud(points3D=rng.uniform(-5, 5, (3000, 3)))
+    origin = (512_345.0, 4_123_456.0, 250.0)
+    write_ply(tmp_path / "pred.ply", local, unit="m", origin=origin, crs="EPSG:32633")
+    world = local.points3D + np.asarray(origin)
+    move = pyproj.Transformer.from_crs(32633, 32632, always_xy=True)
+    x, y, z = move.transform(world[:, 0], world[:, 1], world[:, 2])
+    scan = PointCloud(points3D=np.stack([x, y, z], 1))
+    assert np.abs(scan.points3D - world).max() > 1e5  # another zone: far apart as numbers
+    write_las(tmp_path / "scan.laz", scan, unit="m", crs="EPSG:32632")
+    args = ["evaluate", str(tmp_path / "pred.ply"), str(tmp_path / "scan.laz"), "-d", "0.01"]
+    assert main([*args, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["ref_reprojected"] == "WGS 84 / UTM zone 32N -> WGS 84 / UTM zone 33N"
+    assert report["scores"][0]["fscore"] == 1.0
+    assert report["scores"][0]["accuracy_mean"] < 0.001  # LAS's millimetre
+    assert main(args) == 0
+    assert "REF reprojected: WGS 84 / UTM zone 32N -> WGS 84 / UTM zone 33N" in (
+        capsys.readouterr().out
+    )

@@ -15,6 +15,7 @@ import numpy as np
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.clouds import read_cloud_file
+from edgerecon.io.crs import crs_name
 from edgerecon.io.ply import read_ply, read_ply_meta
 from edgerecon.quality.metrics import QualityScore, evaluate_against, evaluate_nested
 from edgerecon.types import DataError, PointCloud
@@ -233,6 +234,12 @@ def run(args: argparse.Namespace) -> int:
         raise DataError("give a reference cloud REF or a synthetic scene with --gt SCENE_DIR")
     t0 = time.perf_counter()
     pred_file, ref_file = read_cloud_file(args.pred), read_cloud_file(args.ref)
+    # A scan in another coordinate reference system than PRED's: moved into PRED's.
+    reprojected = None
+    moved = ref_file.reprojected(pred_file.crs)
+    if moved is not ref_file:
+        reprojected = f"{crs_name(ref_file.crs)} -> {crs_name(pred_file.crs)}"
+        ref_file = moved
     pred, inferred = drop_inferred(pred_file.cloud, args.measured_only)
     # REF in PRED's unit (a LAS scan is in metres, a rig's PLY may be in millimetres).
     unit = pred_file.unit or ref_file.unit
@@ -252,6 +259,7 @@ def run(args: argparse.Namespace) -> int:
                 "ref": args.ref,
                 "unit": unit,
                 "ref_converted_from": converted,
+                "ref_reprojected": reprojected,
                 **th.to_dict(),
                 "seconds": round(seconds, 3),
                 "num_pred": len(pred),
@@ -266,6 +274,8 @@ def run(args: argparse.Namespace) -> int:
         _rows(scores),
     )
     console.print(_inferred_note(inferred), soft_wrap=True)
+    if reprojected:
+        console.print(f"REF reprojected: {reprojected}", soft_wrap=True)
     if converted:
         console.print(f"REF converted from {converted} to {unit}", soft_wrap=True)
     console.print(f"{th.describe(unit)}; {seconds:.1f} s", soft_wrap=True)

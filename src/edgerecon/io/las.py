@@ -3,7 +3,7 @@ PDAL, Potree, CloudCompare, LAStools), through laspy (LAZ compression: lazrs).
 
 A cloud is written as point format 7: coordinates as 32-bit integers of a millimetre about
 an offset (the cloud's origin, so that a georeferenced rig's UTM or ECEF coordinates keep
-their millimetres), 16-bit RGB, and what edgerecon knows of each point: classification 64
+their millimetres; the cloud's centre when it is far from its origin), 16-bit RGB, and what edgerecon knows of each point: classification 64
 (the first class LAS 1.4 leaves to users) for the foreground, 1 (unclassified) for the rest,
 the object label in ``user_data`` (0: background; labels above 255 are clipped), and the
 *synthetic* flag for points no stereo depth measured (``PointCloud.inferred``, the floor's
@@ -62,17 +62,24 @@ def write_las(
     checked = None if not crs else check_crs(crs)
     m = metres_per(unit)
     origin_m = np.asarray(origin, np.float64).reshape(3) * m
+    n = len(cloud)
+    xyz = cloud.points3D * m + origin_m
+    offsets = np.round(origin_m, 3)
+
+    def fits(offsets: np.ndarray) -> bool:
+        return not n or bool(np.all(np.abs((xyz - offsets) / SCALE_M) < 2**31 - 1))
+
+    if not fits(offsets):  # world coordinates given about zero (a UTM cloud): its own centre
+        offsets = np.round((xyz.min(axis=0) + xyz.max(axis=0)) / 2)
+        if not fits(offsets):
+            raise DataError(f"{path}: the cloud spans more than 2,000 km: LAS cannot hold it")
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.scales = np.full(3, SCALE_M)
-    header.offsets = np.round(origin_m, 3)
+    header.offsets = offsets
     header.generating_software = "edgerecon"
     if checked is not None:
         header.add_crs(checked)
     las = laspy.LasData(header)
-    n = len(cloud)
-    xyz = cloud.points3D * m + origin_m
-    if n and not np.all(np.abs((xyz - header.offsets) / SCALE_M) < 2**31 - 1):
-        raise DataError(f"{path}: the cloud spans more than 2,000 km: LAS cannot hold it")
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     if cloud.colors is not None:
         rgb = cloud.colors.astype(np.uint16) * 257  # 8 to 16 bits: 255 -> 65535
@@ -90,7 +97,7 @@ def write_las(
 def read_las(path: str | os.PathLike[str]) -> tuple[PointCloud, dict[str, object]]:
     """A LAS / LAZ file as a cloud in metres (world coordinates) and what its header says
     (``generating_software``, ``point_format``, ``version``, ``crs``: the name of its
-    coordinate reference system or None); labels from ``user_data``, inferred from the
+    coordinate reference system or None, ``crs_wkt``: its WKT); labels from ``user_data``, inferred from the
     synthetic flag."""
     import laspy
 
@@ -115,19 +122,21 @@ def read_las(path: str | os.PathLike[str]) -> tuple[PointCloud, dict[str, object
         "point_format": las.header.point_format.id,
         "version": str(las.header.version),
         "classification": np.asarray(las.classification).astype(np.uint8),
-        "crs": _crs_of(las.header),
+        **_crs_of(las.header),
     }
     return cloud, info
 
 
-def _crs_of(header: object) -> str | None:
-    """The name of the CRS a LAS header records (WKT or GeoTIFF keys), None without one or
-    without pyproj."""
+def _crs_of(header: object) -> dict[str, str | None]:
+    """The name and WKT of the CRS a LAS header records (WKT or GeoTIFF keys), None
+    without one."""
     try:
         crs = header.parse_crs()  # type: ignore[attr-defined]
     except Exception:  # an unreadable record is no CRS, not a bad file
-        return None
-    return None if crs is None else str(crs.name)
+        crs = None
+    if crs is None:
+        return {"crs": None, "crs_wkt": None}
+    return {"crs": str(crs.name), "crs_wkt": str(crs.to_wkt())}
 
 
 __all__ = ["FOREGROUND_CLASS", "SCALE_M", "metres_per", "read_las", "write_las"]
