@@ -191,9 +191,9 @@ def _global(args: argparse.Namespace, name: str, default: Any) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from edgerecon.runtime.memory import limit_malloc_arenas
+    from edgerecon.runtime.memory import tune_malloc
 
-    limit_malloc_arenas()  # before any command starts threads or processes (runtime.memory)
+    tune_malloc()  # before any command starts threads or processes (runtime.memory)
     parser = build_parser()
     words = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(words)

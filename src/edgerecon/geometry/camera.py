@@ -369,10 +369,15 @@ class Camera:
             ) from None
 
 
-#: Bytes of undistortion maps kept (the newest used first): the online controller moves r in
-#: small steps, and each (camera, scale) pair's maps are 8 bytes per target pixel (16.6 MB
-#: for one 1080p camera at r = 1; 64 of them, the old count limit, were 1 GB).
-UNDISTORT_CACHE_BYTES = 256 * 2**20
+#: Bytes of undistortion maps kept (the newest used first). Each (camera, scale) pair's maps
+#: are 8 bytes per target pixel (16.6 MB for one 1080p camera at r = 1; 64 of them, the old
+#: count limit, were 1 GB). The online controller moves r in small steps: a live run's
+#: tasks hardly ever meet a scale again (60 tasks of caliscope_charuco computed 333 maps at
+#: 60 sizes), so what the cache serves is one task's cameras (its views, then its masks)
+#: and the fixed scales (the scene stage's working size, the golden r = 1): 96 MiB holds a
+#: 4-camera 1080p rig's golden maps. A 256 MiB cache filled with stale scales in minutes;
+#: maps cost 3-8 ms per camera to compute, nothing beside the task at that scale.
+UNDISTORT_CACHE_BYTES = 96 * 2**20
 _maps_cache: OrderedDict[tuple[Camera, float], tuple[NDArray[np.float32], NDArray[np.float32]]]
 _maps_cache = OrderedDict()
 _maps_lock = threading.Lock()

@@ -397,9 +397,9 @@ def rebuild_background(
 
 
 def _lower_priority(nice: int, idle: bool = False) -> None:
-    from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
+    from edgerecon.runtime.memory import start_heap_trimmer, tune_malloc
 
-    limit_malloc_arenas()  # the parent's MALLOC_ARENA_MAX, or the default
+    tune_malloc()  # the parent's MALLOC_ARENA_MAX / MALLOC_MMAP_THRESHOLD_, or the defaults
     start_heap_trimmer()
     try:
         os.nice(nice)

@@ -32,44 +32,76 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import cast
 
 logger = logging.getLogger(__name__)
 
-#: glibc's ``mallopt`` parameter for the arena count (malloc.h).
+#: glibc's ``mallopt`` parameters (malloc.h): the arena count, the size from which a block
+#: is mapped on its own.
 _M_ARENA_MAX = -8
+_M_MMAP_THRESHOLD = -3
 #: Arenas a run uses (one per core of the 2-core devices it targets).
 ARENAS = 2
-_done: int | None = None
+#: Blocks from this size on (an image, a depth map, a cloud's columns) are mapped on their
+#: own and given back when freed.
+MMAP_THRESHOLD = 1 << 20
 
 
-def limit_malloc_arenas(arenas: int = ARENAS) -> int | None:
-    """Limit glibc's malloc to ``arenas`` arenas (``MALLOC_ARENA_MAX`` when the user set
-    it) in this process and the ones it starts. Returns the limit set, None where the C
-    library is not glibc (nothing done but the environment variable)."""
-    global _done
-    value = os.environ.setdefault("MALLOC_ARENA_MAX", str(int(arenas)))
-    try:
-        limit = int(value)
-    except ValueError:
-        logger.warning("MALLOC_ARENA_MAX=%r is not a number: malloc's arenas not limited", value)
-        return None
-    if _done == limit:
-        return limit
+@dataclass(frozen=True)
+class MallocTuning:
+    """What :func:`tune_malloc` set in this process (None: not set)."""
+
+    arenas: int | None
+    mmap_threshold: int | None
+
+
+_done: dict[int, int] = {}
+
+
+def _mallopt() -> Callable[[int, int], int] | None:
+    """glibc's ``mallopt``, None elsewhere."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
     except (OSError, AttributeError):  # not glibc
         return None
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    if not mallopt(_M_ARENA_MAX, limit):
-        logger.debug("mallopt(M_ARENA_MAX, %d) refused", limit)
+    fn.argtypes = [ctypes.c_int, ctypes.c_int]
+    fn.restype = ctypes.c_int
+    return cast(Callable[[int, int], int], fn)
+
+
+def _set(env: str, param: int, default: int) -> int | None:
+    """``mallopt(param, value)`` with the user's ``env`` value, else ``default``, which the
+    processes started from here inherit through ``env``; the value set, or None."""
+    text = os.environ.setdefault(env, str(int(default)))
+    try:
+        value = int(text)
+    except ValueError:
+        logger.warning("%s=%r is not a number: malloc left as it is there", env, text)
         return None
-    _done = limit
-    return limit
+    if _done.get(param) == value:
+        return value
+    mallopt = _mallopt()
+    if mallopt is None:
+        return None
+    if not mallopt(param, value):
+        logger.debug("mallopt(%d, %d) refused", param, value)
+        return None
+    _done[param] = value
+    return value
+
+
+def tune_malloc(arenas: int = ARENAS, mmap_threshold: int = MMAP_THRESHOLD) -> MallocTuning:
+    """Limit glibc's malloc to ``arenas`` arenas and map blocks from ``mmap_threshold``
+    bytes on their own, in this process and the ones it starts (``MALLOC_ARENA_MAX`` and
+    ``MALLOC_MMAP_THRESHOLD_``; a value the user put there wins). Call it before the work
+    starts. Elsewhere than glibc nothing is done but the environment variables."""
+    return MallocTuning(
+        arenas=_set("MALLOC_ARENA_MAX", _M_ARENA_MAX, arenas),
+        mmap_threshold=_set("MALLOC_MMAP_THRESHOLD_", _M_MMAP_THRESHOLD, mmap_threshold),
+    )
 
 
 def _malloc_trim() -> Callable[[int], int] | None:
@@ -131,8 +163,10 @@ def stop_heap_trimmer(timeout: float = 5.0) -> None:
 
 __all__ = [
     "ARENAS",
+    "MMAP_THRESHOLD",
     "TRIM_INTERVAL_S",
-    "limit_malloc_arenas",
+    "MallocTuning",
     "start_heap_trimmer",
     "stop_heap_trimmer",
+    "tune_malloc",
 ]

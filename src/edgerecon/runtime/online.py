@@ -46,7 +46,7 @@ from edgerecon.runtime.engine import (
     learn_scene_model,
 )
 from edgerecon.runtime.frontend import FixedController
-from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
+from edgerecon.runtime.memory import start_heap_trimmer, tune_malloc
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
 from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder
@@ -240,7 +240,7 @@ def run_online(
     otherwise a run whose deadline is a share measures it (:func:`measure_original`), and a
     resumed one takes it from its state."""
     check_options(dataset, options, engine=engine, fixed=fixed)
-    limit_malloc_arenas()  # before the roles' threads and processes start (runtime.memory)
+    tune_malloc()  # before the roles' threads and processes start (runtime.memory)
     start_heap_trimmer()
     fr = options.frames
     with OutputFolder(out_dir).acquire(command) as folder:

@@ -160,9 +160,9 @@ class _BackendActor:
 
     def __init__(self, dataset: Dataset, config: RuntimeConfig, frontend_name: str) -> None:
         from edgerecon.runtime.backend import BackEnd
-        from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
+        from edgerecon.runtime.memory import start_heap_trimmer, tune_malloc
 
-        limit_malloc_arenas()  # a worker process of a cluster the driver did not start
+        tune_malloc()  # a worker process of a cluster the driver did not start
         start_heap_trimmer()
 
         ray = _ray()
@@ -237,9 +237,9 @@ class _FrontendActor:
         background: Any,
         niceness: int = 0,
     ) -> None:
-        from edgerecon.runtime.memory import limit_malloc_arenas, start_heap_trimmer
+        from edgerecon.runtime.memory import start_heap_trimmer, tune_malloc
 
-        limit_malloc_arenas()  # a worker process of a cluster the driver did not start
+        tune_malloc()  # a worker process of a cluster the driver did not start
         start_heap_trimmer()
         self.niceness = normal_priority(niceness)
         if self.niceness > niceness:
