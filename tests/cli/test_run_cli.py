@@ -4,6 +4,7 @@ Ctrl-C."""
 from __future__ import annotations
 
 import json
+import sys
 import time
 
 import pytest
@@ -77,6 +78,13 @@ def test_run_refuses_a_used_folder_resumes_and_overwrites(tiny_dataset, tmp_path
     resumed = json.loads(capsys.readouterr().out)
     assert [t["time_index"] for t in resumed["tasks"]] == [0, 1, 2]
     assert resumed["summary"]["tasks"] == 3
+    # Every task says the process's memory; the summary its first / last task's and peak.
+    if sys.platform.startswith("linux"):
+        rss = [t["rss_mb"] for t in resumed["tasks"]]
+        assert all(50 < x < 20_000 for x in rss), rss
+        mem = resumed["summary"]["memory_mb"]
+        assert mem["first"] == rss[0] and mem["last"] == rss[-1]
+        assert mem["peak"] >= rss[-1]
     # --overwrite starts again: no stale task folder of the old run remains.
     assert _run(tiny_dataset, out, "--frames", "1:2", "--fixed", "0.6", "--overwrite") == 0
     assert sorted(p.name for p in (out / "tasks").iterdir()) == ["000001"]

@@ -290,6 +290,15 @@ def print_summary(title: str, s: RunSummary) -> None:
         ),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
+    mem = s.memory_mb
+    if mem.get("last") is not None:
+        rows.append(
+            (
+                "memory, this process: first / last task, peak (MB)",
+                f"{mem['first']:,.0f} / {mem['last']:,.0f}, "
+                + ("-" if mem.get("peak") is None else f"{mem['peak']:,.0f}"),
+            )
+        )
     if s.original_s is not None:  # measured by the run (--deadline P%)
         share = "" if s.deadline_share is None else f" ({100 * s.deadline_share:g} % of it)"
         rows[1:1] = [

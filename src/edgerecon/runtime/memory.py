@@ -117,6 +117,28 @@ def _malloc_trim() -> Callable[[int], int] | None:
     return cast(Callable[[int], int], fn)
 
 
+def resident_mb() -> float | None:
+    """This process's resident memory now, MB (Linux's ``/proc/self/statm``; None
+    elsewhere)."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return round(pages * os.sysconf("SC_PAGE_SIZE") / 2**20, 1)
+
+
+def peak_resident_mb() -> float | None:
+    """This process's largest resident memory so far, MB (``getrusage``; None where it
+    cannot say)."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)  # bytes / KiB
+
+
 #: Seconds between two ``malloc_trim`` calls of a run's processes.
 TRIM_INTERVAL_S = 30.0
 _trimmer: threading.Thread | None = None
@@ -166,6 +188,8 @@ __all__ = [
     "MMAP_THRESHOLD",
     "TRIM_INTERVAL_S",
     "MallocTuning",
+    "peak_resident_mb",
+    "resident_mb",
     "start_heap_trimmer",
     "stop_heap_trimmer",
     "tune_malloc",

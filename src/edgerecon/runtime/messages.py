@@ -173,6 +173,9 @@ class TaskMetrics:
     """The task's cloud was not written: the output's disk was under ``--min-free-mb``."""
     error: str = ""
     """Why the task failed (status "failed"): the stage's exception, or the watchdog."""
+    rss_mb: float | None = None
+    """The resident memory of the run's main process when the task was committed, MB (None
+    where the system does not say; ``runtime.memory.resident_mb``)."""
     wall_time: float = 0.0
     """Unix time when the task finished."""
 

@@ -68,6 +68,7 @@ from edgerecon.quality.frames import FrameCheckConfig, frame_defects, without_de
 from edgerecon.quality.metrics import fscore
 from edgerecon.runtime.engine import Engine
 from edgerecon.runtime.frontend import TaskOutput
+from edgerecon.runtime.memory import peak_resident_mb, resident_mb
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.retention import CloudRetention, RetentionConfig
 from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder, RunState
@@ -228,6 +229,10 @@ class RunSummary:
     stream: dict[str, Any] = field(default_factory=dict)
     """Live streams: the source's counts (``StreamFrameSource.stats``) and the tasks' sync
     spread (mean / max seconds)."""
+    memory_mb: dict[str, float | None] = field(default_factory=dict)
+    """The main process's resident memory, MB: ``first`` and ``last`` task's (a resumed
+    run's first is that of the run's first task), ``peak`` since this process started
+    (every task's is in ``metrics.jsonl``, ``rss_mb``)."""
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -291,9 +296,14 @@ class RunTotals:
     stages: dict[str, float] = field(default_factory=dict)
     spread: _Mean = field(default_factory=_Mean)
     spread_max: float | None = None
+    rss_first: float | None = None
+    rss_last: float | None = None
 
     def add(self, m: TaskMetrics) -> None:
         self.tasks += 1
+        if m.rss_mb is not None:
+            self.rss_last = m.rss_mb
+            self.rss_first = m.rss_mb if self.rss_first is None else self.rss_first
         self.clouds_written += bool(m.cloud_written)
         self.clouds_skipped += bool(m.cloud_skipped)
         if m.sync_spread_s is not None:
@@ -527,6 +537,7 @@ class Session:
                     self.retention.cloud_written(t, version)
                     m.cloud_written = True
             # Background, cloud, metrics line, then the run state: the commit point.
+            m.rss_mb = resident_mb()
             self.folder.append_metrics(m)
             self._keep(m)
             RunState(
@@ -654,6 +665,7 @@ class Session:
             clouds_written=t.clouds_written,
             clouds_kept=len(self.retention.kept),
             clouds_skipped=t.clouds_skipped,
+            memory_mb={"first": t.rss_first, "last": t.rss_last, "peak": peak_resident_mb()},
         )
         reconstructed = t.time.count  # averages over the tasks that reconstructed
         if reconstructed:
