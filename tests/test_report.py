@@ -40,7 +40,9 @@ def test_figures_plot_the_runs_numbers(tmp_path):
     bg = figure("background", runs).axes[0]
     assert list(bg.lines[0].get_ydata()) == [0, 0, 1, 1, 2]
     assert stage_means(runs[0]) == pytest.approx({"sfm": 0.5, "fg_dense.depth": 0.9})
+    assert not figure("memory", runs).axes[0].lines  # no task recorded its memory
     rows = dict(summary_rows(runs[0]))
+    assert "memory: first / last / largest task (MB)" not in rows
     assert rows["deadline misses (all / after convergence)"].startswith("2 / ")
     assert rows["tasks / failed / degraded"].startswith("6 / 1 / ")
 
@@ -122,3 +124,15 @@ def test_the_original_pipeline_measured_by_the_run_is_drawn_and_summed_up(tmp_pa
     assert rows["online / original"] == "0.250"  # tasks of 1.0-2.0 s, 1.5 s on average
     (run / "summary.json").write_text(json.dumps({"tasks": 5, "original_s": 3.0}))
     assert load_runs([run])[0].original_s == 3.0
+
+
+def test_the_memory_figure_follows_each_tasks_resident_memory(tmp_path):
+    run = write_run(tmp_path / "run", num_tasks=0)
+    for k, rss in enumerate([500.0, 620.5, 610.0, 640.0]):
+        append_task(run, task_metrics(k, rss_mb=rss, wall_time=1000.0 + 30.0 * k), None)
+    runs = load_runs([run])
+    line = figure("memory", runs).axes[0].lines[0]
+    assert np.allclose(line.get_xdata(), [0.0, 0.5, 1.0, 1.5])  # minutes
+    assert np.allclose(line.get_ydata(), [500.0, 620.5, 610.0, 640.0])
+    rows = dict(summary_rows(runs[0]))
+    assert rows["memory: first / last / largest task (MB)"] == "500 / 640 / 640"

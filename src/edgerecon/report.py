@@ -45,7 +45,15 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 #: Files :func:`write_report` writes, in order.
-FIGURES = ("latency", "configuration", "quality", "background", "stages", "summary")
+FIGURES = (
+    "latency",
+    "configuration",
+    "quality",
+    "background",
+    "stages",
+    "memory",
+    "summary",
+)
 _COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#17becf")
 _PHASE_SHADE = {"golden": "#f2f2f2", "search": "#fff3e0", "adjust": "#e8f5e9"}
 
@@ -243,6 +251,27 @@ def plot_background(ax: Axes, runs: Sequence[RunData]) -> None:
     ax.legend(loc="best", fontsize=8)
 
 
+def plot_memory(ax: Axes, runs: Sequence[RunData]) -> None:
+    """The run's main process's resident memory at each task's commit, over the wall clock
+    (a long live run on a small device: does it level off?)."""
+    for run, color in zip(runs, _COLORS, strict=False):
+        tasks = [m for m in run.tasks if m.wall_time and m.rss_mb is not None]
+        if not tasks:
+            continue
+        t0 = tasks[0].wall_time
+        minutes = [(m.wall_time - t0) / 60.0 for m in tasks]
+        rss = [float(m.rss_mb or 0.0) for m in tasks]
+        ax.plot(minutes, rss, "-", color=color, lw=1, label=run.label)
+    if not ax.lines:
+        ax.text(0.5, 0.5, "no memory recorded", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("minutes since the first task")
+    ax.set_ylabel("resident memory (MB)")
+    ax.set_title("the run's main process's memory (each task's)")
+    ax.grid(alpha=0.3)
+    if ax.lines:
+        ax.legend(loc="best", fontsize=8)
+
+
 def _version(m: TaskMetrics) -> tuple[int, int]:
     return int(getattr(m, "bg_epoch", 0)), int(m.bg_version)
 
@@ -307,6 +336,17 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
             "wall_s": None,
         }
     misses = sum(not m.deadline_met for m in ok)
+    rss = [m.rss_mb for m in run.tasks if m.rss_mb is not None]
+    memory = (
+        [
+            (
+                "memory: first / last / largest task (MB)",
+                f"{rss[0]:.0f} / {rss[-1]:.0f} / {max(rss):.0f}",
+            )
+        ]
+        if rss
+        else []
+    )
     original = []
     if run.original_s is not None:
         avg = mean([m.critical_path_s for m in ok])
@@ -342,6 +382,7 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ),
         ("frames dropped", str(s.get("frames_dropped", "-"))),
         ("wall time (s)", fmt(s.get("wall_s"), ".1f")),
+        *memory,
     ]
 
 
@@ -363,6 +404,9 @@ def figure(name: str, runs: Sequence[RunData]) -> Figure:
     elif name == "stages":
         fig = _new_figure(8.0, 0.6 + 0.32 * max(4, len(stage_means(runs[0]))))
         plot_stages(fig.add_subplot(), runs)
+    elif name == "memory":
+        fig = _new_figure()
+        plot_memory(fig.add_subplot(), runs)
     elif name == "summary":
         fig = _summary_page(runs)
     else:
