@@ -27,7 +27,7 @@ def test_a_new_tasks_cloud_reaches_a_connected_client(tmp_path):
             fg = (colors == FG_RGB).all(axis=1)
             assert fg.sum() >= 2000  # the foreground keeps at least half of it
             assert points[fg, 0].mean() == pytest.approx(0.1, abs=0.02)  # task 1's shift
-            append_task(run, task_metrics(2), scene_cloud(shift=1.0))
+            append_task(run, task_metrics(2, rss_mb=812.4), scene_cloud(shift=1.0))
             assert viewer.refresh() == 1
             second = client.next_cloud("/cloud", timeout_s=20)
             assert second is not None
@@ -38,6 +38,7 @@ def test_a_new_tasks_cloud_reaches_a_connected_client(tmp_path):
             client.close()
         assert "**task 2**" in viewer._gui["task"].content
         assert "0.80" in viewer._gui["task"].content  # r of task 2
+        assert "3 tasks (0 failed, 0 degraded), memory 812 MB" in viewer._gui["status"].content
         assert "cam4" in viewer._gui["task"].content and "cam3" not in viewer._gui["task"].content
 
 

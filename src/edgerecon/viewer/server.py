@@ -415,9 +415,11 @@ class RunViewer:
         else:
             failed = sum(m.status != "ok" for m in tasks)
             degraded = sum(m.degraded for m in tasks if m.status == "ok")
+            rss = tasks[-1].rss_mb
             text = (
                 f"**{self.run.path.name}**: {state}, {len(tasks)} tasks"
                 f" ({failed} failed, {degraded} degraded)"
+                + ("" if rss is None else f", memory {rss:,.0f} MB")
                 + ("" if self._follow() else " · replaying")
             )
         self._set_text("status", text)
