@@ -20,16 +20,31 @@ def test_malloc_is_tuned_here_and_for_the_processes_started_from_here(monkeypatc
     for name in _ENV:
         monkeypatch.delenv(name, raising=False)
     monkeypatch.setattr(memory, "_done", {})
-    got = memory.tune_malloc()
+    got = memory.tune_malloc()  # any command: the arenas only
     assert os.environ["MALLOC_ARENA_MAX"] == str(memory.ARENAS)
-    assert os.environ["MALLOC_MMAP_THRESHOLD_"] == str(memory.MMAP_THRESHOLD)
+    assert "MALLOC_MMAP_THRESHOLD_" not in os.environ and got.mmap_threshold is None
     if sys.platform.startswith("linux") and got.arenas is None:
         pytest.skip("not glibc: mallopt unavailable")
+    assert got.arenas == memory.ARENAS
+    # A long run (this test process's own malloc left as it is: the mapping's effect is
+    # the next test's, in a process of its own).
+    calls: list[tuple[int, int]] = []
+    monkeypatch.setattr(memory, "_mallopt", lambda: lambda p, v: calls.append((p, v)) or 1)
+    got = memory.tune_malloc(mmap_threshold=memory.MMAP_THRESHOLD)
+    assert calls == [(memory._M_MMAP_THRESHOLD, memory.MMAP_THRESHOLD)]
     assert got == memory.MallocTuning(arenas=memory.ARENAS, mmap_threshold=memory.MMAP_THRESHOLD)
+    assert memory.tune_malloc().mmap_threshold == memory.MMAP_THRESHOLD  # kept from then on
     # A process started from here inherits it (the rebuild's, Ray's workers).
     code = "import os; print(os.environ.get('MALLOC_ARENA_MAX'), os.environ.get('MALLOC_MMAP_THRESHOLD_'))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == [str(memory.ARENAS), str(memory.MMAP_THRESHOLD)]
+
+
+def test_long_runs_are_live_bounded_by_time_or_many_tasks():
+    assert memory.long_run(live=True, duration_s=None, num_tasks=0)
+    assert memory.long_run(live=False, duration_s=60.0, num_tasks=10)
+    assert memory.long_run(live=False, duration_s=None, num_tasks=memory.LONG_RUN_TASKS + 1)
+    assert not memory.long_run(live=False, duration_s=None, num_tasks=111)
 
 
 _FREED_AND_AGAIN = """
@@ -44,7 +59,7 @@ libc.mallinfo2.restype = Info
 libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
 libc.free.argtypes = [ctypes.c_void_p]
 if sys.argv[1] == "tuned":
-    memory.tune_malloc()
+    memory.tune_malloc(mmap_threshold=memory.MMAP_THRESHOLD)
 libc.free(libc.malloc(2 << 20))  # an image-sized block, freed
 before = libc.mallinfo2().hblkhd  # (the bytes mapped so far: the libraries' own blocks)
 block = libc.malloc(2 << 20)  # and the next one
@@ -56,8 +71,8 @@ print(libc.mallinfo2().hblkhd - before >= 2 << 20)
 def test_an_image_sized_block_is_mapped_on_its_own_after_one_was_freed(how, monkeypatch):
     """glibc's default raises its mapping threshold to the size of a freed mapped block:
     the next image-sized blocks come from the heap, whose holes a long run keeps (its
-    resident memory crept up 0.15 GB an hour); tuned, every such block is mapped and given
-    back when freed."""
+    resident memory crept up 0.15 GB an hour); tuned for a long run, every such block is
+    mapped and given back when freed."""
     if not sys.platform.startswith("linux") or memory._mallopt() is None:
         pytest.skip("glibc only")
     for name in _ENV:

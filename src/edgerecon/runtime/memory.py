@@ -1,4 +1,5 @@
-"""The C heap of a long run: few malloc arenas, so that memory does not creep up for hours.
+"""The C heap of a long run: few malloc arenas, image-sized blocks mapped on their own, the
+heap trimmed, so that memory does not creep up for hours.
 
 glibc's malloc gives each thread that allocates an arena of its own, up to 8 per core (16 on
 a 2-core device). A task's stages run in several threads (the watchdog's worker, OpenCV's
@@ -7,19 +8,31 @@ and cloud-sized blocks; the arenas fragment and the resident memory steps up and
 caliscope_charuco served as a live stream (``benchmarks/bench_soak.py``, 4 x 1280x720,
 ~1.9 tasks per second) the run's main process grew from 1.55 GB to 2.63 GB over 900 s
 (about 1 GB per 1000 tasks, in steps); with two arenas set when the command starts it held
-1.08-1.26 GB from the fifth minute to the thirtieth (3,364 tasks), and the tasks were no
-slower (0.519 s against 0.522 s on average); over 65 minutes (7,052 tasks) it rose in
-steps to 1.40 GB by minute 43 and held 1.40-1.51 GB to the end. The trimmer (below) halved
-the slope over minutes 11-45 (+98 -> +44 MB per 1000 tasks; 1.29 against 1.40 GB at minute
-45, within the samples' swings). See docs/BENCHMARKS.md.
+1.08-1.26 GB from the fifth minute to the thirtieth (3,364 tasks). Over 110 minutes it
+still rose, 1.04 GB in the first five minutes to 1.38 GB at 30 and 1.54 GB at the end
+(+23 MB per 1000 tasks).
 
-:func:`limit_malloc_arenas` sets the limit for this process (``mallopt(M_ARENA_MAX)``, for
-the arenas still to be created: call it before the work starts) and, through the
-``MALLOC_ARENA_MAX`` environment variable, for the processes it starts (the background
-rebuild's, a private Ray instance's workers). A value the user put in ``MALLOC_ARENA_MAX``
-wins. Other C libraries (musl, macOS) are left as they are. :func:`start_heap_trimmer`
-gives the heap's free pages back every 30 s in a run's processes (the session's, the
-rebuild's, Ray's actors, the viewer's).
+What still grew was glibc's mapping threshold: a block from 128 KiB on is mapped on its own
+and given back when freed, but each free of such a block raises the threshold to its size
+(up to 32 MiB), so after the first frames every image, depth map and cloud column came from
+the arenas, whose holes between blocks still in use add up. A fixed threshold
+(``mallopt(M_MMAP_THRESHOLD)``, 1 MiB) keeps them mapped: the same 45-minute stream held the
+main process at 0.56-0.66 GB (medians per five minutes; 1.04-1.44 GB before), +16 MB per
+1000 tasks, the rebuild process at 0.37-0.41 GB (0.50). The price is the page faults of
+fresh mappings, the kernel's zeroed pages: tasks at r = 1 on caliscope_charuco took 0.562 s
+instead of 0.528 s on average (+6 %; four alternated runs of 60 tasks each), a golden task
+1.74 s instead of 1.61 s (+8 %). So only a long run maps them (:func:`long_run`: a live
+stream, ``--duration``, more than :data:`LONG_RUN_TASKS` tasks), where hours of creeping
+memory cost more than 6 % of the time; ``MALLOC_MMAP_THRESHOLD_`` set by the user wins
+either way (1048576 for any run, 33554432 to turn it off).
+
+:func:`tune_malloc` sets the limits for this process (``mallopt``, for what is still to be
+allocated: call it before the work starts) and, through ``MALLOC_ARENA_MAX`` and
+``MALLOC_MMAP_THRESHOLD_``, for the processes it starts (the background rebuild's, a private
+Ray instance's workers). Other C libraries (musl, macOS) are left as they are.
+:func:`start_heap_trimmer` gives the heap's free pages back every 30 s in a run's processes
+(the session's, the rebuild's, Ray's actors, the viewer's). :func:`resident_mb` is what each
+task records (``TaskMetrics.rss_mb``). See docs/BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -43,9 +56,17 @@ _M_ARENA_MAX = -8
 _M_MMAP_THRESHOLD = -3
 #: Arenas a run uses (one per core of the 2-core devices it targets).
 ARENAS = 2
-#: Blocks from this size on (an image, a depth map, a cloud's columns) are mapped on their
-#: own and given back when freed.
+#: In a long run, blocks from this size on (an image, a depth map, a cloud's columns) are
+#: mapped on their own and given back when freed.
 MMAP_THRESHOLD = 1 << 20
+#: A run of more tasks than this maps them (:func:`long_run`); ~20 minutes at 2 tasks / s.
+LONG_RUN_TASKS = 2000
+
+
+def long_run(*, live: bool, duration_s: float | None, num_tasks: int) -> bool:
+    """Whether a run goes on long enough for its memory to creep up: a live stream, a run
+    bounded by ``--duration``, or more than ``LONG_RUN_TASKS`` tasks to do."""
+    return live or duration_s is not None or num_tasks > LONG_RUN_TASKS
 
 
 @dataclass(frozen=True)
@@ -93,14 +114,18 @@ def _set(env: str, param: int, default: int) -> int | None:
     return value
 
 
-def tune_malloc(arenas: int = ARENAS, mmap_threshold: int = MMAP_THRESHOLD) -> MallocTuning:
-    """Limit glibc's malloc to ``arenas`` arenas and map blocks from ``mmap_threshold``
-    bytes on their own, in this process and the ones it starts (``MALLOC_ARENA_MAX`` and
-    ``MALLOC_MMAP_THRESHOLD_``; a value the user put there wins). Call it before the work
+def tune_malloc(arenas: int = ARENAS, mmap_threshold: int | None = None) -> MallocTuning:
+    """Limit glibc's malloc to ``arenas`` arenas in this process and the ones it starts
+    (``MALLOC_ARENA_MAX``); with ``mmap_threshold`` (a long run's: :data:`MMAP_THRESHOLD`),
+    or where the user set ``MALLOC_MMAP_THRESHOLD_``, also map blocks from that many bytes
+    on their own. A value the user put in the environment wins. Call it before the work
     starts. Elsewhere than glibc nothing is done but the environment variables."""
+    threshold = None
+    if mmap_threshold is not None or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+        default = MMAP_THRESHOLD if mmap_threshold is None else mmap_threshold
+        threshold = _set("MALLOC_MMAP_THRESHOLD_", _M_MMAP_THRESHOLD, default)
     return MallocTuning(
-        arenas=_set("MALLOC_ARENA_MAX", _M_ARENA_MAX, arenas),
-        mmap_threshold=_set("MALLOC_MMAP_THRESHOLD_", _M_MMAP_THRESHOLD, mmap_threshold),
+        arenas=_set("MALLOC_ARENA_MAX", _M_ARENA_MAX, arenas), mmap_threshold=threshold
     )
 
 
@@ -185,9 +210,11 @@ def stop_heap_trimmer(timeout: float = 5.0) -> None:
 
 __all__ = [
     "ARENAS",
+    "LONG_RUN_TASKS",
     "MMAP_THRESHOLD",
     "TRIM_INTERVAL_S",
     "MallocTuning",
+    "long_run",
     "peak_resident_mb",
     "resident_mb",
     "start_heap_trimmer",

@@ -46,7 +46,7 @@ from edgerecon.runtime.engine import (
     learn_scene_model,
 )
 from edgerecon.runtime.frontend import FixedController
-from edgerecon.runtime.memory import start_heap_trimmer, tune_malloc
+from edgerecon.runtime.memory import MMAP_THRESHOLD, long_run, start_heap_trimmer, tune_malloc
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
 from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder
@@ -258,6 +258,9 @@ def run_online(
         else:
             todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
             first = todo[0] if todo else 0
+        if long_run(live=dataset.is_live, duration_s=options.duration_s, num_tasks=len(todo)):
+            # Before the rebuild's process and the roles' threads start (runtime.memory).
+            tune_malloc(mmap_threshold=MMAP_THRESHOLD)
         if original is None and saved is not None:
             original = saved.original
         share = config.deadline_share
