@@ -26,7 +26,7 @@ from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.cli._config import add_config_flag, load_config
 from edgerecon.configfile import build, section
 from edgerecon.io.dataset import Dataset, open_dataset
-from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, write_ply
+from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, ply_frame, write_ply
 from edgerecon.quality.masks import at_resolution
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult
 from edgerecon.scene.hull import hull_cloud
@@ -197,10 +197,7 @@ def run(args: argparse.Namespace) -> int:
         write_ply(
             out / "hull.ply",
             hull_cloud(hull, rig.cameras, frames.images),
-            unit=rig.unit,
-            up=rig.up,
-            origin=rig.origin,
-            crs=rig.crs,
+            **ply_frame(rig),
         )
     atomic_write_text(out / "masks.json", to_json(summary) + "\n")
     if args.json:

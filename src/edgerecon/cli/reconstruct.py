@@ -21,7 +21,7 @@ from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.configfile import build, section
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset, open_dataset
-from edgerecon.io.ply import atomic_write_text, write_ply
+from edgerecon.io.ply import atomic_write_text, ply_frame, write_ply
 from edgerecon.types import DataError
 
 
@@ -182,19 +182,13 @@ def _run_whole(
         write_ply(
             out / "sparse.ply",
             result.sparse.cloud,
-            unit=rig.unit,
-            up=rig.up,
-            origin=rig.origin,
-            crs=rig.crs,
+            **ply_frame(rig),
         )
         if result.dense is not None:
             write_ply(
                 out / "dense.ply",
                 result.dense.cloud,
-                unit=rig.unit,
-                up=rig.up,
-                origin=rig.origin,
-                crs=rig.crs,
+                **ply_frame(rig),
             )
         write_effective(out, "reconstruct", {"reconstruction": config})
     summary = {
@@ -247,14 +241,11 @@ def _run_split(
         )
     out = Path(args.out)
     with progress.phase("write the outputs"):
-        write_merged(out, result.merged, unit=rig.unit, up=rig.up, origin=rig.origin, crs=rig.crs)
+        write_merged(out, result.merged, **ply_frame(rig))
         write_ply(
             out / "sparse.ply",
             result.sparse.cloud,
-            unit=rig.unit,
-            up=rig.up,
-            origin=rig.origin,
-            crs=rig.crs,
+            **ply_frame(rig),
         )
         write_effective(
             out,

@@ -38,7 +38,7 @@ from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.geometry.lens import FisheyeLens
 from edgerecon.io.calib_nerf import write_transforms
 from edgerecon.io.colmap import ColmapCamera, ColmapPoints, rig_to_colmap, write_colmap_model
-from edgerecon.io.ply import atomic_write_bytes, write_ply
+from edgerecon.io.ply import atomic_write_bytes, ply_frame, write_ply
 from edgerecon.types import DataError, FrameSet, PointCloud, Points3D
 
 logger = logging.getLogger(__name__)
@@ -410,10 +410,7 @@ def export_nerfstudio(
     ply = write_ply(
         out / "points3D.ply",
         cloud,
-        unit=rig.unit,
-        up=rig.up,
-        origin=rig.origin,
-        crs=rig.crs,
+        **ply_frame(rig),
         comments=["exported by edgerecon for nerfstudio"],
     )
     written = write_transforms(

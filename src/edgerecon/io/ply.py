@@ -23,12 +23,15 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 
 from edgerecon.io.records import Item, walk_records
 from edgerecon.types import INFERRED, DataError, PointCloud
+
+if TYPE_CHECKING:
+    from edgerecon.geometry.camera import Rig
 
 _PLY_TYPES = {
     "char": "i1",
@@ -133,6 +136,12 @@ def ply_comments(
     if crs:
         out.append("crs " + " ".join(crs.encode("ascii", "replace").decode().split()))
     return out
+
+
+def ply_frame(rig: Rig) -> dict[str, Any]:
+    """``write_ply``'s keywords for a cloud in ``rig``'s world frame: its unit, up direction,
+    origin and coordinate reference system."""
+    return {"unit": rig.unit, "up": rig.up, "origin": rig.origin, "crs": rig.crs}
 
 
 def write_ply(

@@ -35,6 +35,7 @@ import numpy as np
 from edgerecon import progress
 from edgerecon.config import ReconstructionConfig
 from edgerecon.io.dataset import Dataset
+from edgerecon.io.ply import ply_frame
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
 from edgerecon.pipeline import fine_scale_limit, reconstruct, warm_up
 from edgerecon.quality.frames import frame_defects
@@ -305,10 +306,7 @@ def run_online(
             folder.ensure_background(
                 background,
                 (version.epoch, version.counter),
-                unit=rig.unit,
-                up=rig.up,
-                origin=rig.origin,
-                crs=rig.crs,
+                **ply_frame(rig),
             )
             logger.warning(
                 "resuming after %d tasks (background %s, back-end epoch %d)",

@@ -63,7 +63,7 @@ from edgerecon.config import MIN_CAMERAS
 from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.frames import FrameSource
-from edgerecon.io.ply import atomic_write_text
+from edgerecon.io.ply import atomic_write_text, ply_frame
 from edgerecon.quality.frames import FrameCheckConfig, frame_defects, without_defective
 from edgerecon.quality.metrics import fscore
 from edgerecon.runtime.engine import Engine
@@ -517,10 +517,7 @@ class Session:
                     self.folder.write_background(
                         out.background,
                         version,
-                        unit=rig.unit,
-                        up=rig.up,
-                        origin=rig.origin,
-                        crs=rig.crs,
+                        **ply_frame(rig),
                     )
                     self.retention.background_written(version, len(out.background))
                 if cloud and room and out.foreground is not None:
@@ -529,10 +526,7 @@ class Session:
                         foreground_part(out.foreground, m.bg_version),
                         np.zeros(0, np.int64) if out.bg_dropped is None else out.bg_dropped,
                         version,
-                        unit=rig.unit,
-                        up=rig.up,
-                        origin=rig.origin,
-                        crs=rig.crs,
+                        **ply_frame(rig),
                     )
                     self.retention.cloud_written(t, version)
                     m.cloud_written = True
