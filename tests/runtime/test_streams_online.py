@@ -11,7 +11,12 @@ from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_onl
 
 
 @pytest.mark.slow
-def test_online_run_on_three_live_streams_with_a_stall(tiny_dataset, tmp_path):
+def test_online_run_on_three_live_streams_with_a_stall(tiny_dataset, tmp_path, monkeypatch):
+    import edgerecon.runtime.online as online
+    from edgerecon.runtime.memory import MMAP_THRESHOLD
+
+    tuned: list[dict] = []  # (this test process's malloc left as it is)
+    monkeypatch.setattr(online, "tune_malloc", lambda **kw: tuned.append(kw))
     server = serve_dataset(
         tiny_dataset,
         tmp_path / "live",
@@ -39,6 +44,7 @@ def test_online_run_on_three_live_streams_with_a_stall(tiny_dataset, tmp_path):
     finally:
         server.stop()
     assert stalled_at == [1]
+    assert {"mmap_threshold": MMAP_THRESHOLD} in tuned  # a live run is a long one
     assert [m.time_index for m in metrics] == list(range(len(metrics)))
     ok = [m for m in metrics if m.status == "ok"]
     assert ok[0].task == 0 and ok[0].camera_ids == [0, 1, 2]
