@@ -161,7 +161,9 @@ def peak_resident_mb() -> float | None:
     except ImportError:  # not POSIX
         return None
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)  # bytes / KiB
+    peak_mb = round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)  # bytes / KiB
+    # Linux updates its high-water mark lazily: it can lag the resident memory of now.
+    return max(peak_mb, resident_mb() or 0.0)
 
 
 #: Seconds between two ``malloc_trim`` calls of a run's processes.

@@ -231,8 +231,8 @@ class RunSummary:
     spread (mean / max seconds)."""
     memory_mb: dict[str, float | None] = field(default_factory=dict)
     """The main process's resident memory, MB: ``first`` and ``last`` task's (a resumed
-    run's first is that of the run's first task), ``peak`` since this process started
-    (every task's is in ``metrics.jsonl``, ``rss_mb``)."""
+    run's first is that of the run's first task), ``peak``: the larger of this process's
+    peak and every task's (each is in ``metrics.jsonl``, ``rss_mb``)."""
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -298,11 +298,13 @@ class RunTotals:
     spread_max: float | None = None
     rss_first: float | None = None
     rss_last: float | None = None
+    rss_max: float = 0.0
 
     def add(self, m: TaskMetrics) -> None:
         self.tasks += 1
         if m.rss_mb is not None:
             self.rss_last = m.rss_mb
+            self.rss_max = max(self.rss_max, m.rss_mb)
             self.rss_first = m.rss_mb if self.rss_first is None else self.rss_first
         self.clouds_written += bool(m.cloud_written)
         self.clouds_skipped += bool(m.cloud_skipped)
@@ -659,7 +661,11 @@ class Session:
             clouds_written=t.clouds_written,
             clouds_kept=len(self.retention.kept),
             clouds_skipped=t.clouds_skipped,
-            memory_mb={"first": t.rss_first, "last": t.rss_last, "peak": peak_resident_mb()},
+            memory_mb={
+                "first": t.rss_first,
+                "last": t.rss_last,
+                "peak": max(peak_resident_mb() or 0.0, t.rss_max) or None,
+            },
         )
         reconstructed = t.time.count  # averages over the tasks that reconstructed
         if reconstructed:
