@@ -164,6 +164,8 @@ def test_a_coordinate_reference_system_reaches_the_las_files(far_dataset, tmp_pa
     assert "UTM zone 33N" in capsys.readouterr().out
     assert json.loads((geo / "rig.json").read_text())["crs"] == "EPSG:32633"
     assert open_dataset(geo).rig.crs == "EPSG:32633"
+    assert main(["info", "--dataset", str(geo)]) == 0
+    assert "coordinate reference system: WGS 84 / UTM zone 33N" in capsys.readouterr().out
     run = tmp_path / "run"
     args = ["run", "--dataset", str(geo), "--out", str(run), "--deadline", "20", "-q"]
     assert main([*args, "--frames", "2:4", "--fixed", "0.6"]) == 0

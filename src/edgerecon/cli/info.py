@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
 from edgerecon.config import MIN_CAMERAS
 from edgerecon.geometry.camera import Rig
+from edgerecon.io.crs import crs_name
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.progress import track
 from edgerecon.quality.frames import FrameCheckConfig, frame_defects
@@ -165,6 +166,12 @@ def run(args: argparse.Namespace) -> int:
         console.print(
             f"far from the world's origin: computed in a frame at {tuple(ds.rig.origin)}, "
             "clouds written in world coordinates (float64)"
+        )
+    if ds.rig.crs:
+        console.print(
+            f"coordinate reference system: {crs_name(ds.rig.crs)} ({ds.rig.crs}; LAS exports "
+            "carry it)",
+            soft_wrap=True,
         )
     bg = info["background_frames"]
     console.print(
