@@ -3,8 +3,9 @@ PDAL, Potree, CloudCompare, LAStools), through laspy (LAZ compression: lazrs).
 
 A cloud is written as point format 7: coordinates as 32-bit integers of a millimetre about
 an offset (the cloud's origin, so that a georeferenced rig's UTM or ECEF coordinates keep
-their millimetres; the cloud's centre when it is far from its origin), 16-bit RGB, and what edgerecon knows of each point: classification 64
-(the first class LAS 1.4 leaves to users) for the foreground, 1 (unclassified) for the rest,
+their millimetres; the cloud's centre when it is far from its origin), 16-bit RGB, and
+what edgerecon knows of each point: classification 64 (the first class LAS 1.4 leaves to
+users) for the foreground, 1 (unclassified) for the rest,
 the object label in ``user_data`` (0: background; labels above 255 are clipped), and the
 *synthetic* flag for points no stereo depth measured (``PointCloud.inferred``, the floor's
 completion). LAS records no unit of length: coordinates are written in metres (the rig's
@@ -97,8 +98,8 @@ def write_las(
 def read_las(path: str | os.PathLike[str]) -> tuple[PointCloud, dict[str, object]]:
     """A LAS / LAZ file as a cloud in metres (world coordinates) and what its header says
     (``generating_software``, ``point_format``, ``version``, ``crs``: the name of its
-    coordinate reference system or None, ``crs_wkt``: its WKT); labels from ``user_data``, inferred from the
-    synthetic flag."""
+    coordinate reference system or None, ``crs_wkt``: its WKT); labels from ``user_data``,
+    inferred from the synthetic flag."""
     import laspy
 
     try:

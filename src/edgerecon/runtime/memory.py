@@ -46,7 +46,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
+from typing import Any, cast
 
 logger = logging.getLogger(__name__)
 
@@ -80,17 +80,22 @@ class MallocTuning:
 _done: dict[int, int] = {}
 
 
-def _mallopt() -> Callable[[int, int], int] | None:
-    """glibc's ``mallopt``, None elsewhere."""
+def _glibc(name: str, argtypes: list[Any]) -> Any | None:
+    """glibc's function ``name`` (returning an int) with ``argtypes``, None elsewhere."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+        fn = getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), name)
     except (OSError, AttributeError):  # not glibc
         return None
-    fn.argtypes = [ctypes.c_int, ctypes.c_int]
+    fn.argtypes = argtypes
     fn.restype = ctypes.c_int
-    return cast(Callable[[int, int], int], fn)
+    return fn
+
+
+def _mallopt() -> Callable[[int, int], int] | None:
+    """glibc's ``mallopt``, None elsewhere."""
+    return cast("Callable[[int, int], int] | None", _glibc("mallopt", [ctypes.c_int] * 2))
 
 
 def _set(env: str, param: int, default: int) -> int | None:
@@ -131,15 +136,7 @@ def tune_malloc(arenas: int = ARENAS, mmap_threshold: int | None = None) -> Mall
 
 def _malloc_trim() -> Callable[[int], int] | None:
     """glibc's ``malloc_trim``, None elsewhere."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):  # not glibc
-        return None
-    fn.argtypes = [ctypes.c_size_t]
-    fn.restype = ctypes.c_int
-    return cast(Callable[[int], int], fn)
+    return cast("Callable[[int], int] | None", _glibc("malloc_trim", [ctypes.c_size_t]))
 
 
 def resident_mb() -> float | None:

@@ -241,8 +241,6 @@ def run_online(
     otherwise a run whose deadline is a share measures it (:func:`measure_original`), and a
     resumed one takes it from its state."""
     check_options(dataset, options, engine=engine, fixed=fixed)
-    tune_malloc()  # before the roles' threads and processes start (runtime.memory)
-    start_heap_trimmer()
     fr = options.frames
     with OutputFolder(out_dir).acquire(command) as folder:
         saved = folder.prepare(
@@ -259,9 +257,11 @@ def run_online(
         else:
             todo = [t for t in fr.indices(dataset.num_frames) if t not in done]
             first = todo[0] if todo else 0
-        if long_run(live=dataset.is_live, duration_s=options.duration_s, num_tasks=len(todo)):
-            # Before the rebuild's process and the roles' threads start (runtime.memory).
-            tune_malloc(mmap_threshold=MMAP_THRESHOLD)
+        # Before the roles' threads and the rebuild's process start (runtime.memory): a
+        # long run also maps image-sized blocks on their own.
+        long = long_run(live=dataset.is_live, duration_s=options.duration_s, num_tasks=len(todo))
+        tune_malloc(mmap_threshold=MMAP_THRESHOLD if long else None)
+        start_heap_trimmer()
         if original is None and saved is not None:
             original = saved.original
         share = config.deadline_share
