@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 import time
@@ -108,6 +109,34 @@ def test_each_role_runs_on_the_node_with_its_resource(cluster, tiny, capfd):
     # The restartable back-end actor's constructor holds no object-store reference (an actor
     # handle counts): Ray cannot restart such an actor reliably and logs an error for it.
     assert "constructor arguments in the object store" not in capfd.readouterr().err
+
+
+def test_a_deadline_share_is_timed_on_the_frontends_node(cluster, tiny, tmp_path):
+    # run --engine ray --address ... --deadline 40%: the original pipeline runs where the
+    # front-end's tasks will, not on the device that started the command.
+    ds, scene = tiny
+    config = RuntimeConfig(deadline_share=2.0, golden_timeout_s=30.0, background_scale=0.5)
+    summary, metrics = run_online(
+        ds,
+        config,
+        SessionOptions(frames=FrameRange(start=0, stop=2)),
+        tmp_path / "run",
+        engine="ray",
+        address=cluster.address,
+        scene=scene,
+    )
+    nodes = {n["NodeID"]: n["Resources"] for n in ray.nodes() if n["Alive"]}
+    assert summary.original_node in nodes and "frontend" in nodes[summary.original_node]
+    assert summary.original_s > 0 and summary.deadline_s == pytest.approx(
+        2.0 * summary.original_s, abs=1e-3
+    )
+    assert [m.status for m in metrics] == ["ok", "ok"]
+    # It is the run's state: a resumed run keeps the time and where it was taken.
+    saved = json.loads((tmp_path / "run" / "state.json").read_text())["original"]
+    assert saved["node"] == summary.original_node
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["original_node"] == (
+        summary.original_node
+    )
 
 
 def _in_thread(fn):

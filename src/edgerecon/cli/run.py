@@ -301,6 +301,8 @@ def print_summary(title: str, s: RunSummary) -> None:
         )
     if s.original_s is not None:  # measured by the run (--deadline P%)
         share = "" if s.deadline_share is None else f" ({100 * s.deadline_share:g} % of it)"
+        if s.original_node is not None:  # a Ray cluster: timed where the front-end runs
+            share += f", on the front-end's node {s.original_node[:12]}"
         rows[1:1] = [
             (f"original pipeline, r = 1, whole scene (s){share}", f(s.original_s, ".2f")),
             ("online / original (avg. processing time)", f(s.online_over_original)),

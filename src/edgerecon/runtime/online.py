@@ -34,6 +34,7 @@ import numpy as np
 
 from edgerecon import progress
 from edgerecon.config import ReconstructionConfig
+from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.ply import ply_frame
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
@@ -51,7 +52,7 @@ from edgerecon.runtime.memory import MMAP_THRESHOLD, long_run, start_heap_trimme
 from edgerecon.runtime.messages import TaskMetrics
 from edgerecon.runtime.session import RunSummary, Session, SessionOptions
 from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder
-from edgerecon.types import EdgereconError
+from edgerecon.types import EdgereconError, FrameSet, StageTimings
 
 logger = logging.getLogger(__name__)
 
@@ -109,22 +110,58 @@ _ORIGINAL_LONG_S = 20.0
 _ORIGINAL_TRIES = 5
 
 
+#: Times the original pipeline on one frame set: ``(frames, rig, config, runs)`` to
+#: ``(timings or None, why nothing was timed, where it ran)`` (:func:`time_original` here;
+#: ``ray_engine.FrontendTimer`` on the Ray front-end's node).
+OriginalTimer = Callable[
+    [FrameSet, Rig, ReconstructionConfig, int], tuple[StageTimings | None, str, str | None]
+]
+
+
+def time_original(
+    frames: FrameSet, rig: Rig, rc: ReconstructionConfig, runs: int = ORIGINAL_RUNS
+) -> tuple[StageTimings | None, str, str | None]:
+    """The original pipeline on ``frames``, timed by its own stages after the compiled
+    kernels are loaded: the fastest of ``runs`` runs (one when it takes more than 20 s);
+    ``(None, why)`` when it finds nothing (an error, an empty dense cloud). The third value
+    says where it ran: None, this process."""
+    warm_up()
+    n = len(rig)
+    best: StageTimings | None = None
+    for i in range(max(1, runs)):
+        with progress.phase(
+            f"the original pipeline at time {frames.time_index} (r = 1, {n} cameras), run {i + 1}"
+        ):
+            try:
+                result = reconstruct(frames, rig, rc)
+            except EdgereconError as exc:
+                return best, str(exc), None
+        if result.dense is None or not result.dense.num_points:
+            return best, "an empty dense cloud", None
+        if best is None or result.timings.total < best.total:
+            best = result.timings
+        if result.timings.total > _ORIGINAL_LONG_S:
+            break  # a long pipeline's noise averages out over its length
+    return best, "", None
+
+
 def measure_original(
     dataset: Dataset,
     config: RuntimeConfig,
     times: Sequence[int],
     runs: int = ORIGINAL_RUNS,
+    *,
+    timer: OriginalTimer = time_original,
 ) -> OriginalTiming:
     """The original pipeline (r = 1, every camera, the whole scene, the run's sparse and
-    whole-scene dense settings) timed by its own stages after the compiled kernels are
-    loaded, the fastest of ``runs`` runs (one when it takes more than 20 s), on the first
-    of ``times`` (ascending) whose frames every camera can use (none missing, black,
-    saturated or textureless: ``quality.frames``) and whose dense cloud is not empty: the
-    lights out or a covered lens at the first timestamp would time a pipeline that finds
-    nothing. ``EdgereconError`` when none of them serves (the deadline must then be given
-    in seconds)."""
-    warm_up()
-    n = len(dataset.rig)
+    whole-scene dense settings) timed by ``timer`` (:func:`time_original`: its own stages,
+    the fastest of ``runs`` runs, in this process), on the first of ``times`` (ascending)
+    whose frames every camera can use (none missing, black, saturated or textureless:
+    ``quality.frames``) and whose dense cloud is not empty: the lights out or a covered lens
+    at the first timestamp would time a pipeline that finds nothing. The frames are read
+    here; a Ray run's ``timer`` ships them to the front-end's node, where its tasks will
+    run. ``EdgereconError`` when none of them serves (the deadline must then be given in
+    seconds)."""
     rc = ReconstructionConfig(
         scale=1.0, sparse_config=config.sparse, dense_config=config.background_dense
     )
@@ -141,32 +178,17 @@ def measure_original(
             if unusable:
                 skipped.append(f"time {frames.time_index}: {', '.join(unusable)}")
                 continue
-            best = None
-            for i in range(max(1, runs)):
-                with progress.phase(
-                    f"the original pipeline at time {frames.time_index} (r = 1, {n} cameras), "
-                    f"run {i + 1}"
-                ):
-                    try:
-                        result = reconstruct(frames, dataset.rig, rc)
-                    except EdgereconError as exc:
-                        skipped.append(f"time {frames.time_index}: {exc}")
-                        break
-                if result.dense is None or not result.dense.num_points:
-                    skipped.append(f"time {frames.time_index}: an empty dense cloud")
-                    break
-                if best is None or result.timings.total < best.total:
-                    best = result.timings
-                if result.timings.total > _ORIGINAL_LONG_S:
-                    break  # a long pipeline's noise averages out over its length
-            if best is not None:
-                if skipped:
-                    logger.warning(
-                        "the original pipeline timed at time %d (%s)",
-                        frames.time_index,
-                        "; ".join(skipped),
-                    )
-                return OriginalTiming.of(frames.time_index, best)
+            best, why, node = timer(frames, dataset.rig, rc, runs)
+            if best is None:
+                skipped.append(f"time {frames.time_index}: {why}")
+                continue
+            if skipped:
+                logger.warning(
+                    "the original pipeline timed at time %d (%s)",
+                    frames.time_index,
+                    "; ".join(skipped),
+                )
+            return OriginalTiming.of(frames.time_index, best, node=node)
     raise EdgereconError(
         "the deadline is a share of the original pipeline's time, which could not be "
         f"measured ({'; '.join(skipped)}): give --deadline in seconds"
@@ -265,19 +287,35 @@ def run_online(
         if original is None and saved is not None:
             original = saved.original
         share = config.deadline_share
+        joined = False  # a Ray cluster joined to time the original pipeline on it
         if share is not None:
             measured_before = original is not None
             if original is None:
-                original = measure_original(dataset, config, original_times(dataset, todo, first))
+                times = original_times(dataset, todo, first)
+                if engine == "ray" and address:
+                    # On a cluster the front-end may be another device than this one: the
+                    # deadline is a share of the pipeline's time where the tasks will run.
+                    from edgerecon.runtime.ray_engine import FrontendTimer
+
+                    timer = FrontendTimer(address)
+                    try:
+                        original = measure_original(dataset, config, times, timer=timer)
+                    except BaseException:
+                        timer.release()
+                        raise
+                    joined = timer.joined
+                else:
+                    original = measure_original(dataset, config, times)
             config = config.with_original(original.seconds)
             logger.warning(
                 "deadline %.3g s: %.0f %% of the original pipeline's %.3f s (r = 1, %d cameras, "
-                "the whole scene at time %d%s)",
+                "the whole scene at time %d%s%s)",
                 config.deadline_s,
                 100 * share,
                 original.seconds,
                 len(dataset.rig),
                 original.time_index,
+                "" if original.node is None else f", on the front-end's Ray node {original.node}",
                 ", as measured when the run started"
                 if saved is not None and measured_before
                 else "",
@@ -326,6 +364,7 @@ def run_online(
                 address=address,
                 restored=restored,
                 background=background,
+                joined=joined,
             )
         else:
             eng = EmbeddedEngine(

@@ -330,6 +330,55 @@ class _FrontendActor:
         }
 
 
+def _time_original_here(
+    frames: FrameSet, rig: Any, rc: Any, runs: int, niceness: int
+) -> tuple[Any, str, str | None]:
+    """A Ray task: ``online.time_original`` in a worker of the node it was placed on, at
+    the niceness the front-end actor will take (:func:`normal_priority`); the node's id as
+    where it ran."""
+    from edgerecon.runtime.memory import tune_malloc
+    from edgerecon.runtime.online import time_original
+
+    tune_malloc()  # as the front-end actor's process
+    normal_priority(niceness)
+    timings, why, _ = time_original(frames, rig, rc, runs)
+    return timings, why, str(_ray().get_runtime_context().get_node_id())
+
+
+class FrontendTimer:
+    """``online.OriginalTimer`` for a run on a Ray cluster: the original pipeline is timed
+    on the node with the ``frontend`` resource, where the run's tasks will run (the node
+    that starts the command may be another, slower or faster device). One Ray task in a
+    worker that exits after it (``max_calls=1``: its memory goes back before the actors
+    start); the frames travel from this process as a task's do."""
+
+    def __init__(self, address: str | None) -> None:
+        self.joined = connect(address) is not None
+        """This timer joined the cluster (the engine takes the connection over)."""
+
+    def __call__(
+        self, frames: FrameSet, rig: Any, rc: Any, runs: int
+    ) -> tuple[Any, str, str | None]:
+        ray = _ray()
+        if ray.cluster_resources().get("frontend", 0) < 1:
+            raise EdgereconError(
+                "the Ray cluster has no node with the custom resource 'frontend': start the "
+                "frontend node with --resources='{\"frontend\": 1}'"
+            )
+        fn = ray.remote(num_cpus=0, resources={"frontend": 1}, max_calls=1, max_retries=0)(
+            _time_original_here
+        )
+        result: tuple[Any, str, str | None] = ray.get(fn.remote(frames, rig, rc, runs, os.nice(0)))
+        return result
+
+    def release(self) -> None:
+        """Leave the cluster again when this timer joined it (a measurement that failed:
+        no engine takes the connection over)."""
+        if self.joined:
+            _ray().shutdown()
+            self.joined = False
+
+
 class RayEngine:
     """Front-end and back-end as Ray actors (see module docstring)."""
 
@@ -346,9 +395,11 @@ class RayEngine:
         num_cpus: int | None = None,
         restored: FrontEndState | None = None,
         background: PointCloud | None = None,
+        joined: bool = False,
     ) -> None:
         self.config = config
-        self._started_ray = connect(address, num_cpus) is not None
+        # ``joined``: a FrontendTimer joined the cluster for this run already.
+        self._started_ray = connect(address, num_cpus) is not None or joined
         # A private instance dies with this process, kill -9 included (see ray_reaper).
         self._reaper = start_reaper() if self._started_ray and not address else None
         ray = _ray()

@@ -194,6 +194,9 @@ class RunSummary:
     original_s: float | None = None
     """The original pipeline's time (r = 1, every camera, the whole scene) measured on the
     run's first timestamp before its first task; None: not measured."""
+    original_node: str | None = None
+    """The Ray node ``original_s`` was measured on (the front-end's, a run on a cluster);
+    None: the run's own process."""
     online_over_original: float | None = None
     """The average critical path over ``original_s`` (the paper: 0.46 at its deadlines)."""
     deadline_misses_converged: int = 0
@@ -656,6 +659,7 @@ class Session:
             deadline_s=self.deadline_s,
             deadline_share=self.deadline_share,
             original_s=None if self.original is None else self.original.seconds,
+            original_node=None if self.original is None else self.original.node,
             engine=getattr(self.engine, "name", ""),
             stream=dict(self._stream),
             clouds_written=t.clouds_written,

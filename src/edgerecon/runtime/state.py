@@ -151,26 +151,39 @@ class DatasetIdentity:
 @dataclass(frozen=True)
 class OriginalTiming:
     """The original pipeline (r = 1, every camera, the whole scene: the paper's baseline)
-    measured on one timestamp of the run's data, on this machine, before the run's first
-    task (``runtime.online.measure_original``): the reference of ``run --deadline 40%`` and
-    of the summary's online / original ratio."""
+    measured on one timestamp of the run's data, where the front-end runs (this process;
+    a Ray run on a cluster: the front-end's node), before the run's first task
+    (``runtime.online.measure_original``): the reference of ``run --deadline 40%`` and of
+    the summary's online / original ratio."""
 
     time_index: int
     seconds: float
     """The product's own stage timings, added up (``timings.json``'s total)."""
     stages: dict[str, float]
+    node: str | None = None
+    """The Ray node it was timed on (a run on a cluster); None: the run's own process."""
 
     @classmethod
-    def of(cls, time_index: int, timings: StageTimings) -> OriginalTiming:
+    def of(
+        cls, time_index: int, timings: StageTimings, *, node: str | None = None
+    ) -> OriginalTiming:
         """From a reconstruction's stage timings."""
         return cls(
             time_index=int(time_index),
             seconds=round(timings.total, 4),
             stages={k: round(float(v), 4) for k, v in timings.seconds.items()},
+            node=node,
         )
 
     def to_dict(self) -> dict[str, Any]:
-        return {"time_index": self.time_index, "seconds": self.seconds, "stages": self.stages}
+        d: dict[str, Any] = {
+            "time_index": self.time_index,
+            "seconds": self.seconds,
+            "stages": self.stages,
+        }
+        if self.node is not None:
+            d["node"] = self.node
+        return d
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> OriginalTiming:
@@ -178,6 +191,7 @@ class OriginalTiming:
             time_index=int(d["time_index"]),
             seconds=float(d["seconds"]),
             stages={str(k): float(v) for k, v in dict(d.get("stages", {})).items()},
+            node=None if d.get("node") is None else str(d["node"]),
         )
 
 
