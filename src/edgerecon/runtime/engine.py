@@ -71,7 +71,9 @@ class SceneModel:
 
     def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
         """Live background models (a copy: the snapshot stays as it is)."""
-        fg = RigForeground.from_states(rig, self.states, config)
+        fg = RigForeground.from_states(
+            rig, self.states, config, from_stream=self.initial_background is None
+        )
         fg.set_static_clouds(self.static_clouds, self.static_floors)
         return SceneTracker(
             foreground=fg,

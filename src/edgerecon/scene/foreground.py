@@ -60,6 +60,7 @@ from edgerecon.scene.hull import (
 from edgerecon.scene.masks import guided_mask, labels_joining
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
 from edgerecon.scene.parallel import per_camera
+from edgerecon.scene.people import PersonSegmenter, person_segmenter
 from edgerecon.types import (
     DataError,
     DepthMap,
@@ -183,6 +184,23 @@ class ForegroundConfig:
     hold nothing (measured on the hd4 preset: see docs/BENCHMARKS.md)."""
     bootstrap_frames: int = 8
     """How many frames (evenly spread over ``bootstrap_span_s``) enter that median."""
+    person_model: str = "auto"
+    """A learned person segmentation added to the models' masks before the visual hull
+    (``scene.people``): people the models learned as background (present and still from the
+    first frame) come back where several cameras agree. ``"auto"``: the model fetched by
+    ``edgerecon models fetch``, when it is there and the models learned from the stream
+    (no clip of the empty scene: a clip's models see a still person already, and the
+    model's mistakes would only add); ``"on"``: the fetched model whatever the models
+    learned from (an error without it); ``"off"``: never; else the model file's path (as
+    ``"on"``)."""
+    person_threshold: float = 0.5
+    """A pixel is a person's when the model's probability exceeds this."""
+    person_covered_max: float = 0.75
+    """A person (a connected region of the person model's mask) joins the mask only when the
+    background models hold less than this share of it: the people they miss (still from the
+    first frame) come in whole, while the outline of one they see already stays theirs
+    (the network's input is 256x144: its outlines spill a few working pixels onto what
+    touches a person)."""
 
     def __post_init__(self) -> None:
         for name in ("update_interval_s", "bootstrap_span_s"):
@@ -202,6 +220,15 @@ class ForegroundConfig:
             value = getattr(self, name)
             if value < 1:
                 raise ValueError(f"ForegroundConfig.{name} must be >= 1, got {value}")
+        if not 0.0 < self.person_covered_max <= 1.0:
+            raise ValueError(
+                f"ForegroundConfig.person_covered_max must be in (0, 1], got "
+                f"{self.person_covered_max}"
+            )
+        if not 0.0 < self.person_threshold < 1.0:
+            raise ValueError(
+                f"ForegroundConfig.person_threshold must be in (0, 1), got {self.person_threshold}"
+            )
         if not self.refine_eps > 0:
             raise ValueError(f"ForegroundConfig.refine_eps must be > 0, got {self.refine_eps}")
         if not 0.0 <= self.refine_min_push < 0.5:
@@ -224,11 +251,14 @@ class ForegroundConfig:
 _TETRAHEDRON = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], np.float64)
 
 
-def _hull_samples(hull: VisualHull) -> tuple[Points3D, float, NDArray[np.int32]]:
+def _hull_samples(hull: VisualHull, max_points: int) -> tuple[Points3D, float, NDArray[np.int32]]:
     """Points spread through the hull's voxels, four per voxel, their spacing (half a voxel)
     and their objects: the tolerant hull's voxels are twice the exact ones, too coarse to
     compare colours at their centres (hd4, the check's first version: moving-actor IoU 0.790
-    with the centres, 0.812 with these)."""
+    with the centres, 0.812 with these). Beyond ``max_points`` (``PhotoCheckConfig``) the
+    voxels' centres, a voxel apart."""
+    if len(_TETRAHEDRON) * hull.num_voxels > max_points:
+        return np.asarray(hull.centers, np.float64), hull.voxel_size, np.asarray(hull.labels)
     offsets = _TETRAHEDRON * (0.25 * hull.voxel_size)
     points = (hull.centers[:, None, :] + offsets[None]).reshape(-1, 3)
     return points, 0.5 * hull.voxel_size, np.repeat(hull.labels, len(offsets))
@@ -282,7 +312,12 @@ class RigForeground:
     """Background models of all cameras of a rig, and the per-timestamp foreground stage."""
 
     def __init__(
-        self, rig: Rig, models: Sequence[BackgroundModel], config: ForegroundConfig | None = None
+        self,
+        rig: Rig,
+        models: Sequence[BackgroundModel],
+        config: ForegroundConfig | None = None,
+        *,
+        from_stream: bool = False,
     ) -> None:
         if len(models) != len(rig):
             raise DataError(f"{len(models)} background models for a rig of {len(rig)} cameras")
@@ -301,6 +336,9 @@ class RigForeground:
         self.static_floors: tuple[Plane | None, ...] = ()
         """Per static cloud, the ground plane its reconstruction found (or None)."""
         self.static_depth: list[DepthMap | None] | None = None
+        self.from_stream = from_stream
+        """The models learned from the stream itself, not from a clip of the empty scene
+        (``scene.stream``): ``person_model = "auto"`` then adds the person model's masks."""
 
     @classmethod
     def learn(
@@ -341,10 +379,24 @@ class RigForeground:
 
     @classmethod
     def from_states(
-        cls, rig: Rig, states: Sequence[BackgroundState], config: ForegroundConfig | None = None
+        cls,
+        rig: Rig,
+        states: Sequence[BackgroundState],
+        config: ForegroundConfig | None = None,
+        *,
+        from_stream: bool = False,
     ) -> RigForeground:
         config = config or ForegroundConfig()
-        return cls(rig, [BackgroundModel.from_state(s, config.background) for s in states], config)
+        models = [BackgroundModel.from_state(s, config.background) for s in states]
+        return cls(rig, models, config, from_stream=from_stream)
+
+    @property
+    def people(self) -> PersonSegmenter | None:
+        """The person model ``segment`` uses (``ForegroundConfig.person_model``), or None."""
+        setting = self.config.person_model
+        if setting == "off" or (setting == "auto" and not self.from_stream):
+            return None
+        return person_segmenter(setting)
 
     def copy(self) -> RigForeground:
         """An independent copy: the models' states copied; the static scene, the occluders
@@ -468,9 +520,35 @@ class RigForeground:
         with timings.stage("background_subtraction"):
             segs = self.model_segmentations(frames)
         model_masks = tuple(None if sg is None else sg.foreground for sg in segs)
+        unsettled = [m.unsettled for m in self.models]
+        people = self.people
+        if people is not None:
+            # The people the models miss join their masks; their pixels have no other
+            # evidence, so the checks below judge them as they judge the unsettled ones
+            # (a gap between two people that the network fills shows the wall behind).
+            with timings.stage("people"):
+                added = per_camera(
+                    lambda pair: (
+                        None
+                        if pair[0] is None or pair[1] is None or pair[1].image is None
+                        else people_added(
+                            pair[0],
+                            people.mask(pair[1].image, cfg.person_threshold),
+                            cfg.person_covered_max,
+                        )
+                    ),
+                    list(zip(model_masks, segs, strict=True)),
+                    cfg.num_threads,
+                )
+                model_masks = tuple(
+                    m if m is None or a is None else m | a
+                    for m, a in zip(model_masks, added, strict=True)
+                )
+                unsettled = [
+                    u if a is None else u | a for u, a in zip(unsettled, added, strict=True)
+                ]
         hull = None
         masks: list[Mask | None] = list(model_masks)
-        unsettled = [m.unsettled for m in self.models]
         with_fg = sum(m is not None and bool(m.any()) for m in model_masks)
         if cfg.hull_consistency and with_fg >= 1:
             occ = self.occluders
@@ -533,7 +611,7 @@ class RigForeground:
             if cfg.photo_check and hull.num_voxels:
                 with timings.stage("photo_check"):
                     sampled = tolerant if tolerant is not None and tolerant.num_voxels else hull
-                    points, size, labels = _hull_samples(sampled)
+                    points, size, labels = _hull_samples(sampled, cfg.photo.max_points)
                     # Each frame at its model's exposure (its gain divided out).
                     exposed: list[NDArray[np.float32] | None] = [
                         None
@@ -661,6 +739,20 @@ class RigForeground:
             jobs,
             self.config.num_threads,
         )
+
+
+def people_added(model: Mask, people: Mask, covered_max: float) -> Mask:
+    """The pixels of every connected region of ``people`` (8-connected) of which ``model``
+    holds less than ``covered_max`` (``ForegroundConfig.person_covered_max``), outside
+    ``model``."""
+    n, labels = cv2.connectedComponents(people.view(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(model)
+    total = np.bincount(labels.ravel(), minlength=n)
+    held = np.bincount(labels[model], minlength=n)
+    add = held < covered_max * total
+    add[0] = False
+    return np.asarray(add[labels] & ~model, bool)
 
 
 class _CheckedObjects:

@@ -180,6 +180,12 @@ class PhotoCheckConfig:
     pixels, ghosts included, is at least the true foreground's where ghosts are fewer than
     half of them (hd4, t = 0 / 12 / 24: moving IoU 0.750 / 0.716 / 0.709 -> 0.790 / 0.732 /
     0.765). 0 = no check then."""
+    max_points: int = 150_000
+    """The hull's samples: four points per voxel of the tolerant hull while that keeps
+    within this many, else each voxel's centre alone (a hull 2 m from the cameras that
+    holds a whole seated person, caliscope_charuco with the person model: 116,000 voxels,
+    464,000 points, 0.39 s of the check per task on this machine; the presets' hulls hold a
+    few thousand)."""
 
     def __post_init__(self) -> None:
         for name, low, inclusive in (
@@ -196,6 +202,7 @@ class PhotoCheckConfig:
             ("min_reference_px", 1, True),
             ("fallback_scale", 0.0, True),
             ("passes", 1, True),
+            ("max_points", 1, True),
         ):
             value = getattr(self, name)
             if not (value >= low if inclusive else value > low):

@@ -39,6 +39,7 @@ old and new silhouettes overlap leaves a ghost fused to the actor until they sep
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -296,14 +297,29 @@ def bootstrap_scene(
         source.read(i) for i in (track(indices, "learning the background") if progress else indices)
     ]
     fg = RigForeground.learn_from_framesets(rig, framesets, config)
+    fg.from_stream = clip is None
     seconds = time.perf_counter() - t0
     logger.info("scene: background models from the %s in %.1f s", what, seconds)
+    people = fg.people
+    if people is not None:
+        logger.info("scene: people from the person model too (%s)", people.path)
+    elif fg.from_stream and config.person_model == "auto":
+        _say_no_person_model()
     return SceneTracker(
         foreground=fg,
         step=update_step(fps, config),
         static_step=static_step(fps, config),
         learned_from=what,
         seconds={"bootstrap": seconds},
+    )
+
+
+@functools.cache
+def _say_no_person_model() -> None:
+    """Once per process: models learned from the stream without the person model."""
+    logger.warning(
+        "no clip of the empty scene and no person model: people who stay still from the "
+        "first frame stay background (`edgerecon models fetch` gets the model)"
     )
 
 
