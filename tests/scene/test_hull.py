@@ -71,6 +71,21 @@ def test_hull_contains_the_box(box_hull) -> None:  # type: ignore[no-untyped-def
     assert hull.num_objects == 1
 
 
+def test_a_hull_over_its_voxel_budget_keeps_larger_voxels(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
+    hull, masks = box_hull
+    n = hull.num_voxels
+    budgeted = visual_hull(rig.cameras, masks, HullConfig(voxel_size=VOXEL, voxel_budget=n // 2))
+    assert budgeted.status == "ok"  # quietly coarser, not "coarse"
+    assert budgeted.voxel_size == pytest.approx(2 * VOXEL)
+    assert budgeted.num_voxels <= n // 2
+    assert budgeted.contains(box_surface_points(LO, HI, 25)).all()
+    # The budget bounds the next level's candidates (8 per boundary voxel, before carving).
+    same = visual_hull(rig.cameras, masks, HullConfig(voxel_size=VOXEL, voxel_budget=None))
+    assert same.num_voxels == n and same.voxel_size == pytest.approx(VOXEL)
+    with pytest.raises(ValueError, match="voxel_budget"):
+        HullConfig(voxel_budget=4)
+
+
 def test_hull_is_tight(rig: Rig, box_hull) -> None:  # type: ignore[no-untyped-def]
     hull, masks = box_hull
     # Every voxel centre projects within its footprint (+ tolerance) of every silhouette.
