@@ -19,8 +19,9 @@ golden configuration's foreground sparse points, at the online threshold d):
   precision taken at 3 d (a sparse reference is too thin to judge dense precision at d);
 * ``sil_recall`` / ``sil_F`` — no golden reference at all: the task's dense foreground
   projected into every camera's foreground mask (all cameras, also those the task left out):
-  share of mask pixels within a pixel of a point (recall), share of points in the masks
-  (precision);
+  share of mask pixels within a pixel of a point (recall; only the pixels with texture,
+  ``quality.online.textured``: the front-end's estimate), share of points in the masks
+  (precision); ``sil_F_all`` the same with every mask pixel in the recall;
 * ``density``   — dense foreground points per foreground mask pixel, relative to the golden
   task's (capped at 1).
 
@@ -72,7 +73,7 @@ from edgerecon.sparse import SparseReconstruction
 from edgerecon.types import FrameSet, PointCloud
 from edgerecon.viewer.rundir import RunFolder
 
-ESTIMATES = ("sparse_F", "coverage", "dense_F", "sil_recall", "sil_F", "density")
+ESTIMATES = ("sparse_F", "coverage", "dense_F", "sil_recall", "sil_F", "sil_F_all", "density")
 
 
 def estimates(
@@ -87,9 +88,14 @@ def estimates(
     from scipy.spatial import cKDTree
 
     out: dict[str, float] = {}
-    sil = silhouette_quality(fg_dense, fg.cameras, fg.masks)
+    # The front-end's estimate: recall over the masks' textured pixels (``sil_F``); without
+    # the frames, over every mask pixel (``sil_F_all``, the estimate before the textured recall).
+    images = [None if sg is None else sg.image for sg in fg.segmentations] or None
+    sil = silhouette_quality(fg_dense, fg.cameras, fg.masks, images=images)
     out["sil_recall"] = sil.recall if sil.recall is not None else np.nan
     out["sil_F"] = sil.fscore if sil.fscore is not None else np.nan
+    every = silhouette_quality(fg_dense, fg.cameras, fg.masks)
+    out["sil_F_all"] = every.fscore if every.fscore is not None else np.nan
     area = sum(int(np.count_nonzero(m)) for m in fg.masks if m is not None)
     out["density"] = min(1.0, len(fg_dense) / area / golden_density) if area else 0.0
     if len(golden_sparse) == 0:

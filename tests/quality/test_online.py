@@ -147,3 +147,29 @@ def test_silhouette_quality_known_answers() -> None:
     assert mixed.precision == pytest.approx(0.5, abs=0.01)
     assert silhouette_quality(pts, [cam], [np.zeros_like(mask)]).value is None
     assert silhouette_quality(np.zeros((0, 3)), [cam], [mask]).value == 0.0
+
+
+def test_silhouette_recall_counts_the_textured_mask_pixels() -> None:
+    """A black, textureless half of a silhouette (a shirt no stereo measures) leaves the
+    recall's denominator when the frames are given."""
+    from edgerecon.geometry.camera import Camera
+    from edgerecon.quality.online import silhouette_quality, textured
+
+    K = np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]])
+    cam = Camera(name="c", width=64, height=48, K=K, R=np.eye(3), t=np.zeros(3))
+    mask = np.zeros((48, 64), bool)
+    mask[14:34, 22:42] = True
+    rng = np.random.default_rng(1)
+    image = rng.integers(0, 255, (48, 64, 3)).astype(np.uint8)
+    image[14:34, 32:48] = 10  # the right half of the silhouette (and beyond): flat black
+    tex = textured(image)
+    assert tex[20:28, 8:20].all() and not tex[18:30, 36:44].any()
+    assert textured(image.astype(np.float32)).sum() == tex.sum()  # working images: float32
+    ys, xs = np.nonzero(mask & (np.arange(64) < 32)[None, :])  # points on the textured half
+    pts = cam.backproject(np.stack([xs, ys], axis=1).astype(float), np.full(len(xs), 4.0))
+    every = silhouette_quality(pts, [cam], [mask], splat_px=0)
+    assert every.recall == pytest.approx(0.5, abs=0.01)
+    judged = silhouette_quality(pts, [cam], [mask], splat_px=0, images=[image])
+    # The black half's pixels within 3 px of the texture (the 7x7 window) still count.
+    assert judged.num_reference == 200 + 20 * 3 + 2 * 3 * 7
+    assert judged.recall == pytest.approx(200 / 302) and judged.precision == 1.0

@@ -39,6 +39,9 @@ from edgerecon.geometry.camera import Camera
 from edgerecon.quality.metrics import evaluate_clouds
 from edgerecon.types import Mask, PointCloud, Points3D
 
+#: ``textured``'s least local standard deviation of the grey level (8-bit levels).
+TEXTURE_MIN_STD = 3.0
+
 logger = logging.getLogger(__name__)
 
 OnlineStatus = Literal["ok", "empty_candidate", "empty_reference", "few_reference_points"]
@@ -156,12 +159,26 @@ def online_quality(
     )
 
 
+def textured(image: NDArray[Any], min_std: float = TEXTURE_MIN_STD, window: int = 7) -> Mask:
+    """(h, w) pixels whose grey level varies by at least ``min_std`` (standard deviation)
+    in a ``window`` x ``window`` neighbourhood: where stereo can measure anything."""
+    import cv2
+
+    grey = np.asarray(image, np.float32)
+    if grey.ndim == 3:
+        grey = grey.mean(axis=2, dtype=np.float32)
+    mean = cv2.blur(grey, (window, window))
+    sq = cv2.blur(grey * grey, (window, window))
+    return np.asarray(sq - mean * mean >= min_std * min_std, bool)
+
+
 def silhouette_quality(
     points3D: Points3D,
     cameras: Sequence[Camera],
     masks: Sequence[Mask | None],
     *,
     splat_px: int = 1,
+    images: Sequence[NDArray[Any] | None] | None = None,
 ) -> OnlineQuality:
     """The task's dense foreground judged against every camera's foreground mask — no golden
     reference needed, so the front-end computes it right after its critical path in a few
@@ -177,6 +194,12 @@ def silhouette_quality(
     0.95 / 0.91 at 1 % / 2 % on the hd4 preset vs truth, 0.89 / 0.83 on caliscope_charuco vs
     the golden dense foreground, where the paper's sparse-vs-golden-sparse F gave 0.2-0.5.
 
+    ``images`` (the masks' frames, e.g. the background models' working images): recall
+    counts only the mask pixels with texture (:func:`textured`): a black, textureless shirt
+    has no points at any configuration, and its share of the masks changes from one moment
+    to the next, which moved the estimate between timestamps without telling configurations
+    apart (caliscope_charuco with the person model, docs/BENCHMARKS.md).
+
     No foreground in any mask: uninformative (``value`` None); foreground but no points: 0.
     """
     import cv2
@@ -184,10 +207,12 @@ def silhouette_quality(
     pts = np.asarray(points3D, np.float64).reshape(-1, 3)
     k = np.ones((2 * splat_px + 1, 2 * splat_px + 1), np.uint8)
     hit = total = inside = landed = 0
-    for cam, mask in zip(cameras, masks, strict=True):
+    ims = list(images) if images is not None else [None] * len(masks)
+    for cam, mask, im in zip(cameras, masks, ims, strict=True):
         if mask is None or not mask.any():
             continue
-        total += int(np.count_nonzero(mask))
+        judged = mask if im is None else mask & textured(im)
+        total += int(np.count_nonzero(judged))
         if not len(pts):
             continue
         uv, depth = cam.project(pts)
@@ -201,7 +226,7 @@ def silhouette_quality(
             grown = cv2.dilate(mask.view(np.uint8), k).astype(bool)
         else:
             grown = mask
-        hit += int(np.count_nonzero(splat.astype(bool) & mask))
+        hit += int(np.count_nonzero(splat.astype(bool) & judged))
         inside += int(np.count_nonzero(grown[v, u]))
         landed += len(u)
     if total == 0:

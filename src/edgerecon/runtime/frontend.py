@@ -611,7 +611,10 @@ class FrontEnd:
                 ).value
         else:
             with timings.stage("online_quality"):
-                quality = silhouette_quality(fg_rec.cloud.points3D, fg.cameras, fg.masks).value
+                images = [None if sg is None else sg.image for sg in fg.segmentations] or None
+                quality = silhouette_quality(
+                    fg_rec.cloud.points3D, fg.cameras, fg.masks, images=images
+                ).value
         with timings.stage("scene_update_after"), self._holding_scene() as scene:
             if guard.cancel.is_set():  # abandoned: the models are no longer this task's
                 raise TaskCancelled(f"time {frames.time_index}: cancelled before its update")
