@@ -186,3 +186,19 @@ def test_a_large_hull_is_sampled_at_its_voxels_centres() -> None:
     assert len(points) == 40 and size == 0.01 and len(labels) == 40
     points, size, labels = _hull_samples(_Hull(11), 40)  # type: ignore[arg-type]
     assert len(points) == 11 and size == 0.02 and len(labels) == 11
+
+
+def test_a_damaged_model_is_left_out_under_auto_and_refused_when_asked_for(
+    tmp_path, monkeypatch, caplog
+) -> None:
+    from edgerecon.scene import people as people_mod
+
+    monkeypatch.setenv("EDGERECON_MODELS", str(tmp_path))
+    monkeypatch.setattr(people_mod, "_refused", set())
+    (tmp_path / PERSON_MODEL_FILE).write_bytes(b"a truncated download")
+    with caplog.at_level("WARNING"):
+        assert person_segmenter("auto") is None  # the tasks go on without it
+        assert person_segmenter("auto") is None
+    assert sum("left out" in r.getMessage() for r in caplog.records) == 1  # said once
+    with pytest.raises(EdgereconError, match="SHA-256 differs"):
+        person_segmenter("on")

@@ -234,19 +234,38 @@ class PersonSegmenter:
 
 
 _segmenters: dict[Path, PersonSegmenter] = {}
+_refused: set[Path] = set()
 _segmenters_lock = threading.Lock()
 
 
 def person_segmenter(setting: str = "auto") -> PersonSegmenter | None:
     """The segmenter a ``ForegroundConfig.person_model`` setting asks for (one per file and
-    process), None without a model (``"auto"`` before ``edgerecon models fetch``)."""
+    process), None without a model (``"auto"`` before ``edgerecon models fetch``). The
+    fetched model (``"auto"``, ``"on"``) must have its SHA-256; one that does not, or that
+    OpenCV cannot read, is an ``EdgereconError`` for ``"on"`` and a path, and for ``"auto"``
+    a warning (once per process) and no person model: a damaged cache never fails tasks."""
     path = person_model_path(setting)
     if path is None:
         return None
     with _segmenters_lock:
         seg = _segmenters.get(path)
-        if seg is None:
+        if seg is not None:
+            return seg
+        if path in _refused and setting == "auto":
+            return None
+        try:
+            if setting in ("auto", "on") and sha256_of(path) != PERSON_MODEL_SHA256:
+                raise EdgereconError(
+                    f"{path} is not the person model edgerecon was measured with (its SHA-256 "
+                    f"differs): `edgerecon models fetch` again"
+                )
             seg = _segmenters[path] = PersonSegmenter(path)
+        except EdgereconError as exc:
+            if setting != "auto":
+                raise
+            _refused.add(path)
+            logger.warning("the person model is left out: %s", exc)
+            return None
         return seg
 
 
