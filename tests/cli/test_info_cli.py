@@ -11,6 +11,7 @@ import pytest
 from edgerecon.cli import main
 from edgerecon.cli.info import baseline_angles_deg, convergence_point
 from edgerecon.io import write_dataset_descriptor
+from edgerecon.scene.people import PERSON_MODEL_FILE
 from tests.conftest import ring_rig, shared_data
 
 
@@ -61,6 +62,17 @@ def test_info_json_on_synthetic_dataset(tmp_path, capsys):
     assert cam["fx"] == 30.0 and cam["cx"] == 15.5
     np.testing.assert_allclose(cam["center"], rig[2].center)
     np.testing.assert_allclose(info["baseline_angles_deg"], baseline_angles_deg(rig), atol=1e-3)
+
+
+def test_info_says_whether_the_person_model_serves(tmp_path, capsys, monkeypatch):
+    _tiny_dataset(tmp_path / "ds")  # no clip of the empty scene
+    monkeypatch.setenv("EDGERECON_MODELS", str(tmp_path / "models"))
+    assert main(["info", "--dataset", str(tmp_path / "ds"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["person_model"].startswith("not fetched")
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / PERSON_MODEL_FILE).write_bytes(b"a truncated download")
+    assert main(["info", "--dataset", str(tmp_path / "ds")]) == 0
+    assert "person model: left out" in capsys.readouterr().out
 
 
 def test_info_table_and_clean_errors(tmp_path, capsys):

@@ -16,6 +16,7 @@ from edgerecon.io.crs import crs_name
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.progress import track
 from edgerecon.quality.frames import FrameCheckConfig, frame_defects
+from edgerecon.scene.people import PERSON_MODEL_SHA256, person_model_path, sha256_of
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -67,6 +68,22 @@ def baseline_angles_deg(rig: Rig) -> NDArray[np.float64]:
     return np.asarray(np.degrees(np.arccos(cos)), dtype=np.float64)
 
 
+def _person_model(has_clip: bool) -> str:
+    """Whether the scene stage will use the person model (``scene.people``, the default
+    ``person_model = "auto"``) on this dataset."""
+    if has_clip:
+        return "not used: the clip of the empty scene teaches the background models"
+    path = person_model_path("auto")
+    if path is None:
+        return (
+            "not fetched: people who stay still from the first frame stay background "
+            "(`edgerecon models fetch`)"
+        )
+    if sha256_of(path) != PERSON_MODEL_SHA256:
+        return f"left out: {path} is not the measured model (`edgerecon models fetch` again)"
+    return f"used: models learned from the stream miss people who stay still ({path})"
+
+
 def describe(ds: Dataset) -> dict[str, Any]:
     """Everything ``info`` prints, as JSON-safe data."""
     rig = ds.rig
@@ -83,6 +100,7 @@ def describe(ds: Dataset) -> dict[str, Any]:
         "scene_scale": rig.scene_scale(),
         "duration_s": None if ds.fps is None or ds.is_live else ds.num_frames / ds.fps,
         "background_frames": background_frames,
+        "person_model": _person_model(background_frames is not None),
         "cameras": [
             {
                 "id": i,
@@ -180,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
         + "; ground truth: "
         + ("no" if ds.ground_truth is None else str(ds.ground_truth))
     )
+    console.print(f"person model: {info['person_model']}", soft_wrap=True)
     print_table(
         "cameras",
         ["id", "name", "size", "fx", "fy", "cx", "cy", f"x ({unit})", "y", "z"],
