@@ -5,7 +5,7 @@ they sit on: both were there when it learned (``scene.stream``: without an empty
 the models start from the stream itself). A person segmentation model can. MediaPipe's
 selfie segmentation network (its landscape variant: a 256x144 RGB input, one sigmoid output
 per pixel, 250 kB, Apache-2.0) runs in OpenCV's own DNN module (``cv2.dnn``, TFLite
-importer): no new runtime, 3-7 ms per camera at the scene stage's working size on this
+importer): no new runtime, 2-7 ms per camera at the scene stage's working size on this
 2-core machine. :class:`PersonSegmenter` wraps it (every frame stretched to the input:
 portrait crops of real captures gave the same masks as letterboxed ones);
 ``RigForeground.segment`` adds its
