@@ -16,7 +16,7 @@ from edgerecon.io.crs import crs_name
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.progress import track
 from edgerecon.quality.frames import FrameCheckConfig, frame_defects
-from edgerecon.scene.people import PERSON_MODEL_SHA256, person_model_path, sha256_of
+from edgerecon.scene.people import is_measured_model, person_model_path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -79,7 +79,7 @@ def _person_model(has_clip: bool) -> str:
             "not fetched: people who stay still from the first frame stay background "
             "(`edgerecon models fetch`)"
         )
-    if sha256_of(path) != PERSON_MODEL_SHA256:
+    if not is_measured_model(path):
         return f"left out: {path} is not the measured model (`edgerecon models fetch` again)"
     return f"used: models learned from the stream miss people who stay still ({path})"
 

@@ -10,12 +10,11 @@ from typing import Any
 from edgerecon.cli._common import add_json_flag, console, emit_json
 from edgerecon.scene.people import (
     PERSON_MODEL_FILE,
-    PERSON_MODEL_SHA256,
     PERSON_MODEL_SOURCES,
     PersonSegmenter,
     fetch_person_model,
+    is_measured_model,
     models_dir,
-    sha256_of,
 )
 
 
@@ -66,7 +65,7 @@ def status(folder: Path) -> dict[str, Any]:
     }
     if path.is_file():
         pm = info["person_model"]
-        pm["sha256_ok"] = sha256_of(path) == PERSON_MODEL_SHA256
+        pm["sha256_ok"] = is_measured_model(path)
         try:
             PersonSegmenter(path)
             pm["loads"] = True

@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
+from edgerecon.quality.frames import local_contrast
 from edgerecon.quality.metrics import evaluate_clouds
 from edgerecon.types import Mask, PointCloud, Points3D
 
@@ -160,16 +161,10 @@ def online_quality(
 
 
 def textured(image: NDArray[Any], min_std: float = TEXTURE_MIN_STD, window: int = 7) -> Mask:
-    """(h, w) pixels whose grey level varies by at least ``min_std`` (standard deviation)
-    in a ``window`` x ``window`` neighbourhood: where stereo can measure anything."""
-    import cv2
-
-    grey = np.asarray(image, np.float32)
-    if grey.ndim == 3:
-        grey = grey.mean(axis=2, dtype=np.float32)
-    mean = cv2.blur(grey, (window, window))
-    sq = cv2.blur(grey * grey, (window, window))
-    return np.asarray(sq - mean * mean >= min_std * min_std, bool)
+    """(h, w) pixels whose grey level varies by at least ``min_std`` (standard deviation,
+    ``quality.frames.local_contrast``) in a ``window`` x ``window`` neighbourhood: where
+    stereo can measure anything."""
+    return np.asarray(local_contrast(image, window) >= min_std, bool)
 
 
 def silhouette_quality(

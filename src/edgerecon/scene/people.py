@@ -101,6 +101,11 @@ def sha256_of(path: Path) -> str:
     return h.hexdigest()
 
 
+def is_measured_model(path: Path) -> bool:
+    """Whether ``path`` is the person model edgerecon was measured with (its SHA-256)."""
+    return sha256_of(path) == PERSON_MODEL_SHA256
+
+
 def _extract(wheel: Path, dest: Path, expected_sha256: str) -> Path:
     """The model out of a MediaPipe wheel into ``dest`` (atomically), its hash checked."""
     try:
@@ -254,7 +259,7 @@ def person_segmenter(setting: str = "auto") -> PersonSegmenter | None:
         if path in _refused and setting == "auto":
             return None
         try:
-            if setting in ("auto", "on") and sha256_of(path) != PERSON_MODEL_SHA256:
+            if setting in ("auto", "on") and not is_measured_model(path):
                 raise EdgereconError(
                     f"{path} is not the person model edgerecon was measured with (its SHA-256 "
                     f"differs): `edgerecon models fetch` again"
@@ -274,6 +279,7 @@ __all__ = [
     "PERSON_MODEL_SHA256",
     "PersonSegmenter",
     "fetch_person_model",
+    "is_measured_model",
     "models_dir",
     "person_model_path",
     "person_segmenter",
