@@ -39,6 +39,7 @@ average is printed with each run: compare ratios taken within one run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import time
@@ -138,12 +139,15 @@ def run_deadline(
     sparse_scope: str = "hull",
     split: SplitPipelineConfig | None = None,
     engine: str = "embedded",
+    still: bool = True,
 ) -> dict[str, Any]:
     ds = open_dataset(root)
     dist = median_camera_distance(ds.rig)
     config = RuntimeConfig(
         deadline_s=deadline, sparse_scope=sparse_scope, split=split or SplitPipelineConfig()
     )
+    if not still:
+        config = dataclasses.replace(config, still=None)
     options = SessionOptions(frames=frames, overwrite=True)
     load = os.getloadavg()[0]
     summary, metrics = run_online(ds, config, options, out, engine=engine)
@@ -210,8 +214,14 @@ def run_deadline(
     conv = s["avg_time_converged_s"]
     truth_mean = np.mean(vs_truth, axis=0) if vs_truth else [None, None, None]
     moving_mean = np.mean(vs_moving, axis=0) if vs_moving else [None, None, None]
+    reused = [m for m in ok if m.still_share is not None]
     return {
         "engine": engine,
+        "still": "on" if still else "off",
+        "still_tasks": len(reused),
+        "still_share": round(float(np.mean([m.still_share for m in reused])), 3)
+        if reused
+        else None,
         "deadline_s": deadline,
         "load": round(load, 1),
         "tasks": s["tasks"],
@@ -292,6 +302,14 @@ def main() -> None:
         choices=("embedded", "ray"),
         help="engines of the online runs, each at every deadline (ray: a private local instance)",
     )
+    ap.add_argument(
+        "--still",
+        nargs="+",
+        default=["on"],
+        choices=("on", "off"),
+        help="still foreground (RuntimeConfig.still; off: every task densifies its whole "
+        "foreground), each at every deadline",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     split = with_settings(SplitPipelineConfig(), args.split, "runtime.split")
@@ -323,27 +341,33 @@ def main() -> None:
         for frac in args.fractions:
             deadline = round(frac * reference_s, 2)
             for engine in args.engines:
-                out = work / "runs" / f"{label}-{args.relative_to}-{frac:g}-{engine}"
-                row = run_deadline(
-                    root,
-                    deadline,
-                    frames,
-                    out,
-                    golden_fg,
-                    base["mean_total_s"],
-                    args.sparse_scope,
-                    split,
-                    engine,
-                )
-                row["fraction"] = frac
-                runs.append(row)
-                print(
-                    f"  deadline {deadline:.2f} s ({engine}): avg {row['avg_time_s']:.2f} s, "
-                    f"converged {row['avg_time_converged_s']}, r {row['avg_scale']:.2f}"
-                )
+                for still in args.still:
+                    out = work / "runs" / f"{label}-{args.relative_to}-{frac:g}-{engine}-{still}"
+                    row = run_deadline(
+                        root,
+                        deadline,
+                        frames,
+                        out,
+                        golden_fg,
+                        base["mean_total_s"],
+                        args.sparse_scope,
+                        split,
+                        engine,
+                        still == "on",
+                    )
+                    row["fraction"] = frac
+                    runs.append(row)
+                    print(
+                        f"  deadline {deadline:.2f} s ({engine}, still {still}): avg "
+                        f"{row['avg_time_s']:.2f} s, converged {row['avg_time_converged_s']}, "
+                        f"r {row['avg_scale']:.2f}"
+                    )
         cols = [
             "fraction",
             *(["engine"] if len(args.engines) > 1 else []),
+            "still",
+            "still_tasks",
+            "still_share",
             "deadline_s",
             "load",
             "avg_scale",

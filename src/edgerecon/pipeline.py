@@ -30,6 +30,7 @@ from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult
 from edgerecon.scene.hull import VisualHull, depth_map, hull_depth_range, visual_hull
 from edgerecon.scene.merge import compose, merge_radius, overridden
 from edgerecon.scene.split import SplitConfig, split_sparse
+from edgerecon.scene.still import StillPlan
 from edgerecon.sparse import SparseConfig, SparseReconstruction, reconstruct_sparse
 from edgerecon.types import (
     BACKGROUND_LABEL,
@@ -286,6 +287,9 @@ class ForegroundReconstruction:
     cloud: PointCloud
     """Dense foreground points that the masks confirm, labelled with object ids."""
     timings: StageTimings
+    num_still: int = 0
+    """Of ``cloud``, the points kept from the back-end's snapshot of the still foreground
+    (``scene.still``), not densified by the task."""
 
     @property
     def is_empty(self) -> bool:
@@ -600,6 +604,8 @@ SPARSE_SCOPES = ("foreground", "scene", "hull")
 ForegroundSource = ForegroundResult | Callable[[StageTimings], ForegroundResult]
 #: A task's configurations from its foreground (``reconstruct_task(retune=...)``).
 Retune = Callable[[ForegroundResult], tuple[ReconstructionConfig, SplitPipelineConfig]]
+#: The task's use of the still foreground (``scene.still``): its plan from its masks.
+StillSource = Callable[[ForegroundResult], StillPlan | None]
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -621,6 +627,8 @@ class SplitReconstructionResult:
     bg_dropped: NDArray[np.int64]
     """Indices of the ``background`` points the foreground overrides (left out of
     ``merged``: ``scene.merge.overridden``)."""
+    still: StillPlan | None = None
+    """What the task densified and kept of the still foreground (None: all densified)."""
 
     @functools.cached_property
     def merged(self) -> PointCloud:
@@ -672,6 +680,7 @@ def reconstruct_task(
     sparse_scope: str = "foreground",
     cancel: threading.Event | None = None,
     retune: Retune | None = None,
+    still: StillSource | None = None,
 ) -> SplitReconstructionResult:
     """One reconstruction task, the one composition every caller uses (the online front-end,
     ``reconstruct --split``, the benchmarks).
@@ -699,6 +708,11 @@ def reconstruct_task(
     first): the task's configurations chosen once its masks are known (the online system
     scales r by the masks' area, ``optimize.workload``); the views are then prepared after
     the masks, at the configuration it returns.
+
+    ``still(foreground)`` (the online front-end, ``scene.still``): a plan that densifies only
+    the masks' pixels that changed since the back-end's snapshot of the foreground and keeps
+    the snapshot's points elsewhere (labelled by the task's masks, stage ``still``); None:
+    the whole foreground is densified. ``retune`` then sees the masks it densifies.
     """
     if sparse_scope not in SPARSE_SCOPES:
         raise ValueError(f"sparse_scope must be one of {SPARSE_SCOPES}, got {sparse_scope!r}")
@@ -722,9 +736,15 @@ def reconstruct_task(
         sparse = sfm(views, None)
         checkpoint("the masks")
     fg = foreground if isinstance(foreground, ForegroundResult) else foreground(timings)
+    plan: StillPlan | None = None
+    if still is not None:
+        with timings.stage("still"):
+            plan = still(fg)
+    # What the task densifies: the whole foreground, or its part that is not still.
+    work = fg if plan is None else dataclasses.replace(fg, masks=plan.dense_masks)
     if late:
         assert retune is not None
-        cfg, split = retune(fg)
+        cfg, split = retune(work)
         with timings.stage("prepare"):
             views = prepare_task_views(frames, rig, cfg)
     if sparse_scope == "hull" and bounding_hull(fg, split) is not None:
@@ -739,8 +759,17 @@ def reconstruct_task(
         if carved is not None:
             fg = dataclasses.replace(fg, hull=carved)
     checkpoint("the foreground's dense stage")
-    fg_rec = reconstruct_foreground(views, rig, sparse, fg, cfg.dense_config, split, cancel=cancel)
+    fg_rec = reconstruct_foreground(
+        views, rig, sparse, work, cfg.dense_config, split, cancel=cancel
+    )
     timings.merge(fg_rec.timings)
+    if plan is not None and len(plan.kept):
+        with timings.stage("still"):
+            kept = plan.kept
+            labels = label_by_masks(kept.points3D, rig, fg.label_images(), split.min_fg_votes)
+            ok = labels > 0
+            cloud = PointCloud.concatenate([fg_rec.cloud, kept.select(ok).with_labels(labels[ok])])
+            fg_rec = dataclasses.replace(fg_rec, cloud=cloud, num_still=int(ok.sum()))
     if background is None:
         checkpoint("the background")
         bg_sparse = sparse.select(fg_rec.labels == BACKGROUND_LABEL)
@@ -766,6 +795,7 @@ def reconstruct_task(
         bg_version=bg_version,
         bg_dropped=dropped,
         timings=timings,
+        still=plan,
     )
 
 

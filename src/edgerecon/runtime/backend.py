@@ -35,7 +35,14 @@ import numpy as np
 
 from edgerecon.config import ReconstructionConfig
 from edgerecon.geometry.camera import Rig
-from edgerecon.pipeline import prepare_task_views, reconstruct_static, task_sparse
+from edgerecon.pipeline import (
+    fine_scale_limit,
+    prepare_task_views,
+    reconstruct_static,
+    reconstruct_task,
+    task_configs,
+    task_sparse,
+)
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.interrupt import AbandonedThreads, ThreadAbandoned, call_bounded
 from edgerecon.runtime.messages import (
@@ -47,13 +54,14 @@ from edgerecon.runtime.messages import (
 )
 from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.split import split_sparse
+from edgerecon.scene.still import StillSnapshot, make_snapshot
 from edgerecon.types import EdgereconError, FrameSet, Mask, PointCloud
 
 logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-PushFn = Callable[[BackgroundUpdate], object]
+PushFn = Callable[[BackgroundUpdate | StillSnapshot], object]
 
 #: Replies kept for late readers (a front-end that timed out and asks again).
 _KEEP_REPLIES = 8
@@ -84,7 +92,13 @@ class BackEnd:
         self._task_started = 0.0
         self.epoch = epoch
         self._golden: OrderedDict[int, GoldenReply] = OrderedDict()
-        self._latest: tuple[FrameSet, tuple[Mask | None, ...]] | None = None
+        self._latest: tuple[FrameSet, ForegroundResult] | None = None
+        # The snapshots of the still foreground (``_snapshot_due``).
+        self._still_report: tuple[int, int] | None = None
+        self._snap_time: int | None = None
+        self._snap_judged = True
+        self._snap_backoff = 1
+        self._snap_skipped = 0
         self._initial_background = initial_background
         self._bg_version = 0
         self._bg_source_done: int | None = None
@@ -106,6 +120,8 @@ class BackEnd:
             "dropped": 0,
             "backgrounds": 0,
             "background_seconds": 0.0,
+            "snapshots": 0,
+            "snapshots_skipped": 0,
         }
 
     # ------------------------------------------------------------------ lifecycle
@@ -237,7 +253,8 @@ class BackEnd:
         if all(im is not None for im in frames.images):
             # Backgrounds are rebuilt from complete frame sets only (no camera left out).
             with self._lock:
-                self._latest = (frames, fg.masks)
+                self._latest = (frames, fg)
+                self._still_report = work.still_uses
         if work.golden:
             try:
                 self._publish(self._golden, t, self._golden_reference(frames, fg))
@@ -310,28 +327,44 @@ class BackEnd:
             return True
         return self._latest is not None and self._latest[0].time_index != self._bg_source_done
 
-    def _bg_source(self) -> tuple[FrameSet, tuple[Mask | None, ...] | None]:
+    def _bg_source(self) -> tuple[FrameSet, ForegroundResult | None]:
         if self._initial_background is not None:
             frames, self._initial_background = self._initial_background, None
             return frames, None
         assert self._latest is not None
-        frames, masks = self._latest
+        frames, fg = self._latest
         self._bg_source_done = frames.time_index
-        return frames, masks
+        return frames, fg
 
-    def _rebuild(self, frames: FrameSet, masks: tuple[Mask | None, ...] | None) -> None:
+    def _rebuild(self, frames: FrameSet, fg: ForegroundResult | None) -> None:
+        """One rebuild: the snapshot of the still foreground first (``scene.still``; the
+        tasks use it at once), then the background."""
         t0 = time.perf_counter()
-        if self._worker is not None:
-            cloud = self._worker.call(
-                rebuild_background,
-                self.rig,
-                self.config,
-                frames,
-                masks,
-                timeout_s=self.config.rebuild_limit_s,
-            )
-        else:
-            cloud = self._rebuild_in_thread(frames, masks)
+        if self.config.still is not None and fg is not None and self._snapshot_due():
+            try:
+                still = self._bounded(still_snapshot, self.rig, self.config, frames, fg)
+            except RebuildTimeout:
+                raise
+            except Exception as exc:  # the background is still rebuilt
+                logger.warning(
+                    "back-end: the still foreground of time %d failed: %s",
+                    frames.time_index,
+                    describe_exception(exc),
+                )
+            else:
+                if still is not None:
+                    self._snap_time, self._snap_judged = frames.time_index, False
+                    self.stats["snapshots"] += 1
+                    logger.info(
+                        "back-end: the foreground of time %d densified (still foreground): "
+                        "%d points in %.1f s",
+                        frames.time_index,
+                        len(still.cloud),
+                        time.perf_counter() - t0,
+                    )
+                    self._send(still, f"the still foreground of time {frames.time_index}")
+        masks = None if fg is None else fg.masks
+        cloud = self._bounded(rebuild_background, self.rig, self.config, frames, masks)
         with self._lock:
             self._bg_version += 1
             version = BgVersion(self.epoch, self._bg_version)
@@ -345,26 +378,44 @@ class BackEnd:
             len(cloud),
             seconds,
         )
-        update = BackgroundUpdate(version=version, cloud=cloud, seconds=seconds)
+        self._send(
+            BackgroundUpdate(version=version, cloud=cloud, seconds=seconds), f"background {version}"
+        )
+
+    def _snapshot_due(self) -> bool:
+        """Whether this rebuild makes a snapshot of the still foreground: every rebuild while
+        the tasks use them; after one that no task used, every 2nd, then 4th, at most every
+        8th rebuild (people who gesture to all sides: a snapshot costs the rebuild's
+        process a task's worth of work at the finest r), back to every one once one is used."""
+        if not self._snap_judged:
+            report = self._still_report
+            used = report is not None and report[0] == self._snap_time and report[1] > 0
+            self._snap_backoff = 1 if used else min(2 * self._snap_backoff, 8)
+            self._snap_judged = True
+        self._snap_skipped += 1
+        if self._snap_skipped < self._snap_backoff:
+            self.stats["snapshots_skipped"] += 1
+            return False
+        self._snap_skipped = 0
+        return True
+
+    def _send(self, update: BackgroundUpdate | StillSnapshot, what: str) -> None:
         if self._push is not None:
             try:
                 self._push(update)
             except Exception as exc:  # the front-end may be gone; keep serving
-                logger.warning("back-end: pushing background %s failed: %s", version, exc)
+                logger.warning("back-end: pushing %s failed: %s", what, exc)
 
-    def _rebuild_in_thread(
-        self, frames: FrameSet, masks: tuple[Mask | None, ...] | None
-    ) -> PointCloud:
-        """A rebuild in this process (``background_process = false``), in a thread of its
-        own: still running after ``rebuild_limit_s``, the thread is stopped (Python code
-        ends at once, a native call when it returns; ``runtime.interrupt``) and
-        :class:`RebuildTimeout` raised, so that the next rebuild can start."""
+    def _bounded(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the rebuild's process (``background_process``), else in a thread
+        of its own: still running after ``rebuild_limit_s``, the process is killed or the
+        thread stopped (Python code ends at once, a native call when it returns;
+        ``runtime.interrupt``) and :class:`RebuildTimeout` raised, so that the next rebuild
+        can start."""
         limit = self.config.rebuild_limit_s
-        run = call_bounded(
-            lambda: rebuild_background(self.rig, self.config, frames, masks),
-            limit,
-            "backend-rebuild",
-        )
+        if self._worker is not None:
+            return self._worker.call(fn, *args, timeout_s=limit)
+        run = call_bounded(lambda: fn(*args), limit, "backend-rebuild")
         if run.timed_out:
             self.abandoned.abandon(run.thread, "a background rebuild past its limit", grace_s=0.0)
             raise RebuildTimeout(
@@ -373,8 +424,7 @@ class BackEnd:
             )
         if run.error is not None:
             raise run.error
-        assert run.value is not None
-        return run.value
+        return run.value  # type: ignore[return-value]
 
 
 def rebuild_background(
@@ -394,6 +444,45 @@ def rebuild_background(
         dense_config=config.background_dense,
         split_config=config.split,
     ).cloud
+
+
+def still_snapshot(
+    rig: Rig, config: RuntimeConfig, frames: FrameSet, fg: ForegroundResult | None
+) -> StillSnapshot | None:
+    """The whole foreground of ``frames`` (its masks ``fg``) densified with every camera at
+    the finest r a task may run (``RuntimeConfig.fine_foreground``; else the golden
+    configuration): the snapshot of the still foreground (``scene.still``); None when
+    ``RuntimeConfig.still`` is off or there is no foreground. The task's own composition
+    (``pipeline.reconstruct_task``, without a background)."""
+    if config.still is None or fg is None or not any(m is not None and m.any() for m in fg.masks):
+        return None
+    # As fine as any task may run (``fine_foreground``: finer than the golden task): kept
+    # points must not be coarser than those the task would have densified.
+    scale = fine_scale_limit(rig, config.dense, config.split) if config.fine_foreground else 1.0
+    cfg, split = task_configs(
+        scale,
+        rig,
+        sparse_config=config.sparse,
+        dense_config=config.dense,
+        split_config=config.split,
+    )
+    result = reconstruct_task(
+        frames,
+        rig,
+        fg,
+        cfg,
+        background=PointCloud.empty(),
+        split_config=split,
+        sparse_scope=config.sparse_scope,
+    )
+    return make_snapshot(
+        frames.time_index,
+        result.foreground.cloud,
+        frames.images,
+        fg.masks,
+        fg.cameras,
+        config.still,
+    )
 
 
 def _lower_priority(nice: int, idle: bool = False) -> None:

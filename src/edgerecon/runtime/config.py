@@ -14,6 +14,7 @@ from edgerecon.optimize.workload import WorkloadConfig
 from edgerecon.pipeline import SPARSE_SCOPES, SplitPipelineConfig
 from edgerecon.quality.frames import FrameCheckConfig
 from edgerecon.scene.foreground import ForegroundConfig
+from edgerecon.scene.still import StillConfig
 from edgerecon.sparse import SparseConfig
 
 #: The largest ``RuntimeConfig.deadline_share`` (a deadline of 10 golden tasks).
@@ -64,6 +65,12 @@ class RuntimeConfig:
     ``optimize.workload``): a task with more foreground, or less time left, runs coarser,
     one with less finer, so that its time stays near the deadline; not coarser when it fits
     at the controller's r. None: every task runs the controller's r (the paper)."""
+    still: StillConfig | None = field(default_factory=StillConfig)
+    """Still foreground (``scene.still``): each background rebuild also densifies its frames'
+    whole foreground at the golden configuration (the snapshot); a task then densifies only
+    its mask pixels that changed since the snapshot's frames, and keeps the snapshot's points
+    elsewhere. None: every task densifies its whole foreground, the rebuilds the background
+    alone."""
     golden_timeout_s: float | None = None
     """How long the front-end waits, after publishing a task's cloud, for the back-end's
     golden reference of the online estimate; None = the deadline, at least 2 s."""

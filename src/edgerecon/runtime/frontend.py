@@ -27,6 +27,7 @@ Plain Python, usable without a cluster; the Ray engine wraps it in an actor.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import threading
 import time
@@ -64,6 +65,7 @@ from edgerecon.runtime.messages import (
     describe_exception,
 )
 from edgerecon.scene.foreground import ForegroundResult
+from edgerecon.scene.still import StillCache, StillPlan, StillSnapshot
 from edgerecon.scene.stream import SceneTracker
 from edgerecon.types import FrameSet, PointCloud, StageTimings
 
@@ -252,6 +254,9 @@ class FrontEnd:
             if background is not None:
                 self._bg_version = self._bg_published = restored.bg_version
         self.eval_threshold = config.eval_threshold_for(rig)
+        self.still = None if config.still is None else StillCache(config.still)
+        """The recent tasks' frames and the back-end's newest snapshot of the foreground
+        (``scene.still``)."""
 
     # ------------------------------------------------------------------ run state
     def state(self) -> FrontEndState:
@@ -276,9 +281,14 @@ class FrontEnd:
             return BackendStart(epoch=self._backend_epoch, first=self._backends_registered == 1)
 
     # ------------------------------------------------------------------ background pushes
-    def push_background(self, update: BackgroundUpdate) -> BgVersion:
-        """Take a newer background (older or duplicate versions are ignored). Returns the
-        version now held."""
+    def push_background(self, update: BackgroundUpdate | StillSnapshot) -> BgVersion:
+        """Take a newer background (older or duplicate versions are ignored), or the
+        back-end's newest snapshot of the still foreground (``scene.still``). Returns the
+        background version now held."""
+        if isinstance(update, StillSnapshot):
+            if self.still is not None:
+                self.still.set_snapshot(update)
+            return self.bg_version
         with self._lock:
             newer = update.version > self._bg_version
             if newer:
@@ -545,7 +555,14 @@ class FrontEnd:
             with self._holding_scene() as scene:
                 fg = self.obtain_foreground(scene, frames, job.updates, timings)
             segmented.append(fg)
-            job.submit(TaskWork(frames=frames, foreground=fg.slim(), golden=want_golden))
+            job.submit(
+                TaskWork(
+                    frames=frames,
+                    foreground=fg.slim(),
+                    golden=want_golden,
+                    still_uses=None if self.still is None else self.still.uses(),
+                )
+            )
             return fg
 
         scale = plan.scale
@@ -582,6 +599,7 @@ class FrontEnd:
             sparse_scope=self._sparse_scope(plan.phase, want_golden),
             cancel=guard.cancel,
             retune=None if self.workload is None else retune,
+            still=None if self.still is None else functools.partial(self._still_plan, plan, frames),
         )
         critical = time.perf_counter() - start
         timings = result.timings
@@ -675,10 +693,21 @@ class FrontEnd:
             frame_defects=defects,
             num_sparse=sparse.num_points,
             num_sparse_fg=int(np.count_nonzero(labels > 0)),
+            num_still_points=fg_rec.num_still,
+            still_share=None if result.still is None else round(result.still.share, 4),
             num_objects=max(num_objects(labels), _cloud_objects(fg_rec.cloud)),
             scale=scale,
             planned_scale=None if scale == plan.scale else plan.scale,
         )
+
+    def _still_plan(
+        self, plan: TaskPlan, frames: FrameSet, fg: ForegroundResult
+    ) -> StillPlan | None:
+        """What the task densifies (``scene.still``); a golden task, the controller's
+        reference, densifies all."""
+        if self.still is None or plan.phase == "golden":
+            return None
+        return self.still.plan(frames.images, fg.masks, fg.time_index)
 
     def _workload_scale(self, plan: TaskPlan, area: float | None, spent_s: float) -> float:
         """The task's r: the controller's, scaled in the adjustment by the mask ``area`` and

@@ -71,6 +71,10 @@ class TaskWork:
     golden: bool
     """Whether the front-end wants the golden reference of this task (online quality
     "golden")."""
+    still_uses: tuple[int, int] | None = None
+    """The time index of the newest snapshot of the still foreground the front-end holds
+    and how many tasks used it (``scene.still``): the back-end makes fewer snapshots while
+    none is used."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -160,6 +164,12 @@ class TaskMetrics:
     num_sparse: int = 0
     num_sparse_fg: int = 0
     num_fg_points: int = 0
+    num_still_points: int = 0
+    """Of ``num_fg_points``, those kept from the back-end's snapshot of the still foreground
+    (``scene.still``; the task densified the rest)."""
+    still_share: float | None = None
+    """Share of the task's mask pixels that were still and not densified (None: the task
+    densified its whole foreground)."""
     num_merged_points: int = 0
     num_objects: int = 0
     search_steps: int = 0

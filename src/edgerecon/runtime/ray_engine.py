@@ -181,9 +181,13 @@ class _BackendActor:
         # Fire and forget: the front-end takes it between (or during) tasks.
         self._frontend.push_background.remote(update)
 
-    def submit(self, frames_ref: list[Any], foreground: Any, golden: bool) -> None:
+    def submit(
+        self, frames_ref: list[Any], foreground: Any, golden: bool, still_uses: Any = None
+    ) -> None:
         frames = _ray().get(frames_ref[0])
-        self.backend.submit(TaskWork(frames=frames, foreground=foreground, golden=golden))
+        self.backend.submit(
+            TaskWork(frames=frames, foreground=foreground, golden=golden, still_uses=still_uses)
+        )
 
     def golden(self, time_index: int, timeout: float) -> Any:
         return self.backend.golden(time_index, timeout)
@@ -210,7 +214,7 @@ class _RemoteBackend:
     def submit(self, work: TaskWork) -> None:
         # The frames are in the object store already; the foreground (masks at the working
         # resolution) travels with the call.
-        self._actor.submit.remote([self._ref], work.foreground, work.golden)
+        self._actor.submit.remote([self._ref], work.foreground, work.golden, work.still_uses)
 
     def _call(self, method: Any, *args: Any, timeout: float) -> Any:
         ray = _ray()
