@@ -61,7 +61,6 @@ from edgerecon.pipeline import (
     ForegroundReconstruction,
     fine_scale_limit,
     reconstruct_task,
-    task_configs,
     warm_up,
 )
 from edgerecon.quality.metrics import evaluate_clouds
@@ -129,14 +128,7 @@ def foreground_task(
     online system's ``task_configs``: r > 1 finer than golden), with the SfM of the
     foreground crops that the paper's sparse estimate needs (the hull bounds the depth
     search either way: the same foreground cloud as the online system's "hull" scope)."""
-    cfg, split = task_configs(
-        scale,
-        rig,
-        camera_ids=ids,
-        sparse_config=rc.sparse,
-        dense_config=rc.dense,
-        split_config=rc.split,
-    )
+    cfg, split = rc.task_configs(scale, rig, ids)
     rec = reconstruct_task(
         frames,
         rig,

@@ -40,7 +40,6 @@ from edgerecon.pipeline import (
     prepare_task_views,
     reconstruct_static,
     reconstruct_task,
-    task_configs,
     task_sparse,
 )
 from edgerecon.runtime.config import RuntimeConfig
@@ -459,13 +458,7 @@ def still_snapshot(
     # As fine as any task may run (``fine_foreground``: finer than the golden task): kept
     # points must not be coarser than those the task would have densified.
     scale = fine_scale_limit(rig, config.dense, config.split) if config.fine_foreground else 1.0
-    cfg, split = task_configs(
-        scale,
-        rig,
-        sparse_config=config.sparse,
-        dense_config=config.dense,
-        split_config=config.split,
-    )
+    cfg, split = config.task_configs(scale, rig)
     result = reconstruct_task(
         frames,
         rig,

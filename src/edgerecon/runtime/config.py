@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from edgerecon.config import ReconstructionConfig
 from edgerecon.dense import DenseConfig
 from edgerecon.geometry.camera import Rig
 from edgerecon.optimize.workload import WorkloadConfig
-from edgerecon.pipeline import SPARSE_SCOPES, SplitPipelineConfig
+from edgerecon.pipeline import SPARSE_SCOPES, SplitPipelineConfig, task_configs
 from edgerecon.quality.frames import FrameCheckConfig
 from edgerecon.scene.foreground import ForegroundConfig
 from edgerecon.scene.still import StillConfig
@@ -181,6 +183,20 @@ class RuntimeConfig:
                 "RuntimeConfig.watchdog_factor must be >= 1 and watchdog_min_s > 0, got "
                 f"{self.watchdog_factor}, {self.watchdog_min_s}"
             )
+
+    def task_configs(
+        self, scale: float, rig: Rig, camera_ids: Sequence[int] | None = None
+    ) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
+        """``pipeline.task_configs`` of a task of image scale ``scale`` with these settings
+        (the front-end's tasks, the back-end's snapshots, the benchmarks)."""
+        return task_configs(
+            scale,
+            rig,
+            camera_ids=camera_ids,
+            sparse_config=self.sparse,
+            dense_config=self.dense,
+            split_config=self.split,
+        )
 
     def eval_threshold_for(self, rig: Rig) -> float:
         """The online (and offline) F-score threshold d for ``rig``, in its units."""

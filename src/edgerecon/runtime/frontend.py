@@ -49,7 +49,6 @@ from edgerecon.pipeline import (
     num_objects,
     prepare_task_views,
     reconstruct_task,
-    task_configs,
     task_sparse,
 )
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
@@ -570,14 +569,7 @@ class FrontEnd:
         before_mvs = 0.0
 
         def configs(r: float) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
-            return task_configs(
-                r,
-                self.rig,
-                camera_ids=plan.camera_ids,
-                sparse_config=self.config.sparse,
-                dense_config=self.config.dense,
-                split_config=self.config.split,
-            )
+            return self.config.task_configs(r, self.rig, plan.camera_ids)
 
         def retune(fg: ForegroundResult) -> tuple[ReconstructionConfig, SplitPipelineConfig]:
             # Once the masks are known: the task's r from its workload (optimize.workload).
