@@ -101,3 +101,26 @@ def test_the_back_end_makes_fewer_snapshots_while_no_task_uses_them(tiny):
     assert [cycle(t, 3) for t in range(16, 30)].count(False) <= 7
     assert all(cycle(t, 2) for t in range(30, 34))
     assert be.stats["snapshots_skipped"] > 0
+
+
+def test_a_still_plan_that_raises_leaves_the_task_whole(tiny, monkeypatch, caplog):
+    # The still foreground is an optimisation: when it fails the task densifies its whole
+    # foreground (one warning), it does not fail.
+    ds, scene = tiny
+    config = runtime_config()
+    fe = FrontEnd(ds.rig, config, FixedController(1.0, (0, 1, 2, 3, 4)), scene.tracker(ds.rig))
+    works = []
+    with ds.open_frames() as src:
+        frames = src.read(3)
+    fe.run_task(frames, fe.next_plan(3), works.append, time.sleep, task=0)
+    fe.push_background(still_snapshot(ds.rig, config, frames, works[0].foreground))
+
+    def broken(*args, **kw):
+        raise ValueError("a bug in the comparison")
+
+    monkeypatch.setattr("edgerecon.scene.still.plan_still", broken)
+    outs = [fe.run_task(frames, fe.next_plan(3), works.append, time.sleep, task=k) for k in (1, 2)]
+    for out in outs:
+        assert out.metrics.status == "ok" and out.metrics.still_share is None
+        assert out.metrics.num_fg_points > 0
+    assert sum("still foreground failed" in r.getMessage() for r in caplog.records) == 1

@@ -254,6 +254,7 @@ class FrontEnd:
                 self._bg_version = self._bg_published = restored.bg_version
         self.eval_threshold = config.eval_threshold_for(rig)
         self.still = None if config.still is None else StillCache(config.still)
+        self._still_failed = False
         """The recent tasks' frames and the back-end's newest snapshot of the foreground
         (``scene.still``)."""
 
@@ -699,7 +700,18 @@ class FrontEnd:
         reference, densifies all."""
         if self.still is None or plan.phase == "golden":
             return None
-        return self.still.plan(frames.images, fg.masks, fg.time_index)
+        try:
+            return self.still.plan(frames.images, fg.masks, fg.time_index)
+        except Exception as exc:  # an optimisation: the task densifies everything instead
+            if not self._still_failed:
+                logger.warning(
+                    "time %d: the still foreground failed (%s): tasks densify their whole "
+                    "foreground when it does",
+                    fg.time_index,
+                    describe_exception(exc),
+                )
+                self._still_failed = True
+            return None
 
     def _workload_scale(self, plan: TaskPlan, area: float | None, spent_s: float) -> float:
         """The task's r: the controller's, scaled in the adjustment by the mask ``area`` and
