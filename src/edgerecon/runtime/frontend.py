@@ -254,9 +254,8 @@ class FrontEnd:
                 self._bg_version = self._bg_published = restored.bg_version
         self.eval_threshold = config.eval_threshold_for(rig)
         self.still = None if config.still is None else StillCache(config.still)
+        """The back-end's newest snapshot of the foreground (``scene.still``)."""
         self._still_failed = False
-        """The recent tasks' frames and the back-end's newest snapshot of the foreground
-        (``scene.still``)."""
 
     # ------------------------------------------------------------------ run state
     def state(self) -> FrontEndState:
