@@ -331,6 +331,8 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
             "avg_offline_fscore": mean(off),
             "backgrounds_pushed": max((m.bg_version for m in ok), default=0),
             "search_steps": max((m.search_steps for m in ok), default=0),
+            "still_tasks": sum(m.still_share is not None for m in ok),
+            "avg_still_share": mean([m.still_share for m in ok if m.still_share is not None]),
             "degraded": sum(m.degraded for m in ok),
             "frames_dropped": None,
             "wall_s": None,
@@ -376,6 +378,10 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ),
         ("# backgrounds pushed", str(s.get("backgrounds_pushed"))),
         ("# configuration search steps", str(s.get("search_steps"))),
+        (
+            "tasks that kept the still foreground (share still)",
+            f"{s.get('still_tasks', '-')} ({fmt(s.get('avg_still_share'), '.2f')})",
+        ),
         (
             "tasks / failed / degraded",
             f"{len(run.tasks)} / {len(run.tasks) - len(ok)} / {s.get('degraded')}",

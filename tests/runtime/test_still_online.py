@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 
 from edgerecon.runtime.backend import still_snapshot
 from edgerecon.runtime.frontend import FixedController, FrontEnd
@@ -66,6 +67,10 @@ def test_a_run_with_snapshots_has_every_task_and_no_stray_points(tiny, tmp_path)
 
     summary, metrics = run_frames(tiny, tmp_path, 0, 8, runtime_config(), on_task=pause)
     assert summary.tasks == 8 and summary.failed == 0
+    reused = [m.still_share for m in metrics if m.still_share is not None]
+    assert summary.still_tasks == len(reused)
+    if reused:
+        assert summary.avg_still_share == pytest.approx(np.mean(reused), abs=1e-4)
     for m in metrics:
         assert m.num_still_points <= m.num_fg_points
         if m.still_share is None:

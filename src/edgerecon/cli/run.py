@@ -281,6 +281,10 @@ def print_summary(title: str, s: RunSummary) -> None:
         (offline_fscore_label(s.offline_threshold, s.unit), f(s.avg_offline_fscore)),
         ("# backgrounds pushed", s.backgrounds_pushed),
         ("# configuration search steps", s.search_steps),
+        (
+            "tasks that kept the still foreground (share still)",
+            f"{s.still_tasks} ({f(s.avg_still_share, '.2f')})",
+        ),
         ("tasks / failed / degraded / empty", f"{s.tasks} / {s.failed} / {s.degraded} / {s.empty}"),
         ("background at the end (epoch.counter)", f"v{s.bg_version[0]}.{s.bg_version[1]}"),
         ("frames dropped (newest policy)", s.frames_dropped),

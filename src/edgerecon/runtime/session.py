@@ -222,6 +222,11 @@ class RunSummary:
     """Abandoned work whose thread still runs at the end (stopped, but blocked inside a
     native call since; ``runtime.interrupt``): empty when every one ended."""
     search_steps: int = 0
+    still_tasks: int = 0
+    """Tasks that kept the back-end's snapshot of the still foreground (``scene.still``)
+    and densified the rest."""
+    avg_still_share: float | None = None
+    """Their average share of mask pixels still (not densified)."""
     stage_means_s: dict[str, float] = field(default_factory=dict)
     """Mean seconds per stage over the ok tasks (``wait_golden`` comes after the critical
     path)."""
@@ -296,6 +301,7 @@ class RunTotals:
     online: _Mean = field(default_factory=_Mean)
     offline: _Mean = field(default_factory=_Mean)
     search_steps: int = 0
+    still_share: _Mean = field(default_factory=_Mean)
     stages: dict[str, float] = field(default_factory=dict)
     spread: _Mean = field(default_factory=_Mean)
     spread_max: float | None = None
@@ -335,6 +341,8 @@ class RunTotals:
             self.online.add(m.online_fscore)
         if m.offline_fscore is not None:
             self.offline.add(m.offline_fscore)
+        if m.still_share is not None:
+            self.still_share.add(m.still_share)
         self.search_steps = max(self.search_steps, m.search_steps)
         for k, v in m.stages.items():
             self.stages[k] = self.stages.get(k, 0.0) + float(v)
@@ -692,5 +700,7 @@ class Session:
             s.offline_threshold = self.options.ground_truth_threshold if t.offline.count else None
             s.unit = self.dataset.rig.unit
             s.search_steps = t.search_steps
+            s.still_tasks = t.still_share.count
+            s.avg_still_share = round(t.still_share.value, 4) if t.still_share.count else None
             s.stage_means_s = {k: round(v / reconstructed, 4) for k, v in t.stages.items()}
         return s
