@@ -71,8 +71,8 @@ class StillConfig:
     min_outline_iou: float = 0.7
     """An object (a connected part of a camera's mask) whose outline overlaps its outline at
     the snapshot's time (the parts of that time's mask it touches) by less than this
-    (intersection over union) has moved as a whole: all of it is densified. Grey levels alone would
-    keep the inside of a uniform shirt that walked by less than its width."""
+    (intersection over union) has moved as a whole: all of it is densified. Grey levels
+    alone would keep the inside of a uniform shirt that walked by less than its width."""
     margin_px: int = 6
     """Working pixels by which the changed pixels grow, and the densified part into the still
     one."""
