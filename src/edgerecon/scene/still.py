@@ -47,8 +47,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.geometry.camera import Camera
+from edgerecon.scene.background import downscale
 from edgerecon.scene.hull import depth_map
+from edgerecon.scene.masks import disk
 from edgerecon.types import Mask, PointCloud
+from edgerecon.views import resize_mask
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -159,17 +162,10 @@ def _grid(mask: Mask, config: StillConfig) -> tuple[int, int]:
     return max(1, round(w / config.downsample)), max(1, round(h / config.downsample))
 
 
-def _resized_mask(mask: Mask, size: tuple[int, int]) -> Mask:
-    if (mask.shape[1], mask.shape[0]) == size:
-        return mask
-    return np.asarray(cv2.resize(mask.view(np.uint8), size, interpolation=cv2.INTER_NEAREST), bool)
-
-
 def _grow(mask: Mask, radius: int) -> Mask:
     if radius <= 0 or not mask.any():
         return mask
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-    return np.asarray(cv2.dilate(mask.view(np.uint8), k), bool)
+    return np.asarray(cv2.dilate(mask.view(np.uint8), disk(radius)), bool)
 
 
 def moved_objects(mask: Mask, before: Mask, min_iou: float) -> Mask:
@@ -227,11 +223,11 @@ def grey_image(
     its exposure: the median grey of the pixels outside the mask (the static scene tells the
     camera's gain on either node; 0 when the mask leaves too little outside)."""
     size = _grid(mask, config)
-    small = cv2.resize(np.asarray(image), size, interpolation=cv2.INTER_AREA)
+    small = downscale(np.asarray(image, np.uint8), size)  # the models' reduction
     if small.ndim == 3 and small.shape[2] == 3:
-        small = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
-    grey = np.asarray(cv2.blur(np.asarray(small, np.float32), (config.blur_px,) * 2), np.float32)
-    outside = ~_resized_mask(mask, size)
+        small = np.asarray(cv2.cvtColor(small, cv2.COLOR_BGR2GRAY), np.uint8)
+    grey = np.asarray(cv2.blur(small.astype(np.float32), (config.blur_px,) * 2), np.float32)
+    outside = ~resize_mask(mask, size)
     level = float(np.median(grey[outside])) if np.count_nonzero(outside) >= 64 else 0.0
     return grey, level
 
@@ -255,7 +251,7 @@ def reference_of(
         grey, level = grey_image(im, m, config)
         greys.append(grey)
         levels.append(level)
-        small.append(_resized_mask(m, _grid(m, config)))
+        small.append(resize_mask(m, _grid(m, config)))
     return StillReference(
         time_index=time_index, greys=tuple(greys), levels=tuple(levels), masks=tuple(small)
     )
@@ -349,11 +345,11 @@ def plan_still(
         if m is None or g is None or g0 is None or m0 is None or g.shape != g0.shape:
             dense.append(m)
             if m is not None:
-                total += int(np.count_nonzero(_resized_mask(m, _grid(m, config))))
+                total += int(np.count_nonzero(resize_mask(m, _grid(m, config))))
             continue
         # On the compared grid (a quarter of the masks' pixels at the default downsample).
         grid = (g.shape[1], g.shape[0])
-        mg = _resized_mask(m, grid)
+        mg = resize_mask(m, grid)
         level, level0 = current.levels[c], ref.levels[c]
         gain = level0 / level if level > 1.0 and level0 > 1.0 else 1.0
         changed = changed_pixels(g, g0, config, gain)
@@ -362,7 +358,7 @@ def plan_still(
         still = mg & ~moving
         total += int(np.count_nonzero(mg))
         still_total += int(np.count_nonzero(still))
-        dense.append(m & _resized_mask(_grow(moving, margin), (m.shape[1], m.shape[0])))
+        dense.append(m & resize_mask(_grow(moving, margin), (m.shape[1], m.shape[0])))
         at = snapshot.pixels[:, c]
         inside = at >= 0
         if not inside.any():
