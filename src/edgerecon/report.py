@@ -379,8 +379,9 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ("# backgrounds pushed", str(s.get("backgrounds_pushed"))),
         ("# configuration search steps", str(s.get("search_steps"))),
         (
-            "tasks that kept the still foreground (share still)",
-            f"{s.get('still_tasks', '-')} ({fmt(s.get('avg_still_share'), '.2f')})",
+            "tasks that kept the still foreground (share still) / snapshots",
+            f"{s.get('still_tasks', '-')} ({fmt(s.get('avg_still_share'), '.2f')})"
+            f" / {s.get('snapshots_pushed', '-')}",
         ),
         (
             "tasks / failed / degraded",

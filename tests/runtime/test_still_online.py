@@ -71,6 +71,7 @@ def test_a_run_with_snapshots_has_every_task_and_no_stray_points(tiny, tmp_path)
     assert summary.still_tasks == len(reused)
     if reused:
         assert summary.avg_still_share == pytest.approx(np.mean(reused), abs=1e-4)
+        assert summary.snapshots_pushed >= 1
     for m in metrics:
         assert m.num_still_points <= m.num_fg_points
         if m.still_share is None:

@@ -282,8 +282,8 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("# backgrounds pushed", s.backgrounds_pushed),
         ("# configuration search steps", s.search_steps),
         (
-            "tasks that kept the still foreground (share still)",
-            f"{s.still_tasks} ({f(s.avg_still_share, '.2f')})",
+            "tasks that kept the still foreground (share still) / snapshots",
+            f"{s.still_tasks} ({f(s.avg_still_share, '.2f')}) / {s.snapshots_pushed}",
         ),
         ("tasks / failed / degraded / empty", f"{s.tasks} / {s.failed} / {s.degraded} / {s.empty}"),
         ("background at the end (epoch.counter)", f"v{s.bg_version[0]}.{s.bg_version[1]}"),

@@ -401,6 +401,7 @@ class EmbeddedEngine:
         return {
             "engine": self.name,
             "backgrounds_received": self.frontend.backgrounds_received,
+            "snapshots_received": self.frontend.snapshots_received,
             "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,

@@ -279,6 +279,11 @@ class FrontEnd:
             self._backends_registered += 1
             return BackendStart(epoch=self._backend_epoch, first=self._backends_registered == 1)
 
+    @property
+    def snapshots_received(self) -> int:
+        """Snapshots of the still foreground taken (``scene.still``; 0 when it is off)."""
+        return 0 if self.still is None else self.still.snapshots
+
     # ------------------------------------------------------------------ background pushes
     def push_background(self, update: BackgroundUpdate | StillSnapshot) -> BgVersion:
         """Take a newer background (older or duplicate versions are ignored), or the

@@ -325,6 +325,7 @@ class _FrontendActor:
         return {
             "frontend_niceness": self.niceness,
             "backgrounds_received": self.frontend.backgrounds_received,
+            "snapshots_received": self.frontend.snapshots_received,
             "bg_version": self.frontend.bg_version.to_list(),
             "backend_outages": self.link.outages,
             "backend_restarts": self.backend_restarts,

@@ -222,6 +222,9 @@ class RunSummary:
     """Abandoned work whose thread still runs at the end (stopped, but blocked inside a
     native call since; ``runtime.interrupt``): empty when every one ended."""
     search_steps: int = 0
+    snapshots_pushed: int = 0
+    """Snapshots of the still foreground the front-end took (``scene.still``; this
+    process's, not those before a ``--resume``)."""
     still_tasks: int = 0
     """Tasks that kept the back-end's snapshot of the still foreground (``scene.still``)
     and densified the rest."""
@@ -488,6 +491,7 @@ class Session:
         try:
             status = self.engine.status()
             summary.backgrounds_pushed = int(status.get("backgrounds_received", 0))
+            summary.snapshots_pushed = int(status.get("snapshots_received", 0))
             summary.bg_version = list(status.get("bg_version", [0, 0]))
             summary.backend_restarts = int(status.get("backend_restarts", 0))
             summary.abandoned_threads = [str(w) for w in status.get("abandoned_threads", [])]
