@@ -28,8 +28,10 @@ def test_a_task_on_unchanged_frames_keeps_the_snapshot_and_densifies_little(tiny
     # The back-end's snapshot of that time (its own function, as a rebuild runs it).
     snap = still_snapshot(ds.rig, config, frames, works[0].foreground)
     assert isinstance(snap, StillSnapshot) and snap.time_index == 3 and len(snap.cloud) > 100
+    assert fe.snapshots_received == 0
     fe.push_background(snap)
     assert fe.still is not None and fe.still.snapshot_time == 3
+    assert fe.snapshots_received == 1  # what the run's summary reports (snapshots_pushed)
     # The same frames again: everything is still, the snapshot's points are the foreground.
     again = fe.run_task(frames, fe.next_plan(3), works.append, time.sleep, task=1)
     m = again.metrics
@@ -53,7 +55,7 @@ def test_without_still_foreground_the_rebuilds_make_no_snapshot_and_tasks_densif
     fg = scene.tracker(ds.rig).segment(frames)
     assert still_snapshot(ds.rig, config, frames, fg) is None
     fe = FrontEnd(ds.rig, config, FixedController(1.0, (0, 1, 2)), scene.tracker(ds.rig))
-    assert fe.still is None
+    assert fe.still is None and fe.snapshots_received == 0
     out = fe.run_task(frames, fe.next_plan(3), lambda w: None, time.sleep, task=0)
     assert out.metrics.still_share is None and "still" not in out.metrics.stages
 
