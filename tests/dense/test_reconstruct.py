@@ -246,6 +246,32 @@ def test_small_images_are_swept_exhaustively_except_for_the_foreground():
     assert [c.width for c in a.cameras] == [c.width for c in b.cameras] == [320, 160]
 
 
+def test_the_sweep_level_and_the_cost_of_a_depth_map_over_the_working_size():
+    """``depth_cost``: the working pixels plus the pixels of the level the sweep runs at
+    (``sweep_level`` of ``pyramid_scales``, the pyramid the depth maps are built on), 8
+    times each. A 352-wide working image sweeps its 176-px octave, a 384-wide one a level
+    resized to 120 px: the larger image costs less (the foreground at r = 0.55 / 0.6 on
+    1280-wide frames); one local-search pass costs less than two."""
+    from edgerecon.dense.depth import build_pyramid, depth_cost, pyramid_scales, sweep_level
+    from edgerecon.pipeline import foreground_dense_config
+
+    fg = foreground_dense_config(DenseConfig())
+    cam = ring_rig(3, width=384, height_px=216, focal_px=300.0).cameras[0]
+    pyr = build_pyramid(0, cam, np.zeros((216, 384), np.float32), 3, 120, small_exhaustive=False)
+    scales = pyramid_scales(384, 216, 3, 120, small_exhaustive=False)
+    assert [c.width for c in pyr.cameras] == [384, *(round(384 * s) for s in scales)]
+    assert [c.width for c in pyr.cameras] == [384, 192, 120]
+    assert sweep_level([c.width for c in pyr.cameras], fg) == 2
+    assert sweep_level([352, 176], fg) == 1
+    assert sweep_level([200, 100], fg) == 0  # nothing below keeps 120 px
+    small, large = depth_cost(352, 198, fg), depth_cost(384, 216, fg)
+    assert small == pytest.approx(352 * 198 + 8 * 176 * 99)
+    assert large == pytest.approx(384 * 216 + 8 * 120 * 68)
+    assert small > large
+    one = dataclasses.replace(fg, refine_passes=1)
+    assert depth_cost(384, 216, one) < large
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_a_cancelled_dense_stage_starts_no_further_depth_map(scene, monkeypatch, threads):
     # A task's watchdog gave up on it during its depth maps: the maps already running end,

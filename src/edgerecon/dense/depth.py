@@ -125,24 +125,23 @@ def ncc_threshold(
     )
 
 
-def build_pyramid(
-    camera_id: int,
-    camera: Camera,
-    grey: F32,
+def pyramid_scales(
+    width: int,
+    height: int,
     levels: int,
     top_side: int | None = None,
     *,
     small_exhaustive: bool = True,
-) -> ViewPyramid:
-    """Pyramid of up to ``levels`` levels below the working image ``grey`` of ``camera``:
-    octaves, and with ``top_side`` a last level whose longer side is ``top_side`` pixels
-    where the next octave would be smaller and the previous one is 1.5x larger than
-    ``top_side`` and, with ``small_exhaustive``, at least an octave below the working image
-    (the plane sweep runs there: its cost then follows the image scale instead of jumping
-    fourfold between two octaves)."""
-    cams = [camera]
-    greys = [grey]
-    side = max(camera.width, camera.height)
+) -> tuple[float, ...]:
+    """The scales of :func:`build_pyramid`'s levels below a working image of ``width`` x
+    ``height`` pixels (level 0, scale 1, not included): octaves, and with ``top_side`` a
+    last level whose longer side is ``top_side`` pixels where the next octave would be
+    smaller and the previous one is 1.5x larger than ``top_side`` and, with
+    ``small_exhaustive``, at least an octave below the working image (the plane sweep runs
+    there: its cost then follows the image scale instead of jumping fourfold between two
+    octaves). A level under 8 pixels ends the pyramid."""
+    scales: list[float] = []
+    side = max(width, height)
     for level in range(1, levels + 1):
         scale = 0.5**level
         last = False
@@ -156,14 +155,78 @@ def build_pyramid(
                 # against 0.467; utrecht4cam at r = 0.6: the floor is found).
                 break
             scale, last = top_side / side, True
-        cam = camera.scaled(scale)
-        if min(cam.width, cam.height) < 8:
+        if min(max(1, round(width * scale)), max(1, round(height * scale))) < 8:
             break
-        cams.append(cam)
-        greys.append(as_f32(cv2.resize(grey, cam.size, interpolation=cv2.INTER_AREA)))
+        scales.append(scale)
         if last:
             break
+    return tuple(scales)
+
+
+def build_pyramid(
+    camera_id: int,
+    camera: Camera,
+    grey: F32,
+    levels: int,
+    top_side: int | None = None,
+    *,
+    small_exhaustive: bool = True,
+) -> ViewPyramid:
+    """Pyramid of up to ``levels`` levels below the working image ``grey`` of ``camera``
+    (:func:`pyramid_scales`)."""
+    cams = [camera]
+    greys = [grey]
+    for scale in pyramid_scales(
+        camera.width, camera.height, levels, top_side, small_exhaustive=small_exhaustive
+    ):
+        cam = camera.scaled(scale)
+        cams.append(cam)
+        greys.append(as_f32(cv2.resize(grey, cam.size, interpolation=cv2.INTER_AREA)))
     return ViewPyramid(camera_id=camera_id, cameras=tuple(cams), greys=tuple(greys))
+
+
+def sweep_level(sides: Sequence[int], config: DenseConfig) -> int:
+    """The pyramid level :func:`estimate_depth` sweeps a whole image at: the coarsest of the
+    first ``coarse_levels`` whose longer side (``sides``, level 0 first) keeps
+    ``sweep_min_side_px`` pixels (level 0 when none below it does)."""
+    top = min(config.coarse_levels, len(sides) - 1)
+    while top > 0 and sides[top] < config.sweep_min_side_px:
+        top -= 1
+    return top
+
+
+#: What a pixel of the plane sweep costs against a pixel of the working image's
+#: refinement with two local-search passes (:func:`depth_cost`), fitted to the foreground's
+#: dense time over r on caliscope_charuco (1280x720, 10.2) and hd4 (1920x1080, 6.8) with
+#: the sweep's and the working image's pixel counts (docs/BENCHMARKS.md).
+SWEEP_PIXEL_COST = 8.0
+#: Each local-search pass less than two takes this share off the working image's
+#: refinement (one pass: 0.76 of two passes' on caliscope_charuco, 0.79 on hd4).
+_REFINE_PASS_COST = 0.23
+
+
+def depth_cost(width: int, height: int, config: DenseConfig) -> float:
+    """The relative cost of a depth map over a whole working image of ``width`` x
+    ``height`` pixels: its pixels, weighted by the local-search passes (two: 1), plus the
+    pixels of the level its plane sweep runs at, :data:`SWEEP_PIXEL_COST` each. Over the
+    image scale r this is not monotonic: where the sweep's level drops to a coarser one
+    (on 1280-wide frames between r = 0.55 and 0.6), a larger r costs less (the
+    controller skips the scales that cost more than a larger one,
+    ``pipeline.dominated_scales``)."""
+    scales = pyramid_scales(
+        width,
+        height,
+        config.coarse_levels,
+        config.sweep_min_side_px,
+        small_exhaustive=config.sweep_small_exhaustive,
+    )
+    sizes = [(width, height)] + [
+        (max(1, round(width * s)), max(1, round(height * s))) for s in scales
+    ]
+    top = sweep_level([max(w, h) for w, h in sizes], config)
+    refine = 1.0 - _REFINE_PASS_COST * (2 - config.refine_passes)
+    sweep_w, sweep_h = sizes[top]
+    return width * height * refine + SWEEP_PIXEL_COST * sweep_w * sweep_h
 
 
 @dataclass(frozen=True)
@@ -876,11 +939,11 @@ def estimate_depth(
     )
     if not sources or roi.area == 0:
         return empty
-    top = min(config.coarse_levels, ref.num_levels - 1, *(s.num_levels - 1 for s in sources))
+    sides = [max(c.width, c.height) for c in ref.cameras]
+    top = min(sweep_level(sides, config), *(s.num_levels - 1 for s in sources))
     while top > 0:
         r = roi_at_level(roi, cam0, ref.cameras[top])
-        side = max(ref.cameras[top].width, ref.cameras[top].height)
-        if min(r.width, r.height) >= _MIN_LEVEL_SIDE and side >= config.sweep_min_side_px:
+        if min(r.width, r.height) >= _MIN_LEVEL_SIDE:
             break
         top -= 1
     work = 0
