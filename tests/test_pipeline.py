@@ -12,7 +12,9 @@ from edgerecon.dense import DenseConfig
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import (
     SplitPipelineConfig,
+    dominated_scales,
     fine_scale_limit,
+    foreground_cost,
     foreground_dense_config,
     reconstruct,
     reconstruct_task,
@@ -302,6 +304,37 @@ def test_task_configs_above_one_make_the_foreground_finer():
     mixed = type(hd)(cameras=(*hd.cameras[:3], other), unit="m")
     assert fine_scale_limit(mixed, dense) == 1.0
     assert fine_scale_limit(hd, dense, SplitPipelineConfig(fg_resolution_level=0)) == 1.0
+
+
+def test_dominated_scales_are_where_the_sweep_level_drops():
+    """``dominated_scales``: on 1280x720 frames (golden foreground at half resolution) the
+    plane sweep runs at a 176-pixel octave at r = 0.55 and at a 120-pixel level from r =
+    0.5625: r 0.45-0.5625 costs more than a larger r (measured: 0.42 s at r = 0.55 against
+    0.30 s at 0.6 for one caliscope_charuco task), and so do r just above 1 (r = 1.1 sweeps
+    at 176 pixels, r = 1.2 at 120). Each interval's upper end costs less than any scale
+    inside; r_max bounds the intervals; a 640x480 rig has one interval and nothing above 1."""
+    hd = ring_rig(4, width=1280, height_px=720, focal_px=1000.0)
+    skip = dominated_scales(hd, 0.3, 1.0, 2.0)
+    assert len(skip) == 2
+    (a, b), (c, d) = skip
+    assert 0.42 < a < 0.48 and 0.5625 < b < 0.58
+    assert 1.0 <= c < 1.01 and 1.125 < d < 1.15
+    for lo, hi in skip:
+        top = foreground_cost(hi, hd)
+        # (the upper end is 1 % above the drop, the first r that is not dominated)
+        inside = [r for r in np.linspace(lo, hi, 40)[1:-1] if r < hi / 1.011]
+        assert all(foreground_cost(float(r), hd) > top for r in inside)
+    # Outside the intervals the cost grows with r.
+    outside = [r for r in np.arange(0.3, 2.0, 0.01) if not any(x < r < y for x, y in skip)]
+    costs = [foreground_cost(float(r), hd) for r in outside if r <= 1.0]
+    assert all(np.diff(costs) > -0.02 * np.array(costs[1:]))
+    # Without r_fine nothing above r_max; the golden configuration is never inside.
+    assert dominated_scales(hd, 0.3, 1.0) == skip[:1]
+    vga = ring_rig(4)
+    (v,) = dominated_scales(vga, 0.3, 1.0, 1.0)
+    assert 0.4 < v[0] < v[1] < 0.6
+    # The estimate's pyramid is the one the depth maps use.
+    assert foreground_cost(0.55, hd) > foreground_cost(0.6, hd) > foreground_cost(0.45, hd)
 
 
 def test_retune_chooses_the_configuration_from_the_masks(tiny, tiny_dataset):
