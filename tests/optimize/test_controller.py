@@ -859,3 +859,80 @@ def test_late_share_bounds_the_late_tasks_not_just_their_average():
         assert restored.target_s == ctrl.target_s
     with pytest.raises(ValueError, match="late_share"):
         ControllerConfig(deadline_s=1.0, late_share=0.5)
+
+
+def _sawtooth_s(r: float) -> float:
+    """A task's seconds whose plane sweep drops to a coarser level at r = 0.56 (the
+    foreground on 1280-wide frames): r = 0.55 costs 0.73 s, r = 0.57 0.42 s; below 0.39
+    every r costs less than at the drop."""
+    sweep = 0.5 * (r / 0.56) ** 2 if r < 0.56 else 0.16
+    return 0.1 + 0.5 * r * r + sweep
+
+
+SAW_SKIP = ((0.39, 0.565),)
+
+
+def test_skipped_scales_are_never_run_and_the_search_finds_the_larger_r():
+    """``skip_scales``: the search's probes and the adjustment's steps never land inside
+    (a, b); where the deadline fits r = 0.62 the run settles there, not in the dominated
+    stretch below the drop that costs as much."""
+    deadline = _sawtooth_s(0.62) / 0.95
+    for kw in ({}, PAPER_START):
+        cfg = ControllerConfig(deadline_s=deadline, adjust_target=0.95, skip_scales=SAW_SKIP, **kw)
+        ctrl = BisectionController(cfg, LOWEST, 4)
+        rows = []
+        for _ in range(60):
+            c = ctrl.next_config()
+            t = _sawtooth_s(c.scale)
+            rows.append((c.phase, c.scale, c.num_cameras))
+            ctrl.observe(t, c.scale)
+        assert not [r for r in rows if 0.39 < r[1] < 0.565]
+        settled = [r[1] for r in rows[-20:]]
+        assert all(r[0] == "adjust" for r in rows[-20:])
+        assert min(settled) > 0.58 and max(settled) < 0.66
+    # Going up from below the interval jumps to its upper end, down from it to its lower.
+    ctrl = BisectionController(ControllerConfig(deadline_s=1.0, skip_scales=SAW_SKIP), LOWEST, 4)
+    assert ctrl.undominated(0.5) == 0.565 and ctrl.undominated(0.5, up=False) == 0.39
+    assert ctrl.undominated(0.39) == 0.39 and ctrl.undominated(0.6) == 0.6
+
+
+def test_the_adjustment_crosses_a_skipped_interval_in_one_step():
+    """A workload that grows by half for 15 tasks: the adjustment steps down from about
+    0.62 and, where a step would land inside the interval, goes to its lower end at once
+    (the tasks inside would cost as much as at its upper end); back above it when the load
+    falls. Without the interval the controller ends inside it, at r 0.40-0.42, where a
+    task costs more than at 0.62."""
+    deadline = _sawtooth_s(0.62) / 0.95
+    for skip in (SAW_SKIP, ()):
+        cfg = ControllerConfig(deadline_s=deadline, adjust_target=0.95, skip_scales=skip)
+        ctrl = BisectionController(cfg, LOWEST, 4)
+        scales, phases = [], []
+        for i in range(70):
+            c = ctrl.next_config()
+            load = 1.5 if 30 <= i < 45 else 1.0
+            scales.append(c.scale)
+            phases.append(c.phase)
+            ctrl.observe(_sawtooth_s(c.scale) * load, c.scale)
+        inside = [r for r in scales if 0.39 < r < 0.565]
+        if skip:
+            assert not inside
+            # Below the interval under the load (adjusted tasks; a re-search probes r_max) ...
+            loaded = [r for r, p in zip(scales[33:45], phases[33:45], strict=True) if p == "adjust"]
+            assert loaded and max(loaded) <= 0.39
+            assert min(scales[55:]) >= 0.6  # ... above it again after
+        else:
+            assert len(inside) > 15
+            assert all(0.39 < r < 0.43 for r in scales[55:])
+            assert _sawtooth_s(scales[-1]) > _sawtooth_s(0.62)
+
+
+def test_skip_scales_survive_the_saved_state_and_are_validated():
+    cfg = ControllerConfig(deadline_s=1.0, skip_scales=[[0.7, 0.8], [0.4, 0.5]])
+    assert cfg.skip_scales == ((0.4, 0.5), (0.7, 0.8))
+    ctrl = BisectionController(cfg, LOWEST, 4)
+    saved = json.loads(json.dumps(ctrl.to_dict()))
+    again = BisectionController.from_dict(saved)
+    assert again.config == cfg and again.config.skip_scales == ((0.4, 0.5), (0.7, 0.8))
+    for bad in ([(0.5, 0.4)], [(0.4, 0.6), (0.5, 0.7)], [(0.0, 0.5)], [(0.4,)], ["ab"]):
+        with pytest.raises(ValueError, match="skip_scales"):
+            ControllerConfig(deadline_s=1.0, skip_scales=bad)

@@ -76,3 +76,35 @@ def test_off_and_fixed_configurations_keep_the_planned_scale():
     for _ in range(4):
         fixed.workload.record(0.2, 0.2, 0.7, 0.8)
     assert fixed._workload_scale(_plan(0.7, "fixed"), 0.8, 0.2) == 0.7
+
+
+def test_a_scaled_r_inside_a_skipped_interval_runs_at_its_upper_end():
+    """The workload's r never lands where a larger r costs less (the controller's
+    ``skip_scales``): up to the interval's upper end, which is as fast and finer."""
+    cfg = ControllerConfig(deadline_s=1.0, r_fine=2.0, skip_scales=((0.45, 0.57),))
+    fe = _front(controller=BisectionController(cfg, None, num_cameras=4))
+    assert fe.workload is not None
+    for _ in range(2):
+        fe.workload.record(0.2, 0.2, 0.6, 0.8)
+    # 0.6 / sqrt(1.25) = 0.537: inside, so 0.57; 0.6 / sqrt(2) = 0.424: below, as it is.
+    assert fe._workload_scale(_plan(0.6), 0.25, 0.2) == 0.57
+    assert fe._workload_scale(_plan(0.6), 0.4, 0.2) == pytest.approx(0.6 / np.sqrt(2), abs=1e-6)
+
+
+def test_the_online_controller_skips_the_rigs_dominated_scales():
+    """``make_controller`` sets ``skip_scales`` from the rig (``pipeline.dominated_scales``);
+    ``skip_dominated_scales = false`` leaves every r."""
+    from edgerecon.pipeline import dominated_scales
+    from edgerecon.runtime.online import make_controller
+
+    class _Ds:
+        rig = ring_rig(4, width=1280, height_px=720, focal_px=1000.0)
+
+    ctrl = make_controller(_Ds(), RuntimeConfig(deadline_s=1.0))  # type: ignore[arg-type]
+    assert isinstance(ctrl, BisectionController)
+    assert ctrl.config.skip_scales == dominated_scales(_Ds.rig, 0.3, 1.0, 2.0)
+    assert len(ctrl.config.skip_scales) == 2
+    off = make_controller(  # type: ignore[arg-type]
+        _Ds(), RuntimeConfig(deadline_s=1.0, skip_dominated_scales=False)
+    )
+    assert isinstance(off, BisectionController) and off.config.skip_scales == ()

@@ -113,6 +113,15 @@ class ControllerConfig:
     (Algorithm 1) and the golden task stay in [r_min, r_max]. None (= r_max): off here;
     the online system (``runtime.online.make_controller``) then takes the rig's limit, and
     caps a given value at it, unless ``RuntimeConfig.fine_foreground`` is False."""
+    skip_scales: tuple[tuple[float, float], ...] = ()
+    """Beyond the paper: open intervals (a, b) of r that no task runs, because a task at
+    b costs less and is finer (the online system's foreground sweeps its planes on a
+    pyramid whose level drops to a coarser one at b: on 1280-wide frames r = 0.55 cost
+    0.42 s where r = 0.6 cost 0.30 s; ``pipeline.dominated_scales``, set by
+    ``runtime.online.make_controller``). A probe of the search or a step of the adjustment
+    that lands inside goes to b (up; to a when b is not below the search's too-slow end) or
+    to a (the adjustment going down); the drift trigger measures r with the intervals
+    taken out. Empty: every r in the range runs (the paper)."""
     adjust_window: int = 5
     """Tasks in the running average of the minor adjustment (0 = every task since the
     adjustment began, as in the paper; a short window oscillates less, see OPTIMIZER.md)."""
@@ -229,6 +238,18 @@ class ControllerConfig:
             raise ValueError(f"late_window must be >= {_LATE_MIN}, got {self.late_window}")
         if self.research_jump >= 1.0:
             raise ValueError(f"research_jump must be < 1, got {self.research_jump}")
+        try:
+            skip = tuple(sorted((float(a), float(b)) for a, b in self.skip_scales))
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"skip_scales must be pairs (a, b) of numbers, got {self.skip_scales!r}"
+            ) from None
+        for i, (a, b) in enumerate(skip):
+            if not (math.isfinite(a) and math.isfinite(b) and 0 < a < b):
+                raise ValueError(f"skip_scales: need 0 < a < b, got ({a}, {b})")
+            if i and a < skip[i - 1][1]:
+                raise ValueError(f"skip_scales: intervals overlap at ({a}, {b})")
+        object.__setattr__(self, "skip_scales", skip)  # JSON's lists back to tuples
 
     @property
     def accept_limit_s(self) -> float:
@@ -552,6 +573,38 @@ class BisectionController:
         controller's r per task, ``optimize.workload``, keeps it)."""
         return self.config.r_min, self._r_ceiling(num_cameras)
 
+    def undominated(self, r: float, up: bool = True) -> float:
+        """``r``, or where ``r`` lies inside one of ``skip_scales``, that interval's upper end
+        (``up``: as fast or faster, and finer) or its lower end."""
+        for a, b in self.config.skip_scales:
+            if a + _EPS < r < b - _EPS:
+                return b if up else a
+        return r
+
+    def _probe_between(self, r: float, lo: float, hi: float) -> float | None:
+        """A search probe ``r`` in (lo, hi) moved out of a skipped interval: to its upper end
+        when that is below hi, else to its lower end when that is above lo; None when (lo,
+        hi) lies inside the interval (no scale worth measuring is left)."""
+        for a, b in self.config.skip_scales:
+            if a + _EPS < r < b - _EPS:
+                if b < hi - _EPS:
+                    return b
+                if a > lo + _EPS:
+                    return a
+                return None
+        return r
+
+    def _collapsed(self, r: float) -> float:
+        """``r`` with the skipped intervals below it taken out: a step across one is not a
+        change of the workload (the drift trigger)."""
+        out = r
+        for a, b in self.config.skip_scales:
+            if r >= b - _EPS:
+                out -= b - a
+            elif r > a:
+                out -= r - a
+        return out
+
     def _r_ceiling(self, n: int) -> float:
         """The largest r with N' = ``n`` outside the search: ``r_fine`` with every available
         camera, else ``r_max``."""
@@ -564,6 +617,7 @@ class BisectionController:
         c = self.config
         n = min(max(n, c.min_cameras), self.num_available)
         r = min(max(r, c.r_min), self._r_ceiling(n) if phase == "adjust" else c.r_max)
+        r = self.undominated(r)  # a state saved before skip_scales were set
         ids = self.camera_ids(n)
         return TaskConfig(scale=round(r, 6), camera_ids=ids, num_cameras=n, phase=phase)
 
@@ -700,8 +754,12 @@ class BisectionController:
             s.probe = "top"
             s.r = c.r_max
             return
+        mid = self._probe_between(0.5 * (s.lo + s.hi), s.lo, s.hi)
+        if mid is None:
+            self._start_level(level - 1)
+            return
         s.probe = "bisect"
-        s.r = 0.5 * (s.lo + s.hi)
+        s.r = mid
 
     def _predicted_scale(self, measured: tuple[float, float] | None) -> float | None:
         """The first probe of a level from a measured (r, seconds) of its cameras (at most
@@ -717,7 +775,7 @@ class BisectionController:
         guess = r * min(ratio, math.sqrt(ratio)) * c.start_from_measurement
         if guess <= c.r_min + c.tau:
             return None
-        return round(min(guess, c.r_max), 6)
+        return round(self.undominated(min(guess, c.r_max)), 6)
 
     def _observe_search(self, t: float, q: float) -> None:
         s = self.s
@@ -778,6 +836,8 @@ class BisectionController:
                     self._start_level(s.level - 1)
                     return
         nxt = None if s.hi - s.lo <= c.tau + _EPS else self._next_probe(width)
+        if nxt is not None:
+            nxt = self._probe_between(nxt, s.lo, s.hi)
         if nxt is None:
             self._start_level(s.level - 1)
         else:
@@ -874,7 +934,8 @@ class BisectionController:
             and ceiling > c.r_max
             and 0 < best.time_s < dl
         ):
-            s.r_star = round(min(self._climb(c.r_max, best.time_s, dl), ceiling), 6)
+            climb = min(self._climb(c.r_max, best.time_s, dl), ceiling)
+            s.r_star = round(self.undominated(climb), 6)
 
     @staticmethod
     def _climb(r: float, t: float, dl: float) -> float:
@@ -937,7 +998,7 @@ class BisectionController:
                 # the steps at 0.02-0.1 for 7 tasks at 0.4-0.6 of the deadline).
                 step = max(step, self._climb(r_old, max(s.recent[-2:]), dl) - r_old)
         s.r_star = min(max(r_old + want * step, c.r_min), ceiling)
-        s.r_star = round(s.r_star, 6)
+        s.r_star = round(self.undominated(s.r_star, up=want >= 0), 6)
         at_min = r_old <= c.r_min + _EPS
         at_max = r_old >= ceiling - _EPS
         # At r_min the count goes on while the window's average misses: a task that meets
@@ -1003,7 +1064,7 @@ class BisectionController:
             if med < dl * (1 - c.research_jump) and can_more and not s.suppress_faster:
                 return "faster"
         w = c.research_window
-        hist = s.r_history
+        hist = [self._collapsed(r) for r in s.r_history]
         if c.research_drift > 0 and len(hist) >= 6 * w:
             # settled r: every adjusted task after the first 2w (catching up with a noisy r*)
             # and before the recent 2w; a sustained change moves the recent mean away from it
@@ -1011,7 +1072,7 @@ class BisectionController:
             recent = float(np.mean(hist[-2 * w :]))
             # Above r_max (every camera, finer than golden) r follows the workload: no search
             # can do better than what it would start from, r_max with every camera.
-            finer = min(reference, recent) >= c.r_max - _EPS
+            finer = min(reference, recent) >= self._collapsed(c.r_max) - _EPS
             if abs(recent - reference) >= c.research_drift - _EPS and not finer:
                 return "drift"
         if c.research_saturation:

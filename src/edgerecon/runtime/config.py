@@ -61,6 +61,11 @@ class RuntimeConfig:
     golden configuration's, up to the frames' own pixels (``ControllerConfig.r_fine``,
     ``pipeline.task_configs``; rigs whose golden foreground densifies at level 0, under
     1280 px, have nothing finer). False: r stops at 1, as in the paper."""
+    skip_dominated_scales: bool = True
+    """The controller never runs an r at which the foreground costs more than at a larger
+    r (``pipeline.dominated_scales``: just below where the plane sweep's pyramid level
+    drops to a coarser one, on 1280-wide frames r 0.45-0.565 and 1.0-1.13;
+    ``ControllerConfig.skip_scales``). False: every r in the range runs (the paper)."""
     workload: WorkloadConfig | None = field(default_factory=WorkloadConfig)
     """Each adjusted task's r scaled by its masks' area and the time its scene stage left,
     against the recent tasks' (computed after its scene stage, before its MVS;

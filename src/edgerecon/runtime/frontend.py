@@ -732,7 +732,9 @@ class FrontEnd:
         if factor == 1.0:
             return plan.scale
         lo, hi = ctrl.scale_range(len(plan.camera_ids))
-        return round(min(max(plan.scale * factor, lo), max(hi, plan.scale)), 6)
+        # Out of a skipped interval upwards: as fast or faster, and finer.
+        scaled = ctrl.undominated(min(max(plan.scale * factor, lo), max(hi, plan.scale)))
+        return round(scaled, 6)
 
     def _sparse_scope(self, phase: str, want_golden: bool) -> str:
         """The task's ``sparse_scope``: "hull" skips SfM on the critical path, except when

@@ -38,7 +38,7 @@ from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.ply import ply_frame
 from edgerecon.optimize.controller import BisectionController, ControllerConfig
-from edgerecon.pipeline import fine_scale_limit, reconstruct, warm_up
+from edgerecon.pipeline import dominated_scales, fine_scale_limit, reconstruct, warm_up
 from edgerecon.quality.frames import frame_defects
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.engine import (
@@ -97,6 +97,21 @@ def make_controller(
     fine_or_none = fine if config.fine_foreground and fine > cc.r_max else None
     if fine_or_none != cc.r_fine:
         cc = dataclasses.replace(cc, r_fine=fine_or_none)
+    if config.skip_dominated_scales and not cc.skip_scales:
+        skip = dominated_scales(
+            dataset.rig,
+            cc.r_min,
+            cc.r_max,
+            cc.r_fine,
+            dense_config=config.dense,
+            split_config=config.split,
+        )
+        if skip:
+            logger.info(
+                "r skipped (a larger r costs less): %s",
+                ", ".join(f"{a:.3g}-{b:.3g}" for a, b in skip),
+            )
+        cc = dataclasses.replace(cc, skip_scales=skip)
     return BisectionController(cc, None, n)
 
 
