@@ -101,6 +101,14 @@ def test_info_utrecht(capsys):
     # Cameras in the room's corners: wide baselines, 44 to 144 degrees apart.
     off = angles[~np.eye(4, dtype=bool)]
     assert off.min() > 40 and off.max() < 150
+    # 644x486 frames densified at full resolution: nothing finer than r = 1; the sweep's
+    # level drops to a coarser one at r ~0.56, where r 0.45-0.56 cost more.
+    scales = info["image_scales"]
+    assert (scales["min"], scales["golden"], scales["finest"]) == (0.3, 1.0, 1.0)
+    ((a, b),) = scales["skipped"]
+    assert 0.4 < a < 0.5 < 0.56 < b < 0.6
+    assert main(["info", "--dataset", str(root)]) == 0
+    assert f"skipped, where a larger r costs less: {a:g}-{b:g}" in capsys.readouterr().out
 
 
 def test_info_check_reports_every_unusable_frame(tmp_path, capsys):

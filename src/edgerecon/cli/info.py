@@ -84,6 +84,26 @@ def _person_model(has_clip: bool) -> str:
     return f"used: models learned from the stream miss people who stay still ({path})"
 
 
+def image_scales(ds: Dataset) -> dict[str, Any]:
+    """The image scales r an online run chooses from on this rig with the default
+    settings (``runtime.online.make_controller``): the smallest, the golden one, the
+    finest (above 1: the foreground finer than the golden task's) and the intervals it
+    skips because a larger r costs less (``pipeline.dominated_scales``)."""
+    from edgerecon.optimize import BisectionController
+    from edgerecon.runtime.config import RuntimeConfig
+    from edgerecon.runtime.online import make_controller
+
+    ctrl = make_controller(ds, RuntimeConfig(deadline_s=1.0))
+    assert isinstance(ctrl, BisectionController)
+    c = ctrl.config
+    return {
+        "min": c.r_min,
+        "golden": c.r_max,
+        "finest": c.r_max if c.r_fine is None else c.r_fine,
+        "skipped": [list(x) for x in c.skip_scales],
+    }
+
+
 def describe(ds: Dataset) -> dict[str, Any]:
     """Everything ``info`` prints, as JSON-safe data."""
     rig = ds.rig
@@ -123,6 +143,7 @@ def describe(ds: Dataset) -> dict[str, Any]:
         "offsets": dict(ds.frames.offsets),
         "convergence_point": None if target is None else (target + o).tolist(),
         "baseline_angles_deg": np.round(baseline_angles_deg(rig), 3).tolist(),
+        "image_scales": image_scales(ds),
     }
 
 
@@ -199,6 +220,18 @@ def run(args: argparse.Namespace) -> int:
         + ("no" if ds.ground_truth is None else str(ds.ground_truth))
     )
     console.print(f"person model: {info['person_model']}", soft_wrap=True)
+    sc = info["image_scales"]
+    skipped = ", ".join(f"{a:g}-{b:g}" for a, b in sc["skipped"]) or "none"
+    console.print(
+        f"image scales of an online run: r {sc['min']:g}-{sc['finest']:g} (golden {sc['golden']:g}"
+        + (
+            "; above it the foreground finer than the golden task's"
+            if sc["finest"] > sc["golden"]
+            else ""
+        )
+        + f"); skipped, where a larger r costs less: {skipped}",
+        soft_wrap=True,
+    )
     print_table(
         "cameras",
         ["id", "name", "size", "fx", "fy", "cx", "cy", f"x ({unit})", "y", "z"],
