@@ -16,6 +16,7 @@ from edgerecon.pipeline import (
     fine_scale_limit,
     foreground_cost,
     foreground_dense_config,
+    foreground_pixels,
     reconstruct,
     reconstruct_task,
     task_configs,
@@ -335,6 +336,11 @@ def test_dominated_scales_are_where_the_sweep_level_drops():
     assert 0.4 < v[0] < v[1] < 0.6
     # The estimate's pyramid is the one the depth maps use.
     assert foreground_cost(0.55, hd) > foreground_cost(0.6, hd) > foreground_cost(0.45, hd)
+    # What it weighs: r = 0.55, 352x198 working images sweeping their 176x99 octave.
+    assert foreground_pixels(0.55, hd) == (4 * 352 * 198, 4 * 176 * 99, 2)
+    assert foreground_pixels(0.6, hd) == (4 * 384 * 216, 4 * 120 * 68, 2)
+    assert foreground_pixels(1.5, hd)[2] == 1  # finer than golden: one local-search pass
+    assert foreground_cost(0.55, hd) == pytest.approx(4 * (352 * 198 + 8 * 176 * 99))
 
 
 def test_retune_chooses_the_configuration_from_the_masks(tiny, tiny_dataset):

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from edgerecon import progress
 from edgerecon.config import MIN_CAMERAS, ReconstructionConfig
 from edgerecon.dense import DenseConfig, DenseReconstruction, reconstruct_dense, working_camera
-from edgerecon.dense.depth import depth_cost
+from edgerecon.dense.depth import depth_cost, depth_pixels
 from edgerecon.geometry.camera import Camera, Rig
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult
 from edgerecon.scene.hull import VisualHull, depth_map, hull_depth_range, visual_hull
@@ -544,6 +544,23 @@ def task_configs(
     return ReconstructionConfig(scale=min(1.0, scale / limit), **kw), fine
 
 
+def _foreground_working_sizes(
+    scale: float,
+    rig: Rig,
+    dense_config: DenseConfig | None,
+    split_config: SplitPipelineConfig | None,
+) -> tuple[DenseConfig, list[tuple[int, int]]]:
+    """The foreground's dense settings at image scale ``scale`` (``task_configs``) and the
+    working image size of every camera of ``rig``."""
+    cfg, split = task_configs(scale, rig, dense_config=dense_config, split_config=split_config)
+    fg_dense = foreground_dense_config(cfg.dense_config, split)
+    sizes = []
+    for cam in rig.cameras:
+        work = cam.scaled(cfg.scale).scaled(0.5 ** fg_dense.level_for((cam.width, cam.height)))
+        sizes.append((work.width, work.height))
+    return fg_dense, sizes
+
+
 def foreground_cost(
     scale: float,
     rig: Rig,
@@ -556,14 +573,23 @@ def foreground_cost(
     image (``dense.depth_cost``: the working pixels and the plane sweep's level). The
     foreground's area scales it; its shape over r is what the controller needs
     (:func:`dominated_scales`)."""
-    cfg, split = task_configs(scale, rig, dense_config=dense_config, split_config=split_config)
-    fg_dense = foreground_dense_config(cfg.dense_config, split)
-    total = 0.0
-    for cam in rig.cameras:
-        view = cam.scaled(cfg.scale)
-        work = view.scaled(0.5 ** fg_dense.level_for((cam.width, cam.height)))
-        total += depth_cost(work.width, work.height, fg_dense)
-    return total
+    fg_dense, sizes = _foreground_working_sizes(scale, rig, dense_config, split_config)
+    return float(sum(depth_cost(w, h, fg_dense) for w, h in sizes))
+
+
+def foreground_pixels(
+    scale: float,
+    rig: Rig,
+    *,
+    dense_config: DenseConfig | None = None,
+    split_config: SplitPipelineConfig | None = None,
+) -> tuple[int, int, int]:
+    """What :func:`foreground_cost` weighs: the working pixels and the sweep level's pixels
+    summed over the cameras, and the local-search passes at ``scale``
+    (``benchmarks/bench_scale_cost.py`` fits the weights to measured times)."""
+    fg_dense, sizes = _foreground_working_sizes(scale, rig, dense_config, split_config)
+    pixels = [depth_pixels(w, h, fg_dense) for w, h in sizes]
+    return sum(p[0] for p in pixels), sum(p[1] for p in pixels), fg_dense.refine_passes
 
 
 #: Grid of r on which :func:`dominated_scales` compares the costs.

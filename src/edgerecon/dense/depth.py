@@ -205,14 +205,10 @@ SWEEP_PIXEL_COST = 8.0
 _REFINE_PASS_COST = 0.23
 
 
-def depth_cost(width: int, height: int, config: DenseConfig) -> float:
-    """The relative cost of a depth map over a whole working image of ``width`` x
-    ``height`` pixels: its pixels, weighted by the local-search passes (two: 1), plus the
-    pixels of the level its plane sweep runs at, :data:`SWEEP_PIXEL_COST` each. Over the
-    image scale r this is not monotonic: where the sweep's level drops to a coarser one
-    (on 1280-wide frames between r = 0.55 and 0.6), a larger r costs less (the
-    controller skips the scales that cost more than a larger one,
-    ``pipeline.dominated_scales``)."""
+def depth_pixels(width: int, height: int, config: DenseConfig) -> tuple[int, int]:
+    """The pixels of a depth map over a whole working image of ``width`` x ``height``: the
+    working image's, and those of the pyramid level its plane sweep runs at
+    (:func:`sweep_level` of :func:`pyramid_scales`)."""
     scales = pyramid_scales(
         width,
         height,
@@ -223,10 +219,21 @@ def depth_cost(width: int, height: int, config: DenseConfig) -> float:
     sizes = [(width, height)] + [
         (max(1, round(width * s)), max(1, round(height * s))) for s in scales
     ]
-    top = sweep_level([max(w, h) for w, h in sizes], config)
+    sweep_w, sweep_h = sizes[sweep_level([max(w, h) for w, h in sizes], config)]
+    return width * height, sweep_w * sweep_h
+
+
+def depth_cost(width: int, height: int, config: DenseConfig) -> float:
+    """The relative cost of a depth map over a whole working image of ``width`` x
+    ``height`` pixels (:func:`depth_pixels`): its pixels, weighted by the local-search passes
+    (two: 1), plus the pixels of the level its plane sweep runs at, :data:`SWEEP_PIXEL_COST`
+    each. Over the image scale r this is not monotonic: where the sweep's level drops to a
+    coarser one (on 1280-wide frames between r = 0.55 and 0.6), a larger r costs less (the
+    controller skips the scales that cost more than a larger one,
+    ``pipeline.dominated_scales``)."""
+    working, sweep = depth_pixels(width, height, config)
     refine = 1.0 - _REFINE_PASS_COST * (2 - config.refine_passes)
-    sweep_w, sweep_h = sizes[top]
-    return width * height * refine + SWEEP_PIXEL_COST * sweep_w * sweep_h
+    return working * refine + SWEEP_PIXEL_COST * sweep
 
 
 @dataclass(frozen=True)
