@@ -625,18 +625,13 @@ def dominated_scales(
     for k, (lo, hi) in enumerate(segments):
         if hi <= lo:
             continue
-        # Above r_max the segment's first point, r_max itself, is the golden configuration:
-        # it bounds an interval, it is never one.
-        first = 1 if k else 0
         grid = lo + _DOMINATED_STEP * np.arange(math.floor((hi - lo) / _DOMINATED_STEP + 1e-9) + 1)
         if grid[-1] < hi - 1e-9:
             grid = np.append(grid, hi)
         costs = np.array(
             [
                 foreground_cost(float(r), rig, dense_config=dense_config, split_config=split_config)
-                if i >= first
-                else np.inf
-                for i, r in enumerate(grid)
+                for r in grid
             ]
         )
         # Dominated: some larger r of the segment costs less by _DOMINATED_GAIN (the
@@ -644,7 +639,9 @@ def dominated_scales(
         later = np.minimum.accumulate(costs[::-1])[::-1]
         dominated = np.zeros(len(grid), bool)
         dominated[:-1] = costs[:-1] > later[1:] * (1.0 + _DOMINATED_GAIN)
-        dominated[:first] = False
+        # Above r_max the segment's first point, r_max itself, is the golden configuration:
+        # it bounds an interval, it is never one.
+        dominated[0] &= k == 0
         i = 0
         while i < len(grid):
             if not dominated[i]:

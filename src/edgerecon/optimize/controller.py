@@ -573,26 +573,32 @@ class BisectionController:
         controller's r per task, ``optimize.workload``, keeps it)."""
         return self.config.r_min, self._r_ceiling(num_cameras)
 
+    def _skipped(self, r: float) -> tuple[float, float] | None:
+        """The interval of ``skip_scales`` that ``r`` lies inside, if any."""
+        for a, b in self.config.skip_scales:
+            if a + _EPS < r < b - _EPS:
+                return a, b
+        return None
+
     def undominated(self, r: float, up: bool = True) -> float:
         """``r``, or where ``r`` lies inside one of ``skip_scales``, that interval's upper end
         (``up``: as fast or faster, and finer) or its lower end."""
-        for a, b in self.config.skip_scales:
-            if a + _EPS < r < b - _EPS:
-                return b if up else a
-        return r
+        inside = self._skipped(r)
+        if inside is None:
+            return r
+        return inside[1] if up else inside[0]
 
     def _probe_between(self, r: float, lo: float, hi: float) -> float | None:
         """A search probe ``r`` in (lo, hi) moved out of a skipped interval: to its upper end
         when that is below hi, else to its lower end when that is above lo; None when (lo,
         hi) lies inside the interval (no scale worth measuring is left)."""
-        for a, b in self.config.skip_scales:
-            if a + _EPS < r < b - _EPS:
-                if b < hi - _EPS:
-                    return b
-                if a > lo + _EPS:
-                    return a
-                return None
-        return r
+        inside = self._skipped(r)
+        if inside is None:
+            return r
+        a, b = inside
+        if b < hi - _EPS:
+            return b
+        return a if a > lo + _EPS else None
 
     def _collapsed(self, r: float) -> float:
         """``r`` with the skipped intervals below it taken out: a step across one is not a
