@@ -240,22 +240,22 @@ def test_row_bands_lend_idle_threads():
     def kernel(row0: int, row1: int) -> None:
         seen.append((row0, row1, threading.current_thread().name))
 
-    with RowBands(2) as bands:
-        bands.run(kernel, 100)  # nobody idle: the same bands, one after the other here
-        assert seen == [(0, 50, me), (50, 100, me)]
-        seen.clear()
-        bands.lend()
-        bands.run(kernel, 100)  # an idle thread: the second band on the helper
-        assert sorted(s[:2] for s in seen) == [(0, 50), (50, 100)]
-        assert {s[2] for s in seen if s[0] == 50} != {me}
-        seen.clear()
-        bands.run(kernel, 40)  # too few rows to split
-        assert [s[:2] for s in seen] == [(0, 40)]
-    with RowBands(1) as bands:
-        bands.lend()
-        seen.clear()
-        bands.run(kernel, 100)
-        assert seen == [(0, 100, me)]
+    bands = RowBands(2)
+    bands.run(kernel, 100)  # nobody idle: the same bands, one after the other here
+    assert seen == [(0, 50, me), (50, 100, me)]
+    seen.clear()
+    bands.lend()
+    bands.run(kernel, 100)  # an idle thread: the second band on the helper
+    assert sorted(s[:2] for s in seen) == [(0, 50), (50, 100)]
+    assert {s[2] for s in seen if s[0] == 50} != {me}
+    seen.clear()
+    bands.run(kernel, 40)  # too few rows to split
+    assert [s[:2] for s in seen] == [(0, 40)]
+    bands = RowBands(1)
+    bands.lend()
+    seen.clear()
+    bands.run(kernel, 100)
+    assert seen == [(0, 100, me)]
 
 
 def test_run_jobs_lends_the_threads_without_a_job_and_raises_after_all():
@@ -270,14 +270,14 @@ def test_run_jobs_lends_the_threads_without_a_job_and_raises_after_all():
     def kernel(row0: int, row1: int) -> None:
         seen.append((row0, row1, threading.current_thread().name))
 
-    with RowBands(2) as bands:
+    bands = RowBands(2)
 
-        def job(x: int) -> int:
-            bands.run(kernel, 100)
-            return 2 * x
+    def job(x: int) -> int:
+        bands.run(kernel, 100)
+        return 2 * x
 
-        # One job for two threads: the idle one takes half of its rows.
-        assert run_jobs(job, [3], 2, bands, "test") == [6]
+    # One job for two threads: the idle one takes half of its rows.
+    assert run_jobs(job, [3], 2, bands, "test") == [6]
     assert sorted(s[:2] for s in seen) == [(0, 50), (50, 100)]
     assert len({s[2] for s in seen}) == 2
 
@@ -289,7 +289,8 @@ def test_run_jobs_lends_the_threads_without_a_job_and_raises_after_all():
         done.append(x)
         return x
 
-    with RowBands(2) as bands, pytest.raises(ValueError, match="job 2"):
+    bands = RowBands(2)
+    with pytest.raises(ValueError, match="job 2"):
         run_jobs(failing, [1, 2, 3, 4], 2, bands, "test")
     assert sorted(done) == [1, 3, 4]  # the other jobs still ran
 

@@ -23,7 +23,7 @@ from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, frame_defect
 from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker, rebuild_background
-from edgerecon.runtime.interrupt import ThreadAbandoned, call_bounded, stop_thread
+from edgerecon.runtime.interrupt import Runner, ThreadAbandoned, stop_thread
 from edgerecon.scene.foreground import RigForeground
 from tests.runtime.conftest import run_frames, runtime_config
 
@@ -201,18 +201,30 @@ def test_stop_thread_raises_in_the_thread_at_its_next_instruction():
     assert not stop_thread(threading.Thread(target=loop)), "nor one never started"
 
 
-def test_call_bounded_returns_raises_or_leaves_the_thread_to_the_caller():
-    done = call_bounded(lambda: 7, 10.0, "t")
+def test_a_runner_returns_raises_or_leaves_the_thread_to_the_caller():
+    runner = Runner("r")
+    done = runner.call(lambda: 7, 10.0)
     assert (done.timed_out, done.value, done.error) == (False, 7, None)
-    failed = call_bounded(lambda: 1 / 0, 10.0, "t")
+    failed = runner.call(lambda: 1 / 0, 10.0, name="t")
     assert not failed.timed_out and isinstance(failed.error, ZeroDivisionError)
+    # Calls that end share one thread: a thread per call kept native per-thread data.
+    assert failed.thread is done.thread and done.thread.is_alive() and done.thread.daemon
     release = threading.Event()
-    slow = call_bounded(lambda: release.wait(30.0), 0.2, "slow")
+    slow = runner.call(lambda: release.wait(30.0), 0.2, name="slow")
     assert slow.timed_out and slow.value is None and slow.error is None
-    assert slow.thread.name == "slow" and slow.thread.daemon
+    assert slow.thread is done.thread and slow.thread.name == "slow"
+    # Given up on: the next call runs on a new thread, the old one ends after its call.
+    after = runner.call(lambda: threading.current_thread(), 10.0)
+    assert after.value is not slow.thread and after.value is after.thread
     release.set()
+    assert slow.wait(5.0) and not slow.timed_out
     slow.thread.join(5.0)
     assert not slow.thread.is_alive()
+    # A runner dropped lets its idle thread end.
+    kept = after.thread
+    del runner, after
+    kept.join(5.0)
+    assert not kept.is_alive()
 
 
 def _gone(pid: int, timeout: float = 10.0) -> bool:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from edgerecon.dense.threads import thread_map
 from edgerecon.runtime.messages import describe_exception
+from edgerecon.threads import thread_map
 
 
 def test_the_location_is_the_innermost_frame_of_the_package(tmp_path: Path) -> None:
@@ -31,4 +31,4 @@ def test_the_location_is_the_innermost_frame_of_the_package(tmp_path: Path) -> N
     with pytest.raises(ValueError) as info:
         thread_map(lambda _: namespace["fail"](), [0], 1)  # type: ignore[operator]
     text = describe_exception(info.value)
-    assert "dense/threads.py:" in text, text
+    assert "(in <listcomp>, threads.py:" in text, text  # edgerecon/threads.py

@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from edgerecon.dense.config import DenseConfig
 from edgerecon.dense.cost import F32
-from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
+from edgerecon.threads import thread_map
 from edgerecon.types import DepthMap
 
 #: Pairs :func:`agreement_tolerance` needs to measure the noise.

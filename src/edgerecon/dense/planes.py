@@ -49,8 +49,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.dense.cost import WindowStats, as_f32, ncc, to_grey, window_stats
-from edgerecon.dense.threads import thread_map
 from edgerecon.geometry.camera import Camera
+from edgerecon.threads import thread_map
 from edgerecon.types import DepthMap, Image
 
 logger = logging.getLogger(__name__)

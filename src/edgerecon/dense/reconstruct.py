@@ -34,8 +34,9 @@ from edgerecon.dense.planes import (
     support_region,
 )
 from edgerecon.dense.ranges import frustum_range, range_from_points, sample_pixels, scene_scale
-from edgerecon.dense.threads import RowBands, run_jobs, thread_map
+from edgerecon.dense.threads import RowBands, run_jobs
 from edgerecon.geometry.camera import Camera
+from edgerecon.threads import thread_map
 from edgerecon.types import (
     DataError,
     DepthMap,
@@ -320,25 +321,23 @@ def reconstruct_dense(
             ((p, roi) for p in plans for roi in p["rois"]),
             key=lambda job: -job[1].area * len(job[0]["sources"]),
         )
-        with RowBands(config.num_threads) as bands:
+        bands = RowBands(config.num_threads)
 
-            def run(job: tuple[dict[str, Any], Roi]) -> DepthEstimate:
-                p, roi = job
-                return estimate_depth(
-                    pyramids[p["index"]],
-                    [pyramids[j] for j in p["sources"]],
-                    roi,
-                    p["near"],
-                    p["far"],
-                    up_vec,
-                    config,
-                    p["region"],
-                    bands,
-                )
-
-            results = run_jobs(
-                run, jobs, config.num_threads, bands, "dense depth maps", cancel=cancel
+        def run(job: tuple[dict[str, Any], Roi]) -> DepthEstimate:
+            p, roi = job
+            return estimate_depth(
+                pyramids[p["index"]],
+                [pyramids[j] for j in p["sources"]],
+                roi,
+                p["near"],
+                p["far"],
+                up_vec,
+                config,
+                p["region"],
+                bands,
             )
+
+        results = run_jobs(run, jobs, config.num_threads, bands, "dense depth maps", cancel=cancel)
         depths: dict[int, DepthMap] = {}
         scores: dict[int, NDArray[np.float32]] = {}
         work = 0

@@ -7,11 +7,11 @@ from __future__ import annotations
 import itertools
 import queue
 import threading
-from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
 from edgerecon.progress import track
+from edgerecon.threads import pool
 from edgerecon.types import TaskCancelled
 
 #: Bands narrower than this many rows are not worth a thread hand-off.
@@ -26,16 +26,13 @@ class RowBands:
     scoring, which are row-separable: an output row depends only on the rows within the
     window radius) then split their rows with it, so the last maps of a task do not run on
     one core while the others idle. The bands are the same whether they run in parallel
-    or not, so the result does not depend on timing."""
+    or not, so the result does not depend on timing. The bands run on the calling thread's
+    pool (``edgerecon.threads``), made once."""
 
     def __init__(self, num_threads: int) -> None:
         self._max_extra = max(num_threads - 1, 0)
         self._idle = threading.Semaphore(0)
-        self._pool = (
-            ThreadPoolExecutor(self._max_extra, thread_name_prefix="edgerecon-dense-band")
-            if self._max_extra
-            else None
-        )
+        self._pool = pool("dense-band", self._max_extra) if self._max_extra else None
 
     def lend(self) -> None:
         """The calling thread has no more work of its own: its core may take row bands."""
@@ -63,16 +60,6 @@ class RowBands:
         finally:
             for _ in range(extra):
                 self._idle.release()
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
-
-    def __enter__(self) -> RowBands:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 T = TypeVar("T")
@@ -120,24 +107,11 @@ def run_jobs(
         finally:
             bands.lend()
 
-    threads = [
-        threading.Thread(target=worker, name=f"edgerecon-dense-{k}", daemon=True)
-        for k in range(min(num_threads, len(jobs)))
-    ]
-    for t in threads:
-        t.start()
+    workers = pool("dense", num_threads)
+    running = [workers.submit(worker) for _ in range(min(num_threads, len(jobs)))]
     errors = [e for e in track((finished.get() for _ in jobs), label, total=len(jobs)) if e]
-    for t in threads:
-        t.join()
+    for f in running:
+        f.result()
     if errors:
         raise errors[0]
     return results
-
-
-def thread_map(fn: Callable[[T], R], items: Iterable[T], num_threads: int) -> list[R]:
-    """``[fn(x) for x in items]``, on ``num_threads`` threads when that is more than one."""
-    items = list(items)
-    if num_threads <= 1 or len(items) <= 1:
-        return [fn(x) for x in items]
-    with ThreadPoolExecutor(min(num_threads, len(items))) as pool:
-        return list(pool.map(fn, items))

@@ -43,7 +43,7 @@ from edgerecon.pipeline import (
     task_sparse,
 )
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.interrupt import AbandonedThreads, ThreadAbandoned, call_bounded
+from edgerecon.runtime.interrupt import AbandonedThreads, Runner, ThreadAbandoned
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -109,6 +109,7 @@ class BackEnd:
         self.abandoned = AbandonedThreads()
         """Threads of rebuilds stopped past ``rebuild_limit_s`` (``background_process =
         false``) that still run (blocked in a native call)."""
+        self._rebuilds = Runner("backend-rebuild")  # in this process: a thread kept for them
         self._worker = (
             _RebuildWorker(config.background_nice, config.background_idle)
             if config.background_updates and config.background_process
@@ -414,7 +415,7 @@ class BackEnd:
         limit = self.config.rebuild_limit_s
         if self._worker is not None:
             return self._worker.call(fn, *args, timeout_s=limit)
-        run = call_bounded(lambda: fn(*args), limit, "backend-rebuild")
+        run = self._rebuilds.call(lambda: fn(*args), limit)
         if run.timed_out:
             self.abandoned.abandon(run.thread, "a background rebuild past its limit", grace_s=0.0)
             raise RebuildTimeout(

@@ -53,7 +53,7 @@ from edgerecon.pipeline import (
 )
 from edgerecon.quality.online import OnlineQualityConfig, online_quality, silhouette_quality
 from edgerecon.runtime.config import RuntimeConfig
-from edgerecon.runtime.interrupt import AbandonedThreads, call_bounded
+from edgerecon.runtime.interrupt import AbandonedThreads, Runner
 from edgerecon.runtime.messages import (
     BackgroundUpdate,
     BgVersion,
@@ -231,6 +231,9 @@ class FrontEnd:
         self._commit = threading.Lock()
         self.abandoned = AbandonedThreads()
         """The threads of abandoned work (a task past the watchdog, updates that hung)."""
+        # The tasks' thread and the updates' between tasks, kept from call to call.
+        self._tasks = Runner("task")
+        self._updates = Runner("scene-updates")
         self._drill: str | None = None
         self._background = PointCloud.empty() if background is None else background
         self._bg_version = BgVersion()
@@ -431,7 +434,7 @@ class FrontEnd:
 
         limit = self.config.watchdog_s
         start = time.perf_counter()
-        run = call_bounded(work, limit, "scene-updates")
+        run = self._updates.call(work, limit)
         if run.timed_out:
             logger.error("background updates between tasks: still running after %.1f s", limit)
             self._restore_scene(run.thread, "background updates abandoned between tasks")
@@ -499,11 +502,10 @@ class FrontEnd:
                 box["exc"] = exc
 
         limit = self.config.watchdog_s
-        worker = threading.Thread(target=work, name=f"task-{task}", daemon=True)
-        worker.start()
-        worker.join(limit)
+        run = self._tasks.call(work, limit, name=f"task-{task}")
+        worker = run.thread
         with self._commit:
-            abandoned = worker.is_alive() and not guard.committed
+            abandoned = run.timed_out and not guard.committed
             if abandoned:
                 guard.cancel.set()  # it stops at its next stage boundary, publishing nothing
                 self._restore_scene(worker, f"task {task} (time {frames.time_index})")
@@ -519,7 +521,7 @@ class FrontEnd:
                 worker, f"task {task} (time {frames.time_index}) abandoned by the watchdog"
             )
             return self._failed(frames, task, error)
-        worker.join()  # committed: only the metrics are left to build
+        run.wait()  # committed: only the metrics are left to build
         if "exc" in box:
             exc = box["exc"]
             error = describe_exception(exc)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -85,41 +86,90 @@ class AbandonedThreads:
 
 @dataclass(frozen=True)
 class Bounded(Generic[T]):
-    """What :func:`call_bounded` saw: ``value`` when ``fn`` returned, ``error`` when it
-    raised, neither while its ``thread`` still runs (``timed_out``)."""
+    """What :meth:`Runner.call` saw: ``value`` when ``fn`` returned, ``error`` when it
+    raised, neither while it still runs on ``thread`` (``timed_out``)."""
 
     thread: threading.Thread
+    finished: threading.Event
     value: T | None = None
     error: BaseException | None = None
 
     @property
     def timed_out(self) -> bool:
-        return self.thread.is_alive()
+        return not self.finished.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for the call to end (True when it did)."""
+        return self.finished.wait(timeout)
 
 
-def call_bounded(fn: Callable[[], T], limit_s: float, name: str) -> Bounded[T]:
-    """``fn()`` in a daemon thread of its own (it inherits the caller's niceness), waited
-    for ``limit_s`` seconds. Still running then: the caller decides (``_restore_scene``,
-    :meth:`AbandonedThreads.abandon`); what it returns or raises later is dropped."""
-    box: dict[str, object] = {}
-
-    def run() -> None:
-        try:
-            box["value"] = fn()
-        except BaseException as exc:  # ThreadAbandoned included: nobody reads it then
-            box["error"] = exc
-
-    thread = threading.Thread(target=run, name=name, daemon=True)
-    thread.start()
-    thread.join(limit_s)
-    if thread.is_alive():
-        return Bounded(thread)
-    error = box.get("error")
-    return Bounded(
-        thread,
-        value=cast("T | None", box.get("value")),
-        error=error if isinstance(error, BaseException) else None,
-    )
+_Job = tuple[Callable[[], object], dict[str, object], threading.Event, str]
 
 
-__all__ = ["AbandonedThreads", "Bounded", "ThreadAbandoned", "call_bounded", "stop_thread"]
+def _serve(jobs: queue.SimpleQueue[_Job | None]) -> None:
+    me = threading.current_thread()
+    try:
+        while (job := jobs.get()) is not None:
+            fn, box, finished, name = job
+            me.name = name
+            try:
+                box["value"] = fn()
+            except BaseException as exc:  # ThreadAbandoned included: nobody reads it then
+                box["error"] = exc
+            finally:
+                finished.set()
+            del job, fn, box
+    except ThreadAbandoned:  # stopped between two calls: it was given up on anyway
+        pass
+
+
+class Runner:
+    """Calls, one at a time, on a daemon thread that lasts from one call to the next (it
+    inherits the niceness of the thread that made it). A thread made per call would cost a
+    little memory per call for good (``edgerecon.threads``); a call still running when its
+    limit is reached gives the thread up: the thread ends after that call (the caller
+    decides what to do with it: ``_restore_scene``, :meth:`AbandonedThreads.abandon`) and
+    the next call starts a new one. Not for concurrent callers."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._thread: threading.Thread | None = None
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+
+    def call(self, fn: Callable[[], T], limit_s: float, name: str | None = None) -> Bounded[T]:
+        """``fn()`` on the runner's thread (named ``name`` while it runs), waited for
+        ``limit_s`` seconds. Still running then: what it returns or raises later is
+        dropped."""
+        thread = self._thread
+        if thread is None or not thread.is_alive():
+            self._jobs = queue.SimpleQueue()
+            thread = self._thread = threading.Thread(
+                target=_serve, args=(self._jobs,), name=self.name, daemon=True
+            )
+            thread.start()
+        box: dict[str, object] = {}
+        finished = threading.Event()
+        self._jobs.put((fn, box, finished, name or self.name))
+        if not finished.wait(limit_s):
+            self._jobs.put(None)  # the thread ends after this call; the next starts another
+            self._thread = None
+            return Bounded(thread, finished)
+        error = box.get("error")
+        return Bounded(
+            thread,
+            finished,
+            value=cast("T | None", box.get("value")),
+            error=error if isinstance(error, BaseException) else None,
+        )
+
+    def close(self) -> None:
+        """Let the thread end once it is idle."""
+        if self._thread is not None:
+            self._jobs.put(None)
+            self._thread = None
+
+    def __del__(self) -> None:
+        self.close()
+
+
+__all__ = ["AbandonedThreads", "Bounded", "Runner", "ThreadAbandoned", "stop_thread"]

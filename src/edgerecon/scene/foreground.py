@@ -59,8 +59,8 @@ from edgerecon.scene.hull import (
 )
 from edgerecon.scene.masks import guided_mask, labels_joining
 from edgerecon.scene.objects import ObjectConfig, ObjectSegmentation, find_objects
-from edgerecon.scene.parallel import per_camera
 from edgerecon.scene.people import PersonSegmenter, person_segmenter
+from edgerecon.threads import thread_map
 from edgerecon.types import (
     DataError,
     DepthMap,
@@ -503,7 +503,7 @@ class RigForeground:
         starts from, and what ``update`` reuses)."""
         self._check(frames)
         return tuple(
-            per_camera(
+            thread_map(
                 lambda pair: None if pair[1] is None else pair[0].segment(pair[1]),
                 list(zip(self.models, frames.images, strict=True)),
                 self.config.num_threads,
@@ -527,7 +527,7 @@ class RigForeground:
             # evidence, so the checks below judge them as they judge the unsettled ones
             # (a gap between two people that the network fills shows the wall behind).
             with timings.stage("people"):
-                added = per_camera(
+                added = thread_map(
                     lambda pair: (
                         None
                         if pair[0] is None or pair[1] is None or pair[1].image is None
@@ -664,7 +664,7 @@ class RigForeground:
                 for _ in range(cfg.refine_passes):
                     masks = self._refined(masks, segs, base)
         with timings.stage("objects"):
-            found = per_camera(
+            found = thread_map(
                 lambda m: None if m is None else find_objects(m, cfg.objects),
                 list(masks),
                 cfg.num_threads,
@@ -711,7 +711,7 @@ class RigForeground:
                 subsample=cfg.refine_subsample,
             )
 
-        return per_camera(one, list(range(len(masks))), cfg.num_threads)
+        return thread_map(one, list(range(len(masks))), cfg.num_threads)
 
     def update(
         self,
@@ -734,7 +734,7 @@ class RigForeground:
             else (None,) * len(self.rig)
         )
         jobs = list(zip(self.models, frames.images, segs, strict=True))
-        return per_camera(
+        return thread_map(
             lambda job: None if job[1] is None else job[0].update(job[1], job[2]),
             jobs,
             self.config.num_threads,

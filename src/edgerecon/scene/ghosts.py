@@ -67,7 +67,7 @@ from edgerecon.scene._kernels import (
     splat_min_discs,
 )
 from edgerecon.scene.masks import disk
-from edgerecon.scene.parallel import per_camera
+from edgerecon.threads import thread_map
 from edgerecon.types import DataError, DepthMap, Mask, Points3D
 
 
@@ -283,7 +283,7 @@ def photo_consistent_masks(
         colours = gather_channels(colour, u, v)
         return _Seen(uv, depth, u, v, inside, colours, contrast)
 
-    seen = per_camera(sees, list(range(n)), num_threads)
+    seen = thread_map(sees, list(range(n)), num_threads)
     stack = _Stack.of(seen, len(pts))
     limit: float | None = None
     keep = np.ones(len(pts), bool)
@@ -459,7 +459,7 @@ def _photo_pass(
             opened_c,
         )
 
-    for c, judgement in enumerate(per_camera(judge, list(range(n)), num_threads)):
+    for c, judgement in enumerate(thread_map(judge, list(range(n)), num_threads)):
         best[c], judged[c], tint[c], opened[c] = judgement
     if limit is None:
         limit = _limit(best, judged, candidates, config)

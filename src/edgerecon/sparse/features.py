@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,6 +31,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from edgerecon.sparse.config import DEFAULT_CONFIG, SparseConfig
+from edgerecon.threads import thread_map
 from edgerecon.types import Points2D
 from edgerecon.views import View
 
@@ -238,7 +238,4 @@ def extract_all(views: Sequence[View], config: SparseConfig = DEFAULT_CONFIG) ->
     """Features of every view (simulated tilts as :func:`use_affine` decides), computed by
     ``config.num_threads`` threads."""
     affine = use_affine(views, config)
-    if config.num_threads <= 1 or len(views) <= 1:
-        return [extract_features(v, config, affine) for v in views]
-    with ThreadPoolExecutor(max_workers=config.num_threads) as pool:
-        return list(pool.map(lambda v: extract_features(v, config, affine), views))
+    return thread_map(lambda v: extract_features(v, config, affine), views, config.num_threads)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +25,7 @@ from edgerecon.sparse.triangulation import (
     reprojection_errors,
     triangulate_dlt,
 )
+from edgerecon.threads import thread_map
 from edgerecon.types import Colors, DataError, PointCloud, Points2D, StageTimings
 from edgerecon.views import View
 
@@ -225,10 +225,7 @@ def _match_pairs(
         a, b = p
         return match_pair(feats[a], feats[b], cameras[a], cameras[b], config, a, b)
 
-    if config.num_threads <= 1 or len(pairs) <= 1:
-        return [one(p) for p in pairs]
-    with ThreadPoolExecutor(max_workers=config.num_threads) as pool:
-        return list(pool.map(one, pairs))
+    return thread_map(one, pairs, config.num_threads)
 
 
 def _gather_points(feats: Sequence[Features], locations: NDArray[np.int64]) -> NDArray[np.float64]:
