@@ -212,12 +212,13 @@ def test_a_runner_returns_raises_or_leaves_the_thread_to_the_caller():
     release = threading.Event()
     slow = runner.call(lambda: release.wait(30.0), 0.2, name="slow")
     assert slow.timed_out and slow.value is None and slow.error is None
-    assert slow.thread is done.thread and slow.thread.name == "slow"
+    assert slow.thread is done.thread and slow.thread.name == "slow"  # while it runs
     # Given up on: the next call runs on a new thread, the old one ends after its call.
     after = runner.call(lambda: threading.current_thread(), 10.0)
     assert after.value is not slow.thread and after.value is after.thread
     release.set()
     assert slow.wait(5.0) and not slow.timed_out
+    assert after.thread.name == "r", "named after the runner when idle"
     slow.thread.join(5.0)
     assert not slow.thread.is_alive()
     # A runner dropped lets its idle thread end.

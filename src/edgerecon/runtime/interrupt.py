@@ -108,15 +108,17 @@ _Job = tuple[Callable[[], object], dict[str, object], threading.Event, str]
 
 def _serve(jobs: queue.SimpleQueue[_Job | None]) -> None:
     me = threading.current_thread()
+    idle = me.name
     try:
         while (job := jobs.get()) is not None:
             fn, box, finished, name = job
-            me.name = name
+            me.name = name  # what it runs, while it runs
             try:
                 box["value"] = fn()
             except BaseException as exc:  # ThreadAbandoned included: nobody reads it then
                 box["error"] = exc
             finally:
+                me.name = idle
                 finished.set()
             del job, fn, box
     except ThreadAbandoned:  # stopped between two calls: it was given up on anyway
