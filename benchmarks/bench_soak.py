@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -101,6 +102,13 @@ def main() -> None:
     ap.add_argument("--keep-clouds", type=int, default=50)
     ap.add_argument("--sample", type=float, default=15.0, help="seconds between samples")
     ap.add_argument("--work", default="/tmp/edgerecon-soak", help="stream dataset and run")
+    ap.add_argument(
+        "--wrap",
+        default="",
+        help="a command the run is started under, e.g. 'heaptrack -o /tmp/soak' "
+        "(benchmarks/heap_growth.py reads its recording); main_mb is then the wrapper's, "
+        "children_mb includes the run",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
 
@@ -116,6 +124,7 @@ def main() -> None:
         stream_options={"stall_s": 2.0, "max_wait_s": 2.0},
     )
     cmd = [
+        *shlex.split(args.wrap),
         sys.executable,
         "-m",
         "edgerecon",
