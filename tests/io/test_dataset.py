@@ -170,6 +170,40 @@ def test_descriptor_with_frame_specs_videos_and_background(tmp_path):
         )
 
 
+def test_a_dataset_opened_by_a_relative_path_is_described_again_elsewhere(tmp_path, monkeypatch):
+    """A dataset's frame specs copied into a descriptor in another folder (as the live
+    wrapper of a recorded capture does with its background clip) still name its files when
+    the dataset was opened through a path relative to the working directory."""
+    rig = ring_rig(3, width=64, height_px=48, focal_px=50.0)
+    src = tmp_path / "data" / "capture"
+    for i, cam in enumerate(rig):
+        (src / cam.name).mkdir(parents=True)
+        _write_video(src / cam.name / "scene.avi", (40 * i, 0, 0), 6)
+        _write_video(src / cam.name / "empty.avi", (0, 40 * i, 0), 4)
+    write_dataset_descriptor(
+        src,
+        rig=rig,
+        frames={"kind": "video", "cameras": {c.name: f"{c.name}/scene.avi" for c in rig}},
+        background={"kind": "video", "cameras": {c.name: f"{c.name}/empty.avi" for c in rig}},
+    )
+    (tmp_path / "work").mkdir()
+    monkeypatch.chdir(tmp_path / "work")
+    ds = open_dataset("../data/capture")
+    assert ds.background is not None
+    copy = tmp_path / "runs" / "live"
+    write_dataset_descriptor(copy, rig=rig, frames=ds.frames, background=ds.background)
+    again = open_dataset(copy)
+    with again.open_background() as bg:
+        assert bg.num_frames == 4
+        assert int(bg.read(0).images[1][10, 10, 1]) == pytest.approx(40, abs=4)
+    with again.open_frames() as frames:
+        assert frames.num_frames == 6
+    # Inside the descriptor's own folder the paths stay relative to it.
+    write_dataset_descriptor("../data/capture", rig=rig, frames=ds.frames)
+    data = json.loads((src / "dataset.json").read_text())
+    assert data["frames"]["cameras"]["cam2"] == "cam2/scene.avi"
+
+
 def test_descriptor_camera_pattern_start_and_xml_rig(tmp_path):
     rig = ring_rig(3, width=64, height_px=48, focal_px=50.0)
     for i, cam in enumerate(rig):

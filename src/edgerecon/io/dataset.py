@@ -455,8 +455,12 @@ def _section(
     if isinstance(spec, FrameSpec):
         out: dict[str, Any] = {
             "kind": spec.kind,
+            # A FrameSpec's paths are files as this process sees them (a dataset opened
+            # through a relative path holds paths relative to the working directory): those
+            # under root are written relative to it, the others absolute.
             "cameras": {
-                n: p if spec.kind == "stream" else _relative(Path(p), root) for n, p in spec.cameras
+                n: p if spec.kind == "stream" else _relative(Path(p).absolute(), root.absolute())
+                for n, p in spec.cameras
             },
         }
         if spec.start:
