@@ -92,6 +92,72 @@ def _slope(x: list[float], y: list[float]) -> float:
     return float(np.polyfit(np.asarray(x), np.asarray(y), 1)[0])
 
 
+#: The allocator's parts in ``_malloc_report`` (MB): name, value of one probe row.
+_PARTS: tuple[tuple[str, Any], ...] = (
+    ("rss", lambda r: r["rss_kb"] / 1024),
+    ("heap_rss", lambda r: r["smaps_kb"]["heap"] / 1024),
+    ("anon_rss", lambda r: r["smaps_kb"]["anon"] / 1024),
+    ("file_rss", lambda r: r["smaps_kb"]["file"] / 1024),
+    ("arenas_system", lambda r: sum(a["system"] for a in r["arenas"]) / 2**20),
+    ("arenas_in_use", lambda r: sum(a["system"] - a["free"] for a in r["arenas"]) / 2**20),
+    ("arenas_free", lambda r: sum(a["free"] for a in r["arenas"]) / 2**20),
+    ("mmapped_blocks", lambda r: r["mmap"] / 2**20),
+    # Anonymous memory that is neither an arena after the main one (glibc maps those) nor a
+    # block mapped on its own: Python's object arenas, thread stacks, libraries' own maps.
+    (
+        "anon_not_malloc",
+        lambda r: (
+            r["smaps_kb"]["anon"] / 1024
+            - sum(a["system"] for a in r["arenas"][1:]) / 2**20
+            - r["mmap"] / 2**20
+        ),
+    ),
+)
+
+
+def _malloc_report(
+    work: Path, pid: int, started: float, samples: list[dict[str, Any]], duration: float
+) -> dict[str, Any]:
+    """The probe's rows of the run's main process: medians per five minutes and the growth
+    of each part per 1000 tasks after the first quarter (tasks interpolated from the
+    samples by time)."""
+    files = sorted(work.glob("malloc.*.jsonl"))
+    chosen = work / f"malloc.{pid}.jsonl"
+    if not chosen.exists():  # under --wrap: the process with the most rows that runs `run`
+        runs = [f for f in files if '"run"' in f.read_text(encoding="utf-8")]
+        if not runs:
+            print("malloc stats: no probe rows (is glibc the C library?)")
+            return {}
+        chosen = max(runs, key=lambda f: len(f.read_text(encoding="utf-8").splitlines()))
+    rows = [json.loads(line) for line in chosen.read_text(encoding="utf-8").splitlines()]
+    if not rows or not samples:
+        return {}
+    at = np.array([r["t"] - started for r in rows])
+    tasks = np.interp(at, [s["at_s"] for s in samples], [float(s["tasks"]) for s in samples])
+    values = {name: np.array([f(r) for r in rows]) for name, f in _PARTS}
+    table = []
+    for lo in range(0, int(at.max()) + 1, 300):
+        sel = (at >= lo) & (at < lo + 300)
+        if sel.any():
+            table.append(
+                {"minutes": f"{lo // 60}-{lo // 60 + 5}"}
+                | {name: round(float(np.median(v[sel])), 1) for name, v in values.items()}
+            )
+    print_rows(
+        f"the run's allocator ({chosen.name}), medians of five minutes, MB", list(table[0]), table
+    )
+    settled = at >= 0.25 * duration
+    growth = [
+        {
+            "part": name,
+            "per_1000_tasks": round(1000 * _slope(list(tasks[settled]), list(v[settled])), 1),
+        }
+        for name, v in values.items()
+    ]
+    print_rows("growth after the first quarter", ["part", "per_1000_tasks"], growth)
+    return {"file": str(chosen), "table": table, "growth": growth}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", default="../shared/data/caliscope_charuco")
@@ -108,6 +174,13 @@ def main() -> None:
         help="a command the run is started under, e.g. 'heaptrack -o /tmp/soak' "
         "(benchmarks/heap_growth.py reads its recording); main_mb is then the wrapper's, "
         "children_mb includes the run",
+    )
+    ap.add_argument(
+        "--malloc-stats",
+        action="store_true",
+        help="sample glibc's allocator inside the run's process every --sample seconds "
+        "(benchmarks/_malloc_probe): its arenas' system and free bytes, the blocks mapped on "
+        "their own and the resident memory's parts, printed per five minutes with their growth",
     )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
@@ -145,11 +218,24 @@ def main() -> None:
     ]
     samples: list[dict[str, Any]] = []
     wall0 = time.monotonic()
+    started = time.time()
     try:
         # The run's JSON (every task's record) to a file: a pipe not read until the end
         # would fill and block the run's last write.
         report = open(work / "run.json", "w+", encoding="utf-8")
-        proc = subprocess.Popen(cmd, stdout=report, text=True)
+        env = None
+        if args.malloc_stats:
+            probe = str(Path(__file__).resolve().parent / "_malloc_probe")
+            path = os.environ.get("PYTHONPATH")
+            env = {
+                **os.environ,
+                "PYTHONPATH": probe + (os.pathsep + path if path else ""),
+                "EDGERECON_MALLOC_PROBE": str(work / "malloc"),
+                "EDGERECON_MALLOC_PROBE_S": f"{args.sample:g}",
+            }
+            for old in work.glob("malloc.*"):
+                old.unlink()
+        proc = subprocess.Popen(cmd, stdout=report, text=True, env=env)
         while proc.poll() is None:
             time.sleep(args.sample)
             if proc.poll() is not None:
@@ -208,6 +294,8 @@ def main() -> None:
         "wall_s",
     )
     result["summary"] = {k: summary.get(k) for k in keys}
+    if args.malloc_stats:
+        result["malloc"] = _malloc_report(work, proc.pid, started, samples, args.duration)
     result["stream"] = summary.get("stream", {})
     print_rows("run", list(keys), [result["summary"]])
     if args.json:
