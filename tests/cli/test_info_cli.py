@@ -151,3 +151,27 @@ def test_info_check_reports_every_unusable_frame(tmp_path, capsys):
     assert main(["info", "--dataset", str(tmp_path), "--check"]) == 3
     out = capsys.readouterr().out
     assert "unusable frames" in out and "wrong size" in out and "6 unusable frames" in out
+
+
+def test_info_check_reports_a_frozen_camera(tmp_path, capsys):
+    # 2 fps: cam1 repeats its frame of time 2 at times 3-6 (2 s of the stream), cam2 from
+    # time 5 to the end (1.5 s: not long enough).
+    rig = ring_rig(4, width=32, height_px=24, focal_px=30.0)
+    rng = np.random.default_rng(2)
+    cams = {}
+    for cam in rig:
+        images = [rng.integers(0, 255, (24, 32, 3), dtype=np.uint8) for _ in range(8)]
+        for t in range(8):
+            held = cam.name == "cam1" and 3 <= t <= 6 or cam.name == "cam2" and t >= 5
+            path = tmp_path / "frames" / cam.name / f"{t:04d}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(path), images[(2 if cam.name == "cam1" else 4) if held else t])
+        cams[cam.name] = f"frames/{cam.name}/{{index:04d}}.png"
+    write_dataset_descriptor(tmp_path, rig=rig, frames={"kind": "images", "cameras": cams}, fps=2.0)
+    assert main(["info", "--dataset", str(tmp_path), "--check", "--json"]) == 0  # usable
+    check = json.loads(capsys.readouterr().out)["check"]
+    assert check["frozen"] == {"cam1": [{"from": 2, "to": 7}]}
+    assert main(["info", "--dataset", str(tmp_path), "--check"]) == 0
+    assert "camera cam1: the same frame while the others' changed at times 2-6" in (
+        capsys.readouterr().out
+    )

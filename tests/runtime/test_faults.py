@@ -20,7 +20,7 @@ import edgerecon.runtime.backend
 import edgerecon.scene.objects
 from edgerecon.cli.run import parse_fault
 from edgerecon.io.dataset import open_dataset
-from edgerecon.quality.frames import FrameCheckConfig, frame_defect
+from edgerecon.quality.frames import FrameCheckConfig, FrozenCameras, frame_defect
 from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker, rebuild_background
 from edgerecon.runtime.interrupt import Runner, ThreadAbandoned, stop_thread
@@ -78,6 +78,60 @@ def test_black_frames_give_empty_tasks_fast_with_one_warning(
     # One warning when the lights go out, one when two cameras stay blinded, then recovery.
     assert len(unusable) == 2
     assert any("usable again" in r.getMessage() for r in caplog.records)
+
+
+def test_a_camera_whose_frames_stop_changing_is_frozen_until_they_change():
+    rng = np.random.default_rng(1)
+
+    def frames(t, images):
+        from edgerecon.types import FrameSet
+
+        return FrameSet(time_index=t, images=tuple(images), timestamp_s=t / 10)
+
+    noise = [rng.integers(0, 255, (120, 160, 3), dtype=np.uint8) for _ in range(40)]
+    watch = FrozenCameras(FrameCheckConfig(frozen_after_s=1.0))
+    events = []
+    for t in range(30):
+        # cam1 repeats its frame of t = 5 until t = 20; cam2's frame is missing at t = 12.
+        cam1 = noise[5] if 5 <= t < 20 else noise[t + 1]
+        cam2 = None if t == 12 else noise[(t + 2) % 40]
+        events.append(watch.update(frames(t, [noise[t], cam1, cam2]), t / 10))
+        if t == 15:
+            assert watch.frozen == {1}
+    froze = [t for t, (a, _) in enumerate(events) if a]
+    thawed = [t for t, (_, b) in enumerate(events) if b]
+    assert froze == [15] and events[15] == ([1], [])  # 1.0 s after its frame of t = 5
+    assert thawed == [20] and events[20] == ([], [1]) and watch.frozen == set()
+    # A still scene (every camera the same, or a paused stream) freezes nobody; 0 = no check.
+    still = FrozenCameras(FrameCheckConfig(frozen_after_s=0.5))
+    off = FrozenCameras(FrameCheckConfig(frozen_after_s=0.0))
+    for t in range(20):
+        assert still.update(frames(t, noise[:3]), t / 10) == ([], [])
+        assert off.update(frames(t, [noise[0], noise[t], noise[t + 1]]), t / 10) == ([], [])
+    with pytest.raises(ValueError, match="frozen_after_s"):
+        FrameCheckConfig(frozen_after_s=-1.0)
+
+
+def test_a_frozen_camera_is_said_once_and_recorded_with_everything_on(
+    tiny, tiny_dataset, tmp_path_factory, tmp_path, caplog
+):
+    # cam3 repeats its frame of time 1 at times 2-5 (a stuck camera), then recovers.
+    src = tmp_path_factory.mktemp("frozen") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    frames = src / "frames" / "cam3"
+    for t in range(2, 6):
+        shutil.copy(frames / "000001.png", frames / f"{t:06d}.png")
+    ds = open_dataset(src)
+    step = 1.0 / (ds.fps or 25.0)
+    config = runtime_config(frame_check=FrameCheckConfig(frozen_after_s=2.5 * step))
+    caplog.set_level(logging.WARNING)
+    summary, metrics = run_frames((ds, tiny[1]), tmp_path, 0, 8, config=config)
+    assert [m.status for m in metrics] == ["ok"] * 8 and summary.failed == 0
+    # Frozen from time 1's frame: 2.5 frame intervals later, at time 4, until time 6.
+    assert [m.frozen_cameras for m in metrics] == [[], [], [], [], ["cam3"], ["cam3"], [], []]
+    assert all(m.num_cameras == 5 for m in metrics)  # kept in the tasks
+    said = [r.getMessage() for r in caplog.records if "cam3" in r.getMessage()]
+    assert len(said) == 2 and "same frame" in said[0] and "new frame again" in said[1]
 
 
 def test_a_stage_that_raises_is_a_failed_record(tiny, tmp_path, monkeypatch):

@@ -15,8 +15,14 @@ from edgerecon.geometry.camera import Rig
 from edgerecon.io.crs import crs_name
 from edgerecon.io.dataset import Dataset, open_dataset
 from edgerecon.progress import track
-from edgerecon.quality.frames import FrameCheckConfig, frame_defects
+from edgerecon.quality.frames import (
+    FrameCheckConfig,
+    FrozenCameras,
+    frame_defects,
+    without_defective,
+)
 from edgerecon.scene.people import is_measured_model, person_model_path
+from edgerecon.scene.stream import DEFAULT_FPS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="decode every frame of every camera and report the unusable ones (missing, "
         "zero-byte, truncated, does not decode, wrong size, black, saturated, textureless); "
-        "exit code 3 when there are any",
+        "exit code 3 when there are any; also the stretches where a camera sent the same "
+        "frame while the others' changed (frozen)",
     )
     add_json_flag(p)
     p.set_defaults(func=run)
@@ -149,15 +156,29 @@ def describe(ds: Dataset) -> dict[str, Any]:
 
 def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[str, Any]:
     """Decode every frame of every camera: per camera, the unusable frames and why (what
-    ``run`` would leave out), and how many timestamps keep at least 3 usable cameras."""
+    ``run`` would leave out), how many timestamps keep at least 3 usable cameras, and the
+    stretches where a camera's frames did not change while the others' did (``frozen``: from
+    the time index of the repeated frame to that of its first new one, None when it never
+    came; ``FrameCheckConfig.frozen_after_s`` or longer; ``run`` keeps such a camera)."""
     names = ds.rig.names
     bad: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     usable_times = 0
+    watch = FrozenCameras(config)
+    frozen: dict[str, list[dict[str, int | None]]] = {}
+    rate = ds.fps or DEFAULT_FPS
     with ds.open_frames(missing="skip_camera") as source:
         counts = source.frame_counts
         for t in track(range(source.num_frames), "checking frames"):
             frames, problems = source.check(t)
             defects = frame_defects(frames, config)
+            froze, thawed = watch.update(
+                without_defective(frames, defects),
+                frames.timestamp_s if frames.timestamp_s is not None else t / rate,
+            )
+            for i in froze:
+                frozen.setdefault(names[i], []).append({"from": watch.since(i), "to": None})
+            for i in thawed:
+                frozen[names[i]][-1]["to"] = t
             for name, defect in zip(names, defects, strict=True):
                 problem = problems.get(name) or defect
                 if problem:
@@ -181,6 +202,7 @@ def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[st
         "usable_timestamps": usable_times,
         "unusable": {n: v for n, v in bad.items() if v},
         "num_unusable": sum(len(v) for v in bad.values()),
+        "frozen": frozen,
     }
 
 
@@ -296,6 +318,14 @@ def _print_check(check: dict[str, Any]) -> None:
             rows.append([name, kind, len(times), shown])
     if rows:
         print_table("unusable frames", ["camera", "problem", "frames", "times"], rows)
+    for name, stretches in check.get("frozen", {}).items():
+        shown = ", ".join(
+            f"{s['from']}-{'end' if s['to'] is None else s['to'] - 1}" for s in stretches
+        )
+        console.print(
+            f"camera {name}: the same frame while the others' changed at times {shown} "
+            "(a stuck camera? run keeps it)"
+        )
     console.print(
         f"frame check: {check['num_unusable']} unusable frames; "
         f"{check['usable_timestamps']} of {check['frames']} timestamps keep >= 3 usable cameras"

@@ -8,6 +8,7 @@ subsample of the frame (~1 ms per camera), before any stage runs.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -34,6 +35,11 @@ class FrameCheckConfig:
     noise alone is ~1-2, real scenes measured 12-60 on the synthetic and real datasets)."""
     sample_px: int = 160
     """The check reads about this many pixels along the longer side (a strided subsample)."""
+    frozen_after_s: float = 2.0
+    """A camera whose frames have not changed bit for bit (on that subsample) over this many
+    seconds of the stream while another camera's did is *frozen*: a stuck camera, or a
+    stream or decoder repeating its last frame (:class:`FrozenCameras`); 0 = no check.
+    Sensor noise changes a working camera's every frame."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.black_max_level < self.saturated_min_level <= 255:
@@ -47,6 +53,10 @@ class FrameCheckConfig:
             )
         if self.sample_px < 8:
             raise ValueError(f"FrameCheckConfig.sample_px must be >= 8, got {self.sample_px}")
+        if not self.frozen_after_s >= 0:
+            raise ValueError(
+                f"FrameCheckConfig.frozen_after_s must be >= 0, got {self.frozen_after_s}"
+            )
 
 
 def local_contrast(
@@ -63,12 +73,17 @@ def local_contrast(
     return np.sqrt(np.maximum(m2 - m1 * m1, 0.0)).astype(np.float32)
 
 
+def _sample(image: Image, config: FrameCheckConfig) -> Image:
+    """The strided subsample the checks read (about ``sample_px`` along the longer side)."""
+    h, w = image.shape[:2]
+    stride = max(1, max(h, w) // config.sample_px)
+    return image[::stride, ::stride]
+
+
 def frame_defect(image: Image, config: FrameCheckConfig | None = None) -> str | None:
     """``"black"``, ``"saturated"``, ``"textureless"`` or None (usable) for one BGR frame."""
     config = config or FrameCheckConfig()
-    h, w = image.shape[:2]
-    stride = max(1, max(h, w) // config.sample_px)
-    sample = image[::stride, ::stride]
+    sample = _sample(image, config)
     gray = cv2.cvtColor(sample, cv2.COLOR_BGR2GRAY) if sample.ndim == 3 else sample
     p1, p99 = np.percentile(gray, (1, 99))
     if p99 < config.black_max_level:
@@ -93,3 +108,65 @@ def without_defective(frames: FrameSet, defects: Sequence[str | None]) -> FrameS
         return frames
     images = tuple(None if d else im for im, d in zip(frames.images, defects, strict=True))
     return dataclasses.replace(frames, images=images)
+
+
+class FrozenCameras:
+    """Which cameras' frames stopped changing while the others' went on.
+
+    A camera that hangs, or a stream or decoder that repeats its last frame, keeps delivering
+    an image: nothing else finds it, and the tasks reconstruct that camera's silhouette and
+    colours of the moment it froze. :meth:`update`, called with each task's frames (in time
+    order), compares a hash of each camera's check subsample with its previous one: a camera
+    whose frame has been the same bit for bit over ``frozen_after_s`` seconds of the stream
+    while another camera's changed in that time is frozen, until its frame changes. A scene
+    where nothing changes in any camera (noise-free frames of a still scene, a paused
+    stream) freezes nobody. About 10 microseconds per camera.
+
+    The tasks keep a frozen camera: on a 4-camera rig 90 degrees apart its stale view still
+    helps the hull and the depths more than three cameras alone (hd4 at 1080p with one
+    camera frozen for 2 s of 3.6: foreground F 0.36 -> 0.29 kept, 0.15 left out).
+    """
+
+    def __init__(self, config: FrameCheckConfig | None = None) -> None:
+        self.config = config or FrameCheckConfig()
+        self._hash: dict[int, bytes] = {}
+        self._since: dict[int, float] = {}
+        """Per camera: the stream time its current frame was first seen ..."""
+        self._since_index: dict[int, int] = {}
+        """... and that frame's time index."""
+        self._frozen: set[int] = set()
+
+    @property
+    def frozen(self) -> frozenset[int]:
+        """Indices of the cameras frozen as of the last update."""
+        return frozenset(self._frozen)
+
+    def since(self, camera: int) -> int | None:
+        """The time index of the first update that gave ``camera``'s current frame (None:
+        none seen yet)."""
+        return self._since_index.get(camera)
+
+    def update(self, frames: FrameSet, seconds: float) -> tuple[list[int], list[int]]:
+        """Take the frames of stream time ``seconds``; return the cameras that froze and those
+        whose frames changed again since the last update (indices, ascending)."""
+        if self.config.frozen_after_s <= 0:
+            return [], []
+        for i, image in enumerate(frames.images):
+            if image is None:
+                continue
+            sample = np.ascontiguousarray(_sample(image, self.config))
+            digest = hashlib.blake2b(sample.data, digest_size=16).digest()
+            if self._hash.get(i) != digest:
+                self._hash[i] = digest
+                self._since[i] = seconds
+                self._since_index[i] = frames.time_index
+        now_frozen = {
+            i
+            for i, since in self._since.items()
+            if seconds - since >= self.config.frozen_after_s
+            and any(other > since for j, other in self._since.items() if j != i)
+        }
+        froze = sorted(now_frozen - self._frozen)
+        thawed = sorted(self._frozen - now_frozen)
+        self._frozen = now_frozen
+        return froze, thawed

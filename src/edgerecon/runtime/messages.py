@@ -161,6 +161,10 @@ class TaskMetrics:
     """Cameras left out of this task because their frame is unusable: name -> "black",
     "saturated" or "textureless". With fewer than 3 cameras left the task is empty (no
     foreground; the merged cloud is the background alone)."""
+    frozen_cameras: list[str] = field(default_factory=list)
+    """Cameras whose frames had not changed for ``FrameCheckConfig.frozen_after_s`` of the
+    stream while the others' did (``quality.frames.FrozenCameras``): kept in the task, with
+    their view of the moment they froze."""
     num_sparse: int = 0
     num_sparse_fg: int = 0
     num_fg_points: int = 0

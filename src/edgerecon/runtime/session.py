@@ -64,7 +64,12 @@ from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.frames import FrameSource
 from edgerecon.io.ply import atomic_write_text, ply_frame
-from edgerecon.quality.frames import FrameCheckConfig, frame_defects, without_defective
+from edgerecon.quality.frames import (
+    FrameCheckConfig,
+    FrozenCameras,
+    frame_defects,
+    without_defective,
+)
 from edgerecon.quality.metrics import fscore
 from edgerecon.runtime.engine import Engine
 from edgerecon.runtime.frontend import TaskOutput
@@ -73,6 +78,7 @@ from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.retention import CloudRetention, RetentionConfig
 from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder, RunState
 from edgerecon.scene.merge import foreground_part
+from edgerecon.scene.stream import DEFAULT_FPS
 from edgerecon.types import EdgereconError, FrameSet
 
 logger = logging.getLogger(__name__)
@@ -390,6 +396,7 @@ class Session:
         self.identity = DatasetIdentity.of(dataset)
         self.frames_dropped = 0
         self._defects: dict[str, str] = {}
+        self._frozen = FrozenCameras(self.frame_check)
         # The schedule's lower bound on the next task's time index, as of now (None: no
         # next task, or not known): the background updates before it can be applied
         # between tasks (``_learn_ahead``).
@@ -584,9 +591,13 @@ class Session:
             frames = without_defective(frames, defects)
             named = {self.dataset.rig[i].name: d for i, d in enumerate(defects) if d is not None}
             self._note_defects(t, named)
+            self._note_frozen(t, frames)
             plan = self.engine.plan(t)
             out = self.engine.run_task(frames, plan, task, named, updates)
             out.metrics.sync_spread_s = frames.sync_spread_s
+            out.metrics.frozen_cameras = [
+                self.dataset.rig[i].name for i in sorted(self._frozen.frozen)
+            ]
             return out
         except Exception as exc:  # any stage, any engine: a failed record, never a dead run
             error = describe_exception(exc)
@@ -640,6 +651,33 @@ class Session:
         else:
             logger.warning("time %d: every camera's frames are usable again", t)
         self._defects = defects
+
+    def _note_frozen(self, t: int, frames: FrameSet) -> None:
+        """One warning when a camera's frames stop changing while the others' go on, one
+        line when they change again (``quality.frames.FrozenCameras``)."""
+        seconds = frames.timestamp_s
+        if seconds is None:  # frames without times: the stream's rate
+            seconds = t / (self.dataset.fps or DEFAULT_FPS)
+        froze, thawed = self._frozen.update(frames, seconds)
+        names = self.dataset.rig.names
+        if froze:
+            logger.warning(
+                "time %d: camera%s %s sent the same frame for %g s while the others' changed "
+                "(a stuck camera, or a stream repeating its last frame?): the tasks keep "
+                "%s view of the moment it froze until it changes",
+                t,
+                "s" if len(froze) > 1 else "",
+                ", ".join(names[i] for i in froze),
+                self.frame_check.frozen_after_s,
+                "their" if len(froze) > 1 else "its",
+            )
+        if thawed:
+            logger.warning(
+                "time %d: camera%s %s sent a new frame again",
+                t,
+                "s" if len(thawed) > 1 else "",
+                ", ".join(names[i] for i in thawed),
+            )
 
     def _score(self, m: TaskMetrics, t: int, out: TaskOutput) -> None:
         if self._gt is None or self.options.ground_truth_threshold is None:
