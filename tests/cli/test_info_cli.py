@@ -162,7 +162,7 @@ def test_info_check_reports_a_frozen_camera(tmp_path, capsys):
     for cam in rig:
         images = [rng.integers(0, 255, (24, 32, 3), dtype=np.uint8) for _ in range(8)]
         for t in range(8):
-            held = cam.name == "cam1" and 3 <= t <= 6 or cam.name == "cam2" and t >= 5
+            held = (cam.name == "cam1" and 3 <= t <= 6) or (cam.name == "cam2" and t >= 5)
             path = tmp_path / "frames" / cam.name / f"{t:04d}.png"
             path.parent.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(path), images[(2 if cam.name == "cam1" else 4) if held else t])

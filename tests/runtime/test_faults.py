@@ -92,11 +92,12 @@ def test_a_camera_whose_frames_stop_changing_is_frozen_until_they_change():
     watch = FrozenCameras(FrameCheckConfig(frozen_after_s=1.0))
     events = []
     for t in range(30):
-        # cam1 repeats its frame of t = 5 until t = 20; cam2's frame is missing at t = 12.
-        cam1 = noise[5] if 5 <= t < 20 else noise[t + 1]
-        cam2 = None if t == 12 else noise[(t + 2) % 40]
+        # cam1 repeats its frame of t = 5 until t = 20 and has none at t = 17; cam2 has no
+        # frame from t = 8 to 25 (stalled: not frozen).
+        cam1 = None if t == 17 else noise[5] if 5 <= t < 20 else noise[t + 1]
+        cam2 = None if 8 <= t < 26 else noise[(t + 2) % 40]
         events.append(watch.update(frames(t, [noise[t], cam1, cam2]), t / 10))
-        if t == 15:
+        if t in (15, 17):
             assert watch.frozen == {1}
     froze = [t for t, (a, _) in enumerate(events) if a]
     thawed = [t for t, (_, b) in enumerate(events) if b]

@@ -120,11 +120,13 @@ class FrozenCameras:
     whose frame has been the same bit for bit over ``frozen_after_s`` seconds of the stream
     while another camera's changed in that time is frozen, until its frame changes. A scene
     where nothing changes in any camera (noise-free frames of a still scene, a paused
-    stream) freezes nobody. About 10 microseconds per camera.
+    stream) freezes nobody; a camera without a frame in an update (stalled, unusable) keeps
+    its state. About 10 microseconds per camera.
 
     The tasks keep a frozen camera: on a 4-camera rig 90 degrees apart its stale view still
-    helps the hull and the depths more than three cameras alone (hd4 at 1080p with one
-    camera frozen for 2 s of 3.6: foreground F 0.36 -> 0.29 kept, 0.15 left out).
+    helps the hull and the depths more than three cameras alone (hd4 at 1080p, one camera
+    frozen for the last 2 s of 3.6, the tasks after it froze: foreground F at 0.5 % 0.357 ->
+    0.276 with it kept, 0.143 with it left out; docs/BENCHMARKS.md).
     """
 
     def __init__(self, config: FrameCheckConfig | None = None) -> None:
@@ -151,8 +153,10 @@ class FrozenCameras:
         whose frames changed again since the last update (indices, ascending)."""
         if self.config.frozen_after_s <= 0:
             return [], []
+        absent = set()
         for i, image in enumerate(frames.images):
-            if image is None:
+            if image is None:  # no frame (stalled, unusable): not judged this time
+                absent.add(i)
                 continue
             sample = np.ascontiguousarray(_sample(image, self.config))
             digest = hashlib.blake2b(sample.data, digest_size=16).digest()
@@ -163,9 +167,10 @@ class FrozenCameras:
         now_frozen = {
             i
             for i, since in self._since.items()
-            if seconds - since >= self.config.frozen_after_s
+            if i not in absent
+            and seconds - since >= self.config.frozen_after_s
             and any(other > since for j, other in self._since.items() if j != i)
-        }
+        } | (self._frozen & absent)
         froze = sorted(now_frozen - self._frozen)
         thawed = sorted(self._frozen - now_frozen)
         self._frozen = now_frozen
