@@ -18,7 +18,7 @@ import pytest
 import edgerecon.pipeline
 import edgerecon.runtime.backend
 import edgerecon.scene.objects
-from edgerecon.cli.run import parse_fault
+from edgerecon.cli.run import parse_fault, task_row
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.frames import FrameCheckConfig, FrozenCameras, frame_defect
 from edgerecon.runtime import RuntimeConfig
@@ -131,6 +131,7 @@ def test_a_frozen_camera_is_said_once_and_recorded_with_everything_on(
     # Frozen from time 1's frame: 2.5 frame intervals later, at time 4, until time 6.
     assert [m.frozen_cameras for m in metrics] == [[], [], [], [], ["cam3"], ["cam3"], [], []]
     assert all(m.num_cameras == 5 for m in metrics)  # kept in the tasks
+    assert task_row(metrics[4])[-1].endswith(" frozen cam3")  # run's row of the task
     said = [r.getMessage() for r in caplog.records if "cam3" in r.getMessage()]
     assert len(said) == 2 and "same frame" in said[0] and "new frame again" in said[1]
 

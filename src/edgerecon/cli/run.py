@@ -229,7 +229,8 @@ def task_row(m: TaskMetrics) -> list[Any]:
         f_off,
         f"{m.background_version}"
         + (" degraded" if m.degraded else "")
-        + (" empty" if m.frame_defects and m.num_cameras < 3 else ""),
+        + (" empty" if m.frame_defects and m.num_cameras < 3 else "")
+        + (f" frozen {','.join(m.frozen_cameras)}" if m.frozen_cameras else ""),
     ]
 
 
