@@ -86,17 +86,18 @@ def test_a_camera_whose_frames_stop_changing_is_frozen_until_they_change():
     def frames(t, images):
         from edgerecon.types import FrameSet
 
-        return FrameSet(time_index=t, images=tuple(images), timestamp_s=t / 10)
+        # Every other set without a time: at time_index / fps (10), the same seconds.
+        return FrameSet(time_index=t, images=tuple(images), timestamp_s=None if t % 2 else t / 10)
 
     noise = [rng.integers(0, 255, (120, 160, 3), dtype=np.uint8) for _ in range(40)]
-    watch = FrozenCameras(FrameCheckConfig(frozen_after_s=1.0))
+    watch = FrozenCameras(FrameCheckConfig(frozen_after_s=1.0), fps=10.0)
     events = []
     for t in range(30):
         # cam1 repeats its frame of t = 5 until t = 20 and has none at t = 17; cam2 has no
         # frame from t = 8 to 25 (stalled: not frozen).
         cam1 = None if t == 17 else noise[5] if 5 <= t < 20 else noise[t + 1]
         cam2 = None if 8 <= t < 26 else noise[(t + 2) % 40]
-        events.append(watch.update(frames(t, [noise[t], cam1, cam2]), t / 10))
+        events.append(watch.update(frames(t, [noise[t], cam1, cam2])))
         if t in (15, 17):
             assert watch.frozen == {1}
     froze = [t for t, (a, _) in enumerate(events) if a]
@@ -104,11 +105,11 @@ def test_a_camera_whose_frames_stop_changing_is_frozen_until_they_change():
     assert froze == [15] and events[15] == ([1], [])  # 1.0 s after its frame of t = 5
     assert thawed == [20] and events[20] == ([], [1]) and watch.frozen == set()
     # A still scene (every camera the same, or a paused stream) freezes nobody; 0 = no check.
-    still = FrozenCameras(FrameCheckConfig(frozen_after_s=0.5))
-    off = FrozenCameras(FrameCheckConfig(frozen_after_s=0.0))
+    still = FrozenCameras(FrameCheckConfig(frozen_after_s=0.5), fps=10.0)
+    off = FrozenCameras(FrameCheckConfig(frozen_after_s=0.0), fps=10.0)
     for t in range(20):
-        assert still.update(frames(t, noise[:3]), t / 10) == ([], [])
-        assert off.update(frames(t, [noise[0], noise[t], noise[t + 1]]), t / 10) == ([], [])
+        assert still.update(frames(t, noise[:3])) == ([], [])
+        assert off.update(frames(t, [noise[0], noise[t], noise[t + 1]])) == ([], [])
     with pytest.raises(ValueError, match="frozen_after_s"):
         FrameCheckConfig(frozen_after_s=-1.0)
 

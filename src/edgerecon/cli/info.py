@@ -163,18 +163,14 @@ def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[st
     names = ds.rig.names
     bad: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     usable_times = 0
-    watch = FrozenCameras(config)
+    watch = FrozenCameras(config, fps=ds.fps or DEFAULT_FPS)
     frozen: dict[str, list[dict[str, int | None]]] = {}
-    rate = ds.fps or DEFAULT_FPS
     with ds.open_frames(missing="skip_camera") as source:
         counts = source.frame_counts
         for t in track(range(source.num_frames), "checking frames"):
             frames, problems = source.check(t)
             defects = frame_defects(frames, config)
-            froze, thawed = watch.update(
-                without_defective(frames, defects),
-                frames.timestamp_s if frames.timestamp_s is not None else t / rate,
-            )
+            froze, thawed = watch.update(without_defective(frames, defects))
             for i in froze:
                 frozen.setdefault(names[i], []).append({"from": watch.since(i), "to": None})
             for i in thawed:

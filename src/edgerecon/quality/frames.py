@@ -129,8 +129,10 @@ class FrozenCameras:
     0.276 with it kept, 0.143 with it left out; docs/BENCHMARKS.md).
     """
 
-    def __init__(self, config: FrameCheckConfig | None = None) -> None:
+    def __init__(self, config: FrameCheckConfig | None = None, *, fps: float) -> None:
         self.config = config or FrameCheckConfig()
+        self.fps = fps
+        """The stream's rate: a frame set without a timestamp is at ``time_index / fps``."""
         self._hash: dict[int, bytes] = {}
         self._since: dict[int, float] = {}
         """Per camera: the stream time its current frame was first seen ..."""
@@ -148,11 +150,14 @@ class FrozenCameras:
         none seen yet)."""
         return self._since_index.get(camera)
 
-    def update(self, frames: FrameSet, seconds: float) -> tuple[list[int], list[int]]:
-        """Take the frames of stream time ``seconds``; return the cameras that froze and those
-        whose frames changed again since the last update (indices, ascending)."""
+    def update(self, frames: FrameSet) -> tuple[list[int], list[int]]:
+        """Take the next frames; return the cameras that froze and those whose frames
+        changed again since the last update (indices, ascending)."""
         if self.config.frozen_after_s <= 0:
             return [], []
+        seconds = frames.timestamp_s
+        if seconds is None:
+            seconds = frames.time_index / self.fps
         absent = set()
         for i, image in enumerate(frames.images):
             if image is None:  # no frame (stalled, unusable): not judged this time

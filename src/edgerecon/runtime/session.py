@@ -396,7 +396,7 @@ class Session:
         self.identity = DatasetIdentity.of(dataset)
         self.frames_dropped = 0
         self._defects: dict[str, str] = {}
-        self._frozen = FrozenCameras(self.frame_check)
+        self._frozen = FrozenCameras(self.frame_check, fps=dataset.fps or DEFAULT_FPS)
         # The schedule's lower bound on the next task's time index, as of now (None: no
         # next task, or not known): the background updates before it can be applied
         # between tasks (``_learn_ahead``).
@@ -655,10 +655,7 @@ class Session:
     def _note_frozen(self, t: int, frames: FrameSet) -> None:
         """One warning when a camera's frames stop changing while the others' go on, one
         line when they change again (``quality.frames.FrozenCameras``)."""
-        seconds = frames.timestamp_s
-        if seconds is None:  # frames without times: the stream's rate
-            seconds = t / (self.dataset.fps or DEFAULT_FPS)
-        froze, thawed = self._frozen.update(frames, seconds)
+        froze, thawed = self._frozen.update(frames)
         names = self.dataset.rig.names
         if froze:
             logger.warning(
