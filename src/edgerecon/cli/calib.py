@@ -1,0 +1,225 @@
+"""``edgerecon calib``: does a dataset's calibration fit its frames? Matches every pair of
+cameras without the calibration and measures how far the matches lie from the calibration's
+epipolar lines (``quality.calibration``); a camera that turned since it was calibrated is
+named, its orientation found again, and with ``--write`` stored in a new rig file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+import numpy as np
+
+from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.io.calibration import save_rig
+from edgerecon.io.dataset import DESCRIPTOR, open_dataset
+from edgerecon.io.ply import atomic_write_text
+from edgerecon.progress import track
+from edgerecon.quality.calibration import (
+    CalibrationCheck,
+    CalibrationCheckConfig,
+    PoseEstimate,
+    check_calibration,
+    repair,
+)
+from edgerecon.types import DataError
+
+#: The rig file ``--write`` makes next to ``dataset.json`` (the one before is kept).
+RECALIBRATED = "rig.recalibrated.json"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "calib",
+        help="check the calibration against what the cameras see; --write re-aims a camera "
+        "that turned",
+        description="Match every pair of cameras without the calibration (SIFT, ratio test, "
+        "a fundamental matrix estimated from the matches), then measure how far those matches "
+        "lie from the epipolar lines the calibration predicts. Names a camera that moved since "
+        "it was calibrated (or frames given to the wrong camera, or another setup's "
+        "calibration), finds the orientation of a camera that turned (its centre kept), and "
+        "with --write stores it in a new rig file that dataset.json then names. Exit code 3 "
+        "when a camera does not fit (and was not written) or no pair fits.",
+    )
+    p.add_argument("--dataset", required=True, metavar="DIR", help="dataset folder")
+    p.add_argument(
+        "--times",
+        default=None,
+        metavar="T1,T2,...",
+        help="time indices whose matches are pooled (default: 3 spread over the stream)",
+    )
+    p.add_argument(
+        "--max-error",
+        type=float,
+        default=CalibrationCheckConfig.max_error_px,
+        metavar="PX",
+        help="largest median distance of a fitting pair from the epipolar lines, in pixels "
+        f"of a 1000-pixel-wide frame (default {CalibrationCheckConfig.max_error_px:g})",
+    )
+    p.add_argument(
+        "--write",
+        action="store_true",
+        help=f"store the re-found orientation of the cameras that turned in {RECALIBRATED} "
+        "and name it in dataset.json (the rig file before is kept)",
+    )
+    add_json_flag(p)
+    p.set_defaults(func=run)
+
+
+def default_times(num_frames: int, count: int = 3) -> list[int]:
+    """``count`` time indices spread over a stream (its 10 %, 50 %, 90 %)."""
+    if num_frames < 1:
+        raise DataError("the dataset has no frames")
+    at = np.linspace(0.1, 0.9, count) * (num_frames - 1)
+    return sorted({int(x) for x in np.rint(at)})
+
+
+def _times(text: str | None, num_frames: int) -> list[int]:
+    if text is None:
+        return default_times(num_frames)
+    try:
+        times = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise DataError(f"--times: comma-separated time indices, got {text!r}") from None
+    bad = [t for t in times if not 0 <= t < num_frames]
+    if not times or bad:
+        raise DataError(f"--times: indices in 0..{num_frames - 1}, got {text!r}")
+    return times
+
+
+def run(args: argparse.Namespace) -> int:
+    ds = open_dataset(args.dataset)
+    if ds.is_live:
+        raise DataError("a live dataset cannot be checked (its frames are not kept)")
+    if args.write and ds.layout != "descriptor":
+        raise DataError(
+            f"{ds.root} has no {DESCRIPTOR} to name a new rig in (a layout detected from its "
+            "files): make one with edgerecon import"
+        )
+    config = CalibrationCheckConfig(max_error_px=args.max_error)
+    times = _times(args.times, ds.num_frames)
+    with ds.open_frames(missing="skip_camera") as source:
+        sets = [source.read(t) for t in track(times, "reading frames")]
+    check = check_calibration(sets, ds.rig, config)
+    fix = repair(check, ds.rig, config)
+    fixed, estimates, after = fix.rig, list(fix.applied), fix.check
+    written = before = None
+    if args.write and estimates:
+        written = str(save_rig(ds.root / RECALIBRATED, fixed.in_world()))
+        descriptor = ds.root / DESCRIPTOR
+        data = json.loads(descriptor.read_text())
+        before = data["rig"]
+        data["rig"] = RECALIBRATED
+        atomic_write_text(descriptor, json.dumps(data, indent=2) + "\n")
+    report: dict[str, Any] = {
+        "dataset": str(ds.root),
+        **check.to_dict(),
+        "times": times,
+        "estimates": [_estimate_dict(e, ds.rig.names[e.camera]) for e in estimates],
+        "ambiguous": [ds.rig.names[c] for c in fix.ambiguous],
+        "after": None
+        if not estimates
+        else {"fits": after.fits, "off": after.off, "message": after.message},
+        "written": written,
+    }
+    if args.json:
+        emit_json(report)
+    else:
+        _print(check, estimates, after, ds.rig.names, config.max_angle_deg)
+        if fix.ambiguous:
+            console.print(
+                "the pairs cannot tell which of "
+                + " or ".join(ds.rig.names[c] for c in fix.ambiguous)
+                + " turned (re-aiming either makes them fit): nothing re-aimed; check with "
+                "other --times, or calibrate again",
+                soft_wrap=True,
+            )
+        if written:
+            console.print(
+                f"wrote {written} and named it in {ds.root / DESCRIPTOR} (the rig before: "
+                f"{before})",
+                soft_wrap=True,
+            )
+    final = after if written else check
+    return 3 if final.fits is False else 0
+
+
+def _estimate_dict(est: PoseEstimate, name: str) -> dict[str, Any]:
+    return {
+        "camera": est.camera,
+        "name": name,
+        "rotation_deg": round(est.rotation_deg, 3),
+        "before_px": round(est.before_px, 2),
+        "after_px": round(est.after_px, 2),
+        "pairs": est.pairs,
+        "matches": est.matches,
+        "R": est.R.tolist(),
+        "t": est.t.tolist(),
+    }
+
+
+def _print(
+    check: CalibrationCheck,
+    estimates: list[PoseEstimate],
+    after: CalibrationCheck,
+    names: list[str],
+    max_angle: float,
+) -> None:
+    print_table(
+        f"camera pairs (matches found without the calibration; {check.frame_sets} frame sets, "
+        f"{check.seconds:.1f} s)",
+        [
+            "pair",
+            "axes (deg)",
+            "matches",
+            "inliers",
+            "median (px)",
+            "p90 (px)",
+            "limit (px)",
+            "fits",
+        ],
+        [
+            [
+                f"{names[p.a]}-{names[p.b]}",
+                f"{p.angle_deg:.0f}",
+                p.matches,
+                p.inliers,
+                "-" if p.median_px is None else f"{p.median_px:.2f}",
+                "-" if p.p90_px is None else f"{p.p90_px:.2f}",
+                f"{p.limit_px:.1f}",
+                "facing"
+                if p.angle_deg > max_angle
+                else "-"
+                if not p.checked
+                else "yes"
+                if p.fits
+                else "no",
+            ]
+            for p in check.pairs
+        ],
+    )
+    print_table(
+        "cameras",
+        ["camera", "verdict", "px from the lines"],
+        [
+            [v.name, v.status, "-" if v.median_px is None else f"{v.median_px:.2f}"]
+            for v in check.cameras
+        ],
+    )
+    console.print(check.message, soft_wrap=True)
+    for est in estimates:
+        console.print(
+            f"{names[est.camera]} turned by {est.rotation_deg:.2f} degrees (its centre kept): "
+            f"its {est.matches} matches with {est.pairs} cameras that fit lie "
+            f"{est.before_px:.1f} -> {est.after_px:.1f} px from their epipolar lines",
+            soft_wrap=True,
+        )
+    if estimates:
+        console.print(f"re-aimed: {after.message}", soft_wrap=True)
+    for c in after.off if estimates else []:
+        console.print(
+            f"{names[c]}: no turn brings it back (it needs matches with two cameras that fit); "
+            "calibrate it again",
+            soft_wrap=True,
+        )

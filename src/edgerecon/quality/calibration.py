@@ -1,0 +1,654 @@
+"""Does the calibration fit the frames? A camera knocked after it was calibrated (a tripod
+bumped at a site), two videos given to the wrong cameras, or a calibration of another setup
+leave every later stage quietly wrong: the sparse stage matches along the wrong epipolar
+lines and finds little, the visual hull carves the people away, the dense stage fuses
+nothing. This check finds it from the frames alone, before any of that:
+
+1. SIFT features of every camera's undistorted frame (the sparse stage's, with its simulated
+   tilts on wide-baseline rigs);
+2. per pair of cameras, matches found *without* the calibration (nearest neighbours, ratio
+   test, both ways), then kept when a fundamental matrix estimated from the matches
+   themselves (MAGSAC) explains them: correspondences of the scene, whatever the calibration
+   says;
+3. their distance to the epipolar lines the calibration predicts (pixels of the frames): a
+   pair that fits has a median of about a pixel, a camera that turned by a degree tens;
+4. a camera is *off* when every checked pair it is in is off while some pair fits; when no
+   checked pair fits, the calibration as a whole does not fit the frames.
+
+For a camera that is off, :func:`estimate_rotation` finds how it is turned now (its centre
+kept): the rotation that brings its matches with the cameras that fit back onto their
+epipolar lines (``edgerecon calib --write`` stores it).
+
+Measured on the datasets here: see docs/BENCHMARKS.md ("A camera that moved after its
+calibration").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from itertools import combinations
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from edgerecon.geometry.camera import Camera, Rig, fundamental_matrix
+from edgerecon.sparse.config import SparseConfig
+from edgerecon.sparse.features import Features, extract_all
+from edgerecon.types import DataError, FrameSet
+from edgerecon.views import View, prepare_views
+
+logger = logging.getLogger(__name__)
+
+#: Verdicts of a camera (``CameraVerdict.status``).
+STATUSES = ("ok", "off", "unchecked")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CalibrationCheckConfig:
+    """Parameters of :func:`check_calibration`."""
+
+    max_side_px: int = 1920
+    """Frames are checked at a scale that brings their larger side to at most this (errors
+    are still reported in pixels of the frames)."""
+    ratio: float = 0.8
+    """Lowe's ratio of the matches found without the calibration."""
+    ransac_px: float = 1.5
+    """The fundamental matrix's inlier threshold, in pixels of a 1000-pixel-wide frame (scaled
+    with the frame's larger side)."""
+    max_angle_deg: float = 120.0
+    """Pairs whose optical axes are farther apart than this are not judged: cameras that
+    face each other see opposite sides of the scene, and the few matches they share are
+    mostly wrong (hd4's opposite cameras: 13-41 matches a fundamental matrix explains, 28-400
+    px from the calibration's lines)."""
+    min_inliers: int = 15
+    """A pair with fewer matches that a fundamental matrix explains is not checked (the two
+    cameras see too little in common)."""
+    max_error_px: float = 8.0
+    """A pair is off when the median distance of its matches to the calibration's epipolar
+    lines exceeds this many pixels of a 1000-pixel-wide frame (scaled with the frame's larger
+    side: 10.2 px at 1280x720, 15.4 px at 1920x1080). Real calibrations that serve well lie
+    within 6 (caliscope_charuco's 4 webcams: 0.6-5.5 px at 1280x720, their board corners 0.9
+    px: the room behind, where no board was, fits less; utrecht4cam 2.7-3.9 px at 644x486);
+    a camera turned by a degree about an axis across its epipolar lines moves the scene by
+    about its focal length / 57 pixels there."""
+    sparse: SparseConfig = field(default_factory=SparseConfig)
+    """The features' settings (the sparse stage's)."""
+
+    def __post_init__(self) -> None:
+        if self.max_side_px < 64:
+            raise ValueError(
+                f"CalibrationCheckConfig.max_side_px must be >= 64, got {self.max_side_px}"
+            )
+        if not 0.0 < self.ratio <= 1.0:
+            raise ValueError(f"CalibrationCheckConfig.ratio must be in (0, 1], got {self.ratio}")
+        for name in ("ransac_px", "max_error_px"):
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"CalibrationCheckConfig.{name} must be > 0, got {getattr(self, name)}"
+                )
+        if self.min_inliers < 8:
+            raise ValueError(
+                f"CalibrationCheckConfig.min_inliers must be >= 8, got {self.min_inliers}"
+            )
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairCheck:
+    """One pair of cameras (indices into the rig)."""
+
+    a: int
+    b: int
+    matches: int
+    """Matches found without the calibration (ratio test, both ways)."""
+    inliers: int
+    """Those a fundamental matrix estimated from them explains."""
+    median_px: float | None
+    """Median distance of the inliers to the calibration's epipolar lines (pixels of the
+    frames, the mean of both images' distances); None: not checked."""
+    p90_px: float | None
+    """Their 90th percentile."""
+    limit_px: float
+    """The largest median that fits (``max_error_px`` at this pair's frame size)."""
+    angle_deg: float = 0.0
+    """Angle between the two cameras' optical axes (beyond ``max_angle_deg``: not judged)."""
+
+    @property
+    def checked(self) -> bool:
+        return self.median_px is not None
+
+    @property
+    def fits(self) -> bool:
+        return self.median_px is not None and self.median_px <= self.limit_px
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraVerdict:
+    camera: int
+    name: str
+    status: str
+    """``ok`` (a checked pair with it fits), ``off`` (every checked pair with it is off while
+    another pair fits) or ``unchecked`` (no pair with it could be checked, or none fits)."""
+    median_px: float | None
+    """``ok``: the smallest median of its pairs that fit; else the median of its checked
+    pairs' medians (None: none checked)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class CalibrationCheck:
+    """What :func:`check_calibration` found."""
+
+    time_index: int
+    pairs: tuple[PairCheck, ...]
+    cameras: tuple[CameraVerdict, ...]
+    fits: bool | None
+    """True: some checked pair fits and no camera is off; False: a camera is off, or pairs
+    were checked and none fits; None: no pair could be checked."""
+    frame_sets: int = 1
+    """How many frame sets' matches were pooled."""
+    seconds: float = 0.0
+    observed: _Observed | None = field(default=None, repr=False, compare=False)
+    """The features and matches (what :func:`estimate_rotation` starts from)."""
+
+    @property
+    def off(self) -> list[int]:
+        """The cameras that do not fit the others."""
+        return [v.camera for v in self.cameras if v.status == "off"]
+
+    @property
+    def message(self) -> str:
+        """One line for a person."""
+        checked = [p for p in self.pairs if p.checked]
+        fit = [p for p in checked if p.fits]
+        where = f"time {self.time_index}" + (
+            f", {self.frame_sets} frame sets" if self.frame_sets > 1 else ""
+        )
+        if self.fits is None:
+            return f"calibration not checked: no two cameras share enough features ({where})"
+        if self.off:
+            worst = ", ".join(
+                f"{v.name} {v.median_px:.1f} px" for v in self.cameras if v.status == "off"
+            )
+            return (
+                f"calibration: {', '.join(self.off_names)} moved since it was calibrated, or "
+                f"is not the camera calibrated: the scene lies {worst} from the calibration's "
+                f"epipolar lines, {max(p.median_px or 0.0 for p in fit):.1f} px at most "
+                f"between the other cameras ({where})"
+            )
+        strong = _strong_misfits(self.pairs)
+        if not self.fits and fit and strong:
+            pair_list = ", ".join(
+                f"{self.cameras[p.a].name}-{self.cameras[p.b].name} {p.median_px:.1f} px"
+                for p in strong
+            )
+            return (
+                f"calibration: {pair_list} from its epipolar lines (limit "
+                f"{strong[0].limit_px:.1f} px) while other pairs fit: a camera turned, and the "
+                f"pairs cannot tell which ({where})"
+            )
+        if not self.fits:
+            return (
+                "calibration does not fit the frames: no pair of cameras agrees with it "
+                f"({min(p.median_px or 0.0 for p in checked):.1f} px from its epipolar lines "
+                "at best): another setup's calibration, or the videos given to the wrong "
+                f"cameras? ({where})"
+            )
+        return (
+            f"calibration fits the frames: {len(fit)} of {len(self.pairs)} camera pairs agree "
+            f"with it ({max(p.median_px or 0.0 for p in fit):.1f} px from its epipolar lines "
+            f"at most), every camera in one of them ({where})"
+        )
+
+    @property
+    def off_names(self) -> list[str]:
+        return [v.name for v in self.cameras if v.status == "off"]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "time": self.time_index,
+            "frame_sets": self.frame_sets,
+            "fits": self.fits,
+            "off": self.off,
+            "message": self.message,
+            "seconds": round(self.seconds, 3),
+            "cameras": [dataclasses.asdict(v) for v in self.cameras],
+            "pairs": [
+                {
+                    **dataclasses.asdict(p),
+                    "checked": p.checked,
+                    "fits": p.fits,
+                }
+                for p in self.pairs
+            ],
+        }
+
+
+def _scale(rig: Rig, config: CalibrationCheckConfig) -> float:
+    side = max(max(c.size) for c in rig)
+    return min(1.0, config.max_side_px / side)
+
+
+def _unit(view: View) -> float:
+    """Pixels of the view per "pixel of a 1000-pixel-wide frame" (``max_error_px``'s unit)."""
+    return max(view.camera.size) / 1000.0
+
+
+def _mutual_matches(fa: Features, fb: Features, ratio: float) -> NDArray[np.int64]:
+    """(M, 2) location indices of a and b whose keypoints are each other's nearest neighbour
+    and pass the ratio test both ways (one match per pair of locations)."""
+    if len(fa) < 2 or len(fb) < 2:
+        return np.zeros((0, 2), np.int64)
+    flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})  # k-d trees
+
+    def best(d1: NDArray[np.float32], d2: NDArray[np.float32]) -> NDArray[np.int64]:
+        out = np.full(len(d1), -1, np.int64)
+        for m in flann.knnMatch(d1, d2, k=2):
+            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
+                out[m[0].queryIdx] = m[0].trainIdx
+        return out
+
+    ab = best(fa.descriptors, fb.descriptors)
+    ba = best(fb.descriptors, fa.descriptors)
+    ia = np.nonzero(ab >= 0)[0]
+    ia = ia[ba[ab[ia]] == ia]
+    loc = np.stack([fa.location[ia], fb.location[ab[ia]]], axis=1)
+    return np.unique(loc, axis=0) if len(loc) else np.zeros((0, 2), np.int64)
+
+
+def epipolar_distances(
+    cam_a: Camera, cam_b: Camera, pa: NDArray[np.float64], pb: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(N,) mean of the distances of ``pb`` to the epipolar lines of ``pa`` and of ``pa`` to
+    those of ``pb`` (undistorted pixels of the two cameras)."""
+    F = fundamental_matrix(cam_a, cam_b)
+    ha = np.column_stack([pa, np.ones(len(pa))])
+    hb = np.column_stack([pb, np.ones(len(pb))])
+    lb = ha @ F.T  # lines in b
+    la = hb @ F  # lines in a
+    r = np.abs(np.einsum("ij,ij->i", hb, lb))
+    db = r / np.maximum(np.hypot(lb[:, 0], lb[:, 1]), 1e-300)
+    da = r / np.maximum(np.hypot(la[:, 0], la[:, 1]), 1e-300)
+    return np.asarray(0.5 * (da + db), np.float64)
+
+
+@dataclass
+class _Observed:
+    """The frame sets' views and features, and every pair's matches."""
+
+    views: list[dict[int, View]]
+    """Per frame set: camera -> its view."""
+    feats: list[dict[int, Features]]
+    matches: dict[tuple[int, int], list[tuple[int, NDArray[np.int64]]]]
+    """(a, b) -> [(frame set, (M, 2) location indices)]."""
+    explained: dict[tuple[int, int], tuple[int, NDArray[np.float64], NDArray[np.float64]]] = field(
+        default_factory=dict
+    )
+    """(a, b) -> ``_explained``'s answer, once computed."""
+
+    def points(self, s: int, cam: int, loc: NDArray[np.int64]) -> NDArray[np.float64]:
+        return np.asarray(self.feats[s][cam].location_points2D[loc], np.float64)
+
+    def view(self, cam: int) -> View:
+        return next(v[cam] for v in self.views if cam in v)
+
+    def camera(self, cam: int, rig: Rig) -> Camera:
+        """Camera ``cam``'s view camera (undistorted, at the check's scale) posed as in
+        ``rig`` (the features do not depend on the pose: one rig's observations check
+        another)."""
+        c = self.view(cam).camera
+        return dataclasses.replace(c, R=rig[cam].R, t=rig[cam].t)
+
+
+def _observe(sets: Sequence[FrameSet], rig: Rig, config: CalibrationCheckConfig) -> _Observed:
+    views: list[dict[int, View]] = []
+    feats: list[dict[int, Features]] = []
+    matches: dict[tuple[int, int], list[tuple[int, NDArray[np.int64]]]] = {}
+    for s, fs in enumerate(sets):
+        vs = prepare_views(fs, rig, _scale(rig, config))
+        fe = extract_all(vs, config.sparse)
+        views.append({v.camera_id: v for v in vs})
+        feats.append({v.camera_id: f for v, f in zip(vs, fe, strict=True)})
+        for i, j in combinations(range(len(vs)), 2):
+            m = _mutual_matches(fe[i], fe[j], config.ratio)
+            matches.setdefault((vs[i].camera_id, vs[j].camera_id), []).append((s, m))
+    return _Observed(views, feats, matches)
+
+
+def _explained(
+    obs: _Observed, a: int, b: int, config: CalibrationCheckConfig
+) -> tuple[int, NDArray[np.float64], NDArray[np.float64]]:
+    """(matches, and those a fundamental matrix estimated from them explains, view pixels of
+    a and b) of one pair, pooled over the frame sets (a static point's match repeats in each
+    and counts once). It does not depend on the poses: computed once per check."""
+    key = (a, b)
+    if key not in obs.explained:
+        unit = max(_unit(obs.view(a)), _unit(obs.view(b)))
+        parts = obs.matches.get(key, [])
+        pa = np.concatenate([obs.points(s, a, m[:, 0]) for s, m in parts] or [np.zeros((0, 2))])
+        pb = np.concatenate([obs.points(s, b, m[:, 1]) for s, m in parts] or [np.zeros((0, 2))])
+        _, first = np.unique(np.round(np.hstack([pa, pb]), 0), axis=0, return_index=True)
+        pa, pb = pa[first], pb[first]
+        keep = np.zeros(len(pa), bool)
+        if len(pa) >= config.min_inliers:
+            try:
+                F, inl = cv2.findFundamentalMat(
+                    pa, pb, cv2.USAC_MAGSAC, config.ransac_px * unit, 0.999, 10_000
+                )
+            except cv2.error:  # no model (degenerate matches: all on a line)
+                F, inl = None, None
+            if F is not None and inl is not None:
+                keep = inl.ravel().astype(bool)
+        obs.explained[key] = (len(pa), pa[keep], pb[keep])
+    return obs.explained[key]
+
+
+def _pair_inliers(
+    obs: _Observed, a: int, b: int, config: CalibrationCheckConfig, rig: Rig
+) -> tuple[PairCheck, NDArray[np.float64], NDArray[np.float64]]:
+    """The check of one pair against ``rig``, and the matches it judged (view pixels)."""
+    va = obs.view(a)
+    unit = max(_unit(va), _unit(obs.view(b)))
+    limit = config.max_error_px * unit / va.scale
+    cos = float(np.clip(rig[a].R[2] @ rig[b].R[2], -1.0, 1.0))
+    angle = round(float(np.degrees(np.arccos(cos))), 1)
+    if angle > config.max_angle_deg:
+        facing = PairCheck(
+            a=a, b=b, matches=0, inliers=0, median_px=None, p90_px=None,
+            limit_px=round(limit, 2), angle_deg=angle,
+        )  # fmt: skip
+        return facing, np.zeros((0, 2)), np.zeros((0, 2))
+    matches, pa, pb = _explained(obs, a, b, config)
+    if len(pa) < config.min_inliers:
+        none = PairCheck(
+            a=a, b=b, matches=matches, inliers=len(pa), median_px=None, p90_px=None,
+            limit_px=round(limit, 2), angle_deg=angle,
+        )  # fmt: skip
+        return none, np.zeros((0, 2)), np.zeros((0, 2))
+    d = epipolar_distances(obs.camera(a, rig), obs.camera(b, rig), pa, pb) / va.scale
+    check = PairCheck(
+        a=a,
+        b=b,
+        matches=matches,
+        inliers=len(pa),
+        median_px=round(float(np.median(d)), 2),
+        p90_px=round(float(np.percentile(d, 90)), 2),
+        limit_px=round(limit, 2),
+        angle_deg=angle,
+    )
+    return check, pa, pb
+
+
+def _verdicts(rig: Rig, pairs: Sequence[PairCheck]) -> tuple[list[CameraVerdict], bool | None]:
+    """Which cameras are off. Each checked pair fits or not; weighted by their inliers, a
+    camera's pairs mostly fit when it is right. One that turned has its own pairs mostly off
+    while the pairs without it mostly fit: the camera with the largest such contrast is off
+    (when its own pairs fit less than half and the others more than half), its pairs are set
+    aside and the rest judged again, for a second one. A single pair that does not fit says
+    little alone: two cameras facing each other share few features and match wrongly."""
+    checked = [p for p in pairs if p.checked]
+    off: set[int] = set()
+
+    def share(ps: list[PairCheck]) -> float | None:
+        total = sum(p.inliers for p in ps)
+        return None if total == 0 else sum(p.inliers for p in ps if p.fits) / total
+
+    while True:
+        live = [p for p in checked if p.a not in off and p.b not in off]
+        worst, contrast = None, 0.0
+        for c in range(len(rig)):
+            if c in off:
+                continue
+            mine = share([p for p in live if c in (p.a, p.b)])
+            rest = share([p for p in live if c not in (p.a, p.b)])
+            if mine is None or rest is None or not (mine < 0.5 <= rest):
+                continue
+            if rest - mine > contrast:
+                worst, contrast = c, rest - mine
+        if worst is None:
+            break
+        off.add(worst)
+    live = [p for p in checked if p.a not in off and p.b not in off]
+    out = []
+    for c in range(len(rig)):
+        mine_live = [p for p in live if c in (p.a, p.b)]
+        medians = [p.median_px for p in checked if c in (p.a, p.b) and p.median_px is not None]
+        px: float | None
+        if c in off:
+            status = "off"
+            px = float(np.median(medians))
+        elif mine_live and (share(mine_live) or 0.0) >= 0.5:
+            status = "ok"
+            px = min(
+                (p.median_px for p in mine_live if p.fits and p.median_px is not None), default=None
+            )
+        else:
+            status = "unchecked"
+            px = float(np.median(medians)) if medians else None
+        out.append(CameraVerdict(camera=c, name=rig[c].name, status=status, median_px=px))
+    if not checked:
+        return out, None
+    fits = any(p.fits for p in checked) and not off and not _strong_misfits(pairs)
+    return out, fits
+
+
+def _strong_misfits(pairs: Sequence[PairCheck], min_inliers: int = 30) -> list[PairCheck]:
+    """Checked pairs with at least ``min_inliers`` inliers that do not fit: too many matches
+    to be wrong ones (pairs with fewer can be: utrecht4cam's two cameras 105 degrees apart
+    share 15, 115 px off the lines of a calibration that serves)."""
+    return [p for p in pairs if p.checked and not p.fits and p.inliers >= min_inliers]
+
+
+def check_calibration(
+    frames: FrameSet | Sequence[FrameSet], rig: Rig, config: CalibrationCheckConfig | None = None
+) -> CalibrationCheck:
+    """Whether the calibration fits the frames (see the module docstring): one frame set, or
+    several whose matches are pooled per pair of cameras (people who move give new
+    correspondences in each; the static scene's repeat and count once)."""
+    config = config or CalibrationCheckConfig()
+    t0 = time.perf_counter()
+    sets = [frames] if isinstance(frames, FrameSet) else list(frames)
+    if not sets:
+        raise DataError("calibration check: no frames")
+    # FLANN's trees and MAGSAC draw from OpenCV's generator: seeded, one answer per input.
+    cv2.setRNGSeed(0)
+    obs = _observe(sets, rig, config)
+    check = _judged(obs, rig, config, sets[0].time_index, len(sets))
+    check = dataclasses.replace(check, seconds=time.perf_counter() - t0)
+    logger.info("%s", check.message)
+    return check
+
+
+def _judged(
+    obs: _Observed, rig: Rig, config: CalibrationCheckConfig, time_index: int, frame_sets: int
+) -> CalibrationCheck:
+    pairs = [_pair_inliers(obs, a, b, config, rig)[0] for a, b in sorted(obs.matches)]
+    cameras, fits = _verdicts(rig, pairs)
+    return CalibrationCheck(
+        time_index=time_index,
+        pairs=tuple(pairs),
+        cameras=tuple(cameras),
+        fits=fits,
+        frame_sets=frame_sets,
+        observed=obs,
+    )
+
+
+def recheck(
+    check: CalibrationCheck, rig: Rig, config: CalibrationCheckConfig | None = None
+) -> CalibrationCheck:
+    """``check``'s matches judged against another rig (the same cameras, other poses)."""
+    if check.observed is None:
+        raise DataError("recheck: the check kept no matches")
+    return _judged(
+        check.observed, rig, config or CalibrationCheckConfig(), check.time_index, check.frame_sets
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Repair:
+    """What :func:`repair` did."""
+
+    rig: Rig
+    """The rig with the cameras it re-aimed."""
+    applied: tuple[PoseEstimate, ...]
+    """The re-aimed cameras' estimates, in order."""
+    check: CalibrationCheck
+    """The matches judged against ``rig``."""
+    ambiguous: tuple[int, ...] = ()
+    """Cameras of which any one, re-aimed, would make the pairs fit: the pairs cannot tell
+    which turned (nothing was re-aimed then)."""
+
+
+def _fit_share(check: CalibrationCheck) -> float:
+    checked = [p for p in check.pairs if p.checked]
+    total = sum(p.inliers for p in checked)
+    return 0.0 if total == 0 else sum(p.inliers for p in checked if p.fits) / total
+
+
+def repair(
+    check: CalibrationCheck, rig: Rig, config: CalibrationCheckConfig | None = None
+) -> Repair:
+    """Re-aim the cameras that turned, one at a time. Every camera of a pair that does not
+    fit is a candidate: its orientation is found again (:func:`estimate_rotation`, at least 3
+    times closer to the lines) and the matches judged against the rig with it. The candidate
+    that leaves the most inliers fitting is re-aimed, unless another one makes the pairs fit
+    as well (then the pairs cannot tell which camera turned: nothing is re-aimed and both are
+    named); then again, for a second camera."""
+    config = config or CalibrationCheckConfig()
+    applied: list[PoseEstimate] = []
+    for _ in range(len(rig)):
+        if check.fits is not False:
+            break
+        bad = [p for p in check.pairs if p.checked and not p.fits]
+        trials = []
+        for c in sorted({p.a for p in bad} | {p.b for p in bad}):
+            est = estimate_rotation(check, rig, c, config)
+            if est is None or est.after_px > est.before_px / 3:
+                continue
+            moved = with_pose(rig, est)
+            judged = recheck(check, moved, config)
+            trials.append((_fit_share(judged), est, moved, judged))
+        if not trials:
+            break
+        trials.sort(key=lambda x: -x[0])
+        share, est, moved, judged = trials[0]
+        if share <= _fit_share(check):
+            break
+        rivals = [t for t in trials[1:] if t[3].fits and t[0] >= share - 0.05]
+        if judged.fits and rivals:
+            return Repair(
+                rig=rig,
+                applied=tuple(applied),
+                check=check,
+                ambiguous=tuple(sorted([est.camera, *(t[1].camera for t in rivals)])),
+            )
+        rig, check = moved, judged
+        applied.append(est)
+    return Repair(rig=rig, applied=tuple(applied), check=check)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PoseEstimate:
+    """A camera's orientation found from the scene (:func:`estimate_rotation`)."""
+
+    camera: int
+    R: NDArray[np.float64]
+    """(3, 3) its ``cam_from_world`` rotation now."""
+    t: NDArray[np.float64]
+    """(3,) its translation (``-R @ centre``: the calibrated centre is kept)."""
+    pairs: int
+    """Camera pairs whose matches placed it."""
+    matches: int
+    """Their matches."""
+    before_px: float
+    """Median distance of those matches to the epipolar lines with the calibrated pose ..."""
+    after_px: float
+    """... and with this one (pixels of the frames)."""
+    rotation_deg: float
+    """Angle between the calibrated orientation and this one."""
+
+
+def estimate_rotation(
+    check: CalibrationCheck,
+    rig: Rig,
+    camera: int,
+    config: CalibrationCheckConfig | None = None,
+) -> PoseEstimate | None:
+    """The orientation of ``camera`` now, its centre kept (a camera turned on its tripod or
+    mount: the usual knock; one moved to another place needs a new calibration), from the
+    matches ``check`` found: the rotation that brings its matches with the other cameras
+    closest to their epipolar lines (robust least squares over the three angles, then
+    without the matches that still miss: a pair with a camera that is off too keeps few).
+    Two pairs with different baselines fix all three angles; None with fewer, or without
+    the check's matches."""
+    from scipy.optimize import least_squares
+
+    config = config or CalibrationCheckConfig()
+    obs = check.observed
+    if obs is None:
+        return None
+    found = {ab: _pair_inliers(obs, *ab, config, rig) for ab in sorted(obs.matches)}
+    data = []  # (the other camera's view, camera's points, the other's points)
+    for (a, b), (pair, pa, pb) in found.items():
+        if not pair.checked or camera not in (a, b):
+            continue
+        mine, theirs = (pa, pb) if a == camera else (pb, pa)
+        data.append((obs.camera(b if a == camera else a, rig), mine, theirs))
+    if len(data) < 2:
+        return None
+    view = obs.view(camera)
+    cam0 = obs.camera(camera, rig)
+    centre = cam0.center
+
+    def cam_at(w: NDArray[np.float64]) -> Camera:
+        R = np.asarray(cv2.Rodrigues(w)[0], np.float64) @ cam0.R
+        return dataclasses.replace(cam0, R=R, t=-R @ centre)
+
+    def residuals(w: NDArray[np.float64]) -> NDArray[np.float64]:
+        c = cam_at(w)
+        return np.concatenate(
+            [epipolar_distances(c, other, mine, theirs) for other, mine, theirs in data]
+        )
+
+    limit = config.max_error_px * _unit(view)
+    w = np.asarray(least_squares(residuals, np.zeros(3), loss="soft_l1", f_scale=limit / 4).x)
+    # Then the matches that still miss their lines are left out (wrong matches: two cameras
+    # far apart share few features), tighter each round, and a pair left with fewer than 8
+    # matches with them.
+    for tol in (limit, limit / 2, limit / 4):
+        c = cam_at(w)
+        trimmed = []
+        for other, mine, theirs in data:
+            ok = epipolar_distances(c, other, mine, theirs) <= tol
+            if ok.sum() >= 8:
+                trimmed.append((other, mine[ok], theirs[ok]))
+        if not trimmed:
+            break
+        data = trimmed
+        w = np.asarray(least_squares(residuals, w, loss="soft_l1", f_scale=tol / 4).x)
+    c = cam_at(w)
+    cos = np.clip((np.trace(cam0.R.T @ c.R) - 1.0) / 2.0, -1.0, 1.0)
+    return PoseEstimate(
+        camera=camera,
+        R=np.asarray(c.R, np.float64),
+        t=np.asarray(c.t, np.float64),
+        pairs=len(data),
+        matches=sum(len(m) for _, m, _ in data),
+        before_px=float(np.median(residuals(np.zeros(3)))) / view.scale,
+        after_px=float(np.median(residuals(w))) / view.scale,
+        rotation_deg=float(np.degrees(np.arccos(cos))),
+    )
+
+
+def with_pose(rig: Rig, estimate: PoseEstimate) -> Rig:
+    """The rig with ``estimate``'s camera at its new pose."""
+    cams = list(rig)
+    cams[estimate.camera] = dataclasses.replace(
+        cams[estimate.camera], R=estimate.R.copy(), t=estimate.t.copy()
+    )
+    return dataclasses.replace(rig, cameras=tuple(cams))

@@ -1,0 +1,57 @@
+"""``edgerecon calib``: a camera turned after its calibration is named (exit code 3), and
+``--write`` stores it re-aimed in a new rig file that dataset.json names."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from edgerecon.cli import main
+from edgerecon.cli.calib import RECALIBRATED, default_times
+from edgerecon.io.calibration import load_rig, save_rig
+from edgerecon.io.dataset import open_dataset
+from tests.quality.test_calibration import angle_deg, turned
+
+
+def test_default_times_spread_over_the_stream():
+    assert default_times(8) == [1, 4, 6]
+    assert default_times(1) == [0]
+    assert default_times(101) == [10, 50, 90]
+
+
+def test_a_turned_camera_is_named_and_written_re_aimed(tiny_dataset, tmp_path, capsys):
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    calibrated = open_dataset(root).rig
+    save_rig(root / "rig.json", turned(calibrated, 1, 2.0, (1.0, 0.0, 0.0)))
+
+    assert main(["calib", "--dataset", str(root), "--json"]) == 3
+    report = json.loads(capsys.readouterr().out)
+    assert report["fits"] is False
+    assert report["off"] == [1]
+    assert [e["name"] for e in report["estimates"]] == ["cam1"]
+    assert report["estimates"][0]["rotation_deg"] == pytest.approx(2.0, abs=0.3)
+    assert report["after"]["fits"] is True
+    assert report["written"] is None
+    assert {p["a"] for p in report["pairs"]} <= {0, 1, 2, 3}
+
+    assert main(["calib", "--dataset", str(root), "--write"]) == 0
+    out = capsys.readouterr().out
+    assert "cam1 turned by" in out and RECALIBRATED in out
+    assert json.loads((root / "dataset.json").read_text())["rig"] == RECALIBRATED
+    fixed = open_dataset(root).rig
+    assert angle_deg(fixed[1], calibrated[1]) < 0.3
+    assert np.allclose(fixed[1].center, calibrated[1].center)
+    # The rig before is kept as it was.
+    assert angle_deg(load_rig(root / "rig.json")[1], calibrated[1]) == pytest.approx(2.0, abs=1e-6)
+
+    assert main(["calib", "--dataset", str(root), "--times", "2,5"]) == 0
+    assert "fits the frames" in capsys.readouterr().out
+
+
+def test_bad_times_are_refused(tiny_dataset, capsys):
+    assert main(["calib", "--dataset", str(tiny_dataset), "--times", "3,99"]) != 0
+    assert "--times" in capsys.readouterr().err
