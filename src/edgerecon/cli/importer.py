@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.cli.calib import default_times
 from edgerecon.io.crs import crs_name
+from edgerecon.io.dataset import Dataset
 from edgerecon.io.importer import import_dataset, parse_offsets, parse_up
+from edgerecon.quality.calibration import CalibrationCheck, check_calibration
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -86,6 +89,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "and written into LAS exports, for QGIS / PDAL",
     )
     p.add_argument("--force", action="store_true", help="replace an existing dataset.json")
+    p.add_argument(
+        "--no-calib-check",
+        action="store_true",
+        help="do not check the calibration against the frames afterwards (`edgerecon calib`: "
+        "a camera that moved, videos given to the wrong cameras)",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -105,8 +114,9 @@ def run(args: argparse.Namespace) -> int:
         crs=args.crs,
         overwrite=args.force,
     )
+    calib = None if args.no_calib_check else calibration_check(report.dataset)
     if args.json:
-        emit_json(report.to_dict())
+        emit_json({**report.to_dict(), "calibration": None if calib is None else calib.to_dict()})
         return 0
     ds = report.dataset
     rig = ds.rig
@@ -142,5 +152,24 @@ def run(args: argparse.Namespace) -> int:
         console.print(f"[yellow]note:[/] {note}", soft_wrap=True)
     if ds.background is not None:
         console.print("background clip: yes")
+    if calib is not None:
+        if calib.fits is False:
+            console.print(
+                f"[yellow]{calib.message}[/]; `edgerecon calib --dataset {ds.root}` tells more "
+                "(--write re-aims a camera that turned)",
+                soft_wrap=True,
+            )
+        else:
+            console.print(calib.message, soft_wrap=True)
     console.print(f"wrote {ds.root / 'dataset.json'} and {ds.root / 'rig.json'}")
     return 0
+
+
+def calibration_check(ds: Dataset) -> CalibrationCheck | None:
+    """The calibration against 3 frame sets spread over the new dataset (None where there
+    are none to read: a live stream)."""
+    if ds.is_live or ds.num_frames < 1:
+        return None
+    with ds.open_frames(missing="skip_camera") as source:
+        sets = [source.read(t) for t in default_times(ds.num_frames)]
+    return check_calibration(sets, ds.rig)

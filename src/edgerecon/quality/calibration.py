@@ -513,17 +513,19 @@ def _fit_share(check: CalibrationCheck) -> float:
 def repair(
     check: CalibrationCheck, rig: Rig, config: CalibrationCheckConfig | None = None
 ) -> Repair:
-    """Re-aim the cameras that turned, one at a time. Every camera of a pair that does not
-    fit is a candidate: its orientation is found again (:func:`estimate_rotation`, at least 3
-    times closer to the lines) and the matches judged against the rig with it. The candidate
-    that leaves the most inliers fitting is re-aimed, unless another one makes the pairs fit
+    """Re-aim the cameras that turned, one at a time, against the pairs that fit (none fit:
+    nothing is re-aimed). Every camera of a pair that does not fit is a candidate: its
+    orientation is found again (:func:`estimate_rotation`, at least 3 times closer to the
+    lines) and the matches judged against the rig with it; it counts when all its own pairs
+    fit then. The candidate that leaves the most inliers fitting is re-aimed, unless another
+    one makes the pairs fit
     as well (then the pairs cannot tell which camera turned: nothing is re-aimed and both are
     named); then again, for a second camera."""
     config = config or CalibrationCheckConfig()
     applied: list[PoseEstimate] = []
     for _ in range(len(rig)):
-        if check.fits is not False:
-            break
+        if check.fits is not False or not any(p.fits for p in check.pairs):
+            break  # fits, or nothing to re-aim against (a swap, another setup's file)
         bad = [p for p in check.pairs if p.checked and not p.fits]
         trials = []
         for c in sorted({p.a for p in bad} | {p.b for p in bad}):
@@ -532,7 +534,8 @@ def repair(
                 continue
             moved = with_pose(rig, est)
             judged = recheck(check, moved, config)
-            trials.append((_fit_share(judged), est, moved, judged))
+            if all(p.fits for p in judged.pairs if p.checked and c in (p.a, p.b)):
+                trials.append((_fit_share(judged), est, moved, judged))
         if not trials:
             break
         trials.sort(key=lambda x: -x[0])
