@@ -4,6 +4,7 @@ updates on."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -435,3 +436,36 @@ def test_a_scene_stage_that_hangs_leaves_the_background_models_to_the_next_tasks
     # The next tasks did not wait for the hung one's models (each within its own time).
     assert metrics[3].wall_time - metrics[2].wall_time < 12.0
     assert all(m.num_fg_points > 0 for m in metrics[3:])
+
+
+def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
+    tiny_dataset, tmp_path_factory, tmp_path, caplog, monkeypatch
+):
+    from edgerecon.io.calibration import save_rig
+    from edgerecon.runtime.engine import learn_scene_model
+    from tests.quality.test_calibration import turned
+
+    src = tmp_path_factory.mktemp("turned") / "scene"
+    shutil.copytree(tiny_dataset, src)
+    save_rig(src / "rig.json", turned(open_dataset(src).rig, 1, 2.0, (1.0, 0.0, 0.0)))
+    ds = open_dataset(src)
+    caplog.set_level(logging.WARNING)
+    config = runtime_config(calib_check_s=1e-3)  # at every rebuild
+    # Tasks of a second or so, so that rebuilds (and checks) run beside them.
+    dense = edgerecon.pipeline.reconstruct_foreground
+
+    def slow(*args, **kwargs):
+        time.sleep(1.0)
+        return dense(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    summary, metrics = run_frames((ds, learn_scene_model(ds)), tmp_path, 0, 8, config=config)
+    assert summary.failed == 0 and len(metrics) == 8
+    assert summary.calibration is not None
+    assert summary.calibration["fits"] is False and summary.calibration["off"] == ["cam1"]
+    said = [
+        r.getMessage() for r in caplog.records if "moved since it was calibrated" in r.getMessage()
+    ]
+    assert len(said) <= 1  # said once (when two checks in a row agree), never repeated
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["calibration"]["off"] == ["cam1"]

@@ -655,3 +655,15 @@ def with_pose(rig: Rig, estimate: PoseEstimate) -> Rig:
         cams[estimate.camera], R=estimate.R.copy(), t=estimate.t.copy()
     )
     return dataclasses.replace(rig, cameras=tuple(cams))
+
+
+def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict[str, Any]:
+    """``check_calibration``'s answer as a small dict (what a run's back-end sends on):
+    ``time``, ``fits``, ``off`` (camera names), ``message``."""
+    check = check_calibration(frames, rig)
+    return {
+        "time": check.time_index,
+        "fits": check.fits,
+        "off": check.off_names,
+        "message": check.message,
+    }

@@ -42,6 +42,7 @@ from edgerecon.pipeline import (
     reconstruct_task,
     task_sparse,
 )
+from edgerecon.quality.calibration import calibration_verdict
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.interrupt import AbandonedThreads, Runner, ThreadAbandoned
 from edgerecon.runtime.messages import (
@@ -122,7 +123,13 @@ class BackEnd:
             "background_seconds": 0.0,
             "snapshots": 0,
             "snapshots_skipped": 0,
+            "calibration": None,
         }
+        # The calibration checks (``RuntimeConfig.calib_check_s``): when the next is due, the
+        # last verdict, and the one a warning or a note was last given for.
+        self._calib_due = 0.0
+        self._calib_last: tuple[bool | None, tuple[str, ...]] | None = None
+        self._calib_said: tuple[bool | None, tuple[str, ...]] | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> BackEnd:
@@ -337,8 +344,10 @@ class BackEnd:
         return frames, fg
 
     def _rebuild(self, frames: FrameSet, fg: ForegroundResult | None) -> None:
-        """One rebuild: the snapshot of the still foreground first (``scene.still``; the
-        tasks use it at once), then the background."""
+        """One rebuild: the calibration check when due (``calib_check_s``), the snapshot of
+        the still foreground (``scene.still``; the tasks use it at once), then the
+        background."""
+        self._check_calibration(frames)
         t0 = time.perf_counter()
         if self.config.still is not None and fg is not None and self._snapshot_due():
             try:
@@ -381,6 +390,36 @@ class BackEnd:
         self._send(
             BackgroundUpdate(version=version, cloud=cloud, seconds=seconds), f"background {version}"
         )
+
+    def _check_calibration(self, frames: FrameSet) -> None:
+        """The calibration against the rebuild's frames, when due (``calib_check_s``). A
+        verdict is said when two checks in a row give it (one frame set's matches vary):
+        a warning when a camera is named or the frames do not fit, a note when it fits
+        again after one."""
+        every = self.config.calib_check_s
+        if every <= 0 or time.monotonic() < self._calib_due:
+            return
+        self._calib_due = time.monotonic() + every
+        try:
+            verdict = self._bounded(calibration_verdict, self.rig, frames)
+        except RebuildTimeout:
+            raise
+        except Exception as exc:  # a check that fails is not the run's problem
+            logger.warning("back-end: the calibration check failed: %s", describe_exception(exc))
+            return
+        self.stats["calibration"] = verdict
+        key = (verdict["fits"], tuple(verdict["off"]))
+        repeated, self._calib_last = key == self._calib_last, key
+        if not repeated or key == self._calib_said or verdict["fits"] is None:
+            return
+        if verdict["fits"] is False:
+            logger.warning(
+                "%s; `edgerecon calib --dataset DIR --write` re-aims a camera that turned",
+                verdict["message"],
+            )
+        elif self._calib_said is not None:
+            logger.warning("back-end: %s", verdict["message"])
+        self._calib_said = key
 
     def _snapshot_due(self) -> bool:
         """Whether this rebuild makes a snapshot of the still foreground: every rebuild while

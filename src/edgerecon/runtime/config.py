@@ -98,6 +98,12 @@ class RuntimeConfig:
     """Rebuild the background in the back-end's idle time and push it to the front-end."""
     background_min_interval_s: float = 0.0
     """Least time between the starts of two background rebuilds."""
+    calib_check_s: float = 60.0
+    """The back-end checks the calibration against the frames of a background rebuild
+    (``quality.calibration``, as ``edgerecon calib``: a camera knocked during the run), after
+    the first rebuild and then at most every this many seconds, in the rebuild's process;
+    two checks in a row that name a camera (or find the frames do not fit) give a warning,
+    and the summary keeps the last verdict. 0 = never."""
     background_scale: float = 1.0
     """Image scale of background rebuilds (the back-end has time: golden by default)."""
     background_process: bool = True
@@ -174,6 +180,8 @@ class RuntimeConfig:
             v = getattr(self, name)
             if v is not None and not v > 0:
                 raise ValueError(f"RuntimeConfig.{name} must be > 0 or None, got {v!r}")
+        if not (self.calib_check_s >= 0 and math.isfinite(self.calib_check_s)):
+            raise ValueError(f"RuntimeConfig.calib_check_s must be >= 0, got {self.calib_check_s}")
         if not 0 < self.background_scale <= 1:
             raise ValueError(
                 f"RuntimeConfig.background_scale must be in (0, 1], got {self.background_scale}"

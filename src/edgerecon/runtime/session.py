@@ -243,6 +243,10 @@ class RunSummary:
     wall_s: float = 0.0
     interrupted: bool = False
     """The run was stopped (Ctrl-C, SIGTERM) before its last task: ``--resume`` goes on."""
+    calibration: dict[str, Any] | None = None
+    """The back-end's last check of the calibration against the frames
+    (``RuntimeConfig.calib_check_s``: ``time``, ``fits``, ``off``, ``message``); None: none
+    made (no background rebuild yet, or the check off)."""
     stream: dict[str, Any] = field(default_factory=dict)
     """Live streams: the source's counts (``StreamFrameSource.stats``) and the tasks' sync
     spread (mean / max seconds)."""
@@ -502,6 +506,8 @@ class Session:
             summary.bg_version = list(status.get("bg_version", [0, 0]))
             summary.backend_restarts = int(status.get("backend_restarts", 0))
             summary.abandoned_threads = [str(w) for w in status.get("abandoned_threads", [])]
+            backend = status.get("backend") or {}
+            summary.calibration = backend.get("calibration")
             if summary.abandoned_threads:
                 logger.warning(
                     "%d abandoned thread(s) still running at the end: %s",
