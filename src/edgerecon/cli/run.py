@@ -297,14 +297,9 @@ def print_summary(title: str, s: RunSummary) -> None:
     ]
     if s.calibration is not None:
         cal = s.calibration
-        verdict = (
-            "not checked (too few features in common)"
-            if cal.get("fits") is None
-            else "fits"
-            if cal["fits"]
-            else "off: " + (", ".join(cal.get("off") or []) or "the frames do not fit it")
+        rows.append(
+            (f"calibration against the frames (time {cal.get('time')})", str(cal.get("short")))
         )
-        rows.append((f"calibration against the frames (time {cal.get('time')})", verdict))
     mem = s.memory_mb
     if mem.get("last") is not None:
         rows.append(

@@ -149,6 +149,9 @@ class CalibrationCheck:
     fits: bool | None
     """True: some checked pair fits and no camera is off; False: a camera is off, or pairs
     were checked and none fits; None: no pair could be checked."""
+    times: tuple[int, ...] = ()
+    """The time indices of the frame sets whose matches were pooled (``time_index``: the
+    newest)."""
     frame_sets: int = 1
     """How many frame sets' matches were pooled."""
     seconds: float = 0.0
@@ -165,8 +168,8 @@ class CalibrationCheck:
         """One line for a person."""
         checked = [p for p in self.pairs if p.checked]
         fit = [p for p in checked if p.fits]
-        where = f"time {self.time_index}" + (
-            f", {self.frame_sets} frame sets" if self.frame_sets > 1 else ""
+        where = ("times " if len(self.times) > 1 else "time ") + (
+            ", ".join(str(t) for t in self.times) or str(self.time_index)
         )
         if self.fits is None:
             return f"calibration not checked: no two cameras share enough features ({where})"
@@ -198,11 +201,34 @@ class CalibrationCheck:
                 "at best): another setup's calibration, or the videos given to the wrong "
                 f"cameras? ({where})"
             )
+        unchecked = [v.name for v in self.cameras if v.status == "unchecked"]
         return (
             f"calibration fits the frames: {len(fit)} of {len(self.pairs)} camera pairs agree "
             f"with it ({max(p.median_px or 0.0 for p in fit):.1f} px from its epipolar lines "
-            f"at most), every camera in one of them ({where})"
+            "at most), "
+            + (
+                f"{', '.join(unchecked)} not checked (too few features shared with the others)"
+                if unchecked
+                else "every camera in one of them"
+            )
+            + f" ({where})"
         )
+
+    @property
+    def short(self) -> str:
+        """A few words: ``fits``, ``off: CAM``, ``pair A-B off, which camera not told``,
+        ``does not fit at all``, ``not checked``."""
+        if self.fits is None:
+            return "not checked"
+        if self.off:
+            return "off: " + ", ".join(self.off_names)
+        if self.fits:
+            return "fits"
+        strong = _strong_misfits(self.pairs)
+        if strong and any(p.fits for p in self.pairs):
+            names = ", ".join(f"{self.cameras[p.a].name}-{self.cameras[p.b].name}" for p in strong)
+            return f"pair {names} off, which camera not told"
+        return "does not fit at all"
 
     @property
     def off_names(self) -> list[str]:
@@ -211,6 +237,7 @@ class CalibrationCheck:
     def to_dict(self) -> dict[str, Any]:
         return {
             "time": self.time_index,
+            "times": list(self.times),
             "frame_sets": self.frame_sets,
             "fits": self.fits,
             "off": self.off,
@@ -457,23 +484,24 @@ def check_calibration(
     # FLANN's trees and MAGSAC draw from OpenCV's generator: seeded, one answer per input.
     cv2.setRNGSeed(0)
     obs = _observe(sets, rig, config)
-    check = _judged(obs, rig, config, sets[0].time_index, len(sets))
+    check = _judged(obs, rig, config, tuple(fs.time_index for fs in sets))
     check = dataclasses.replace(check, seconds=time.perf_counter() - t0)
     logger.info("%s", check.message)
     return check
 
 
 def _judged(
-    obs: _Observed, rig: Rig, config: CalibrationCheckConfig, time_index: int, frame_sets: int
+    obs: _Observed, rig: Rig, config: CalibrationCheckConfig, times: tuple[int, ...]
 ) -> CalibrationCheck:
     pairs = [_pair_inliers(obs, a, b, config, rig)[0] for a, b in sorted(obs.matches)]
     cameras, fits = _verdicts(rig, pairs)
     return CalibrationCheck(
-        time_index=time_index,
+        time_index=times[-1],
+        times=times,
         pairs=tuple(pairs),
         cameras=tuple(cameras),
         fits=fits,
-        frame_sets=frame_sets,
+        frame_sets=len(times),
         observed=obs,
     )
 
@@ -484,9 +512,7 @@ def recheck(
     """``check``'s matches judged against another rig (the same cameras, other poses)."""
     if check.observed is None:
         raise DataError("recheck: the check kept no matches")
-    return _judged(
-        check.observed, rig, config or CalibrationCheckConfig(), check.time_index, check.frame_sets
-    )
+    return _judged(check.observed, rig, config or CalibrationCheckConfig(), check.times)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -663,7 +689,10 @@ def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict
     check = check_calibration(frames, rig)
     return {
         "time": check.time_index,
+        "times": list(check.times),
         "fits": check.fits,
         "off": check.off_names,
+        "unchecked": [v.name for v in check.cameras if v.status == "unchecked"],
+        "short": check.short,
         "message": check.message,
     }

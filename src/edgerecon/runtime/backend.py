@@ -25,7 +25,7 @@ import multiprocessing
 import os
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -128,6 +128,7 @@ class BackEnd:
         # The calibration checks (``RuntimeConfig.calib_check_s``): when the next is due, the
         # last verdict, and the one a warning or a note was last given for.
         self._calib_due = 0.0
+        self._calib_sets: deque[FrameSet] = deque(maxlen=3)
         self._calib_last: tuple[bool | None, tuple[str, ...]] | None = None
         self._calib_said: tuple[bool | None, tuple[str, ...]] | None = None
 
@@ -392,16 +393,21 @@ class BackEnd:
         )
 
     def _check_calibration(self, frames: FrameSet) -> None:
-        """The calibration against the rebuild's frames, when due (``calib_check_s``). A
-        verdict is said when two checks in a row give it (one frame set's matches vary):
-        a warning when a camera is named or the frames do not fit, a note when it fits
-        again after one."""
+        """The calibration against the frames of this rebuild and the two before (pooled),
+        when due (``calib_check_s``). A
+        verdict is said when two checks in a row give it (one frame set's matches vary; a
+        new verdict is checked again at the next rebuild): a warning when a camera is named
+        or the frames do not fit, a note when it fits again after one."""
         every = self.config.calib_check_s
-        if every <= 0 or time.monotonic() < self._calib_due:
+        if every <= 0:
+            return
+        self._calib_sets.append(frames)
+        if time.monotonic() < self._calib_due:
             return
         self._calib_due = time.monotonic() + every
         try:
-            verdict = self._bounded(calibration_verdict, self.rig, frames)
+            # The last three rebuilds' frame sets, pooled (as ``edgerecon calib``).
+            verdict = self._bounded(calibration_verdict, self.rig, list(self._calib_sets))
         except RebuildTimeout:
             raise
         except Exception as exc:  # a check that fails is not the run's problem
@@ -410,6 +416,8 @@ class BackEnd:
         self.stats["calibration"] = verdict
         key = (verdict["fits"], tuple(verdict["off"]))
         repeated, self._calib_last = key == self._calib_last, key
+        if not repeated and key != self._calib_said and verdict["fits"] is not None:
+            self._calib_due = 0.0  # a new verdict: confirmed at the next rebuild
         if not repeated or key == self._calib_said or verdict["fits"] is None:
             return
         if verdict["fits"] is False:
