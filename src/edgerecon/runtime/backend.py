@@ -395,9 +395,10 @@ class BackEnd:
     def _check_calibration(self, frames: FrameSet) -> None:
         """The calibration against the frames of this rebuild and the two before (pooled),
         when due (``calib_check_s``). A
-        verdict is said when two checks in a row give it (one frame set's matches vary; a
-        new verdict is checked again at the next rebuild): a warning when a camera is named
-        or the frames do not fit, a note when it fits again after one."""
+        verdict is said when the check pooled two or more frame sets, or when two checks in a
+        row give it (the first, of one frame set, is checked again at the next rebuild): a
+        warning when a camera is named or the frames do not fit, a note when it fits again
+        after one."""
         every = self.config.calib_check_s
         if every <= 0:
             return
@@ -415,10 +416,13 @@ class BackEnd:
             return
         self.stats["calibration"] = verdict
         key = (verdict["fits"], tuple(verdict["off"]))
-        repeated, self._calib_last = key == self._calib_last, key
-        if not repeated and key != self._calib_said and verdict["fits"] is not None:
-            self._calib_due = 0.0  # a new verdict: confirmed at the next rebuild
-        if not repeated or key == self._calib_said or verdict["fits"] is None:
+        # One frame set's matches vary: its verdict counts when the next check agrees (it
+        # comes at the next rebuild); pooled ones count at once.
+        confirmed = key == self._calib_last or len(verdict["times"]) > 1
+        self._calib_last = key
+        if not confirmed and key != self._calib_said and verdict["fits"] is not None:
+            self._calib_due = 0.0
+        if not confirmed or key == self._calib_said or verdict["fits"] is None:
             return
         if verdict["fits"] is False:
             logger.warning(

@@ -101,9 +101,10 @@ class RuntimeConfig:
     calib_check_s: float = 60.0
     """The back-end checks the calibration against the frames of a background rebuild
     (``quality.calibration``, as ``edgerecon calib``: a camera knocked during the run), after
-    the first rebuild and then at most every this many seconds, in the rebuild's process;
-    two checks in a row that name a camera (or find the frames do not fit) give a warning,
-    and the summary keeps the last verdict. 0 = never."""
+    the first rebuild and then at most every this many seconds, in the rebuild's process,
+    the last three rebuilds' frame sets pooled; a verdict that names a camera (or finds the
+    frames do not fit) gives one warning (one frame set's: once the next check agrees), and
+    the summary keeps the last verdict. 0 = never."""
     background_scale: float = 1.0
     """Image scale of background rebuilds (the back-end has time: golden by default)."""
     background_process: bool = True
