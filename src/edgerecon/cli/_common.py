@@ -6,11 +6,14 @@ import argparse
 import json
 import sys
 from collections.abc import Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
+
+if TYPE_CHECKING:
+    from edgerecon.io.dataset import Dataset
 
 console = Console(highlight=False)
 error_console = Console(stderr=True, highlight=False)
@@ -68,3 +71,20 @@ def _fmt(v: Any) -> str:
         x = float(v)
         return f"{x:.4g}" if abs(x) < 1e4 else f"{x:,.0f}"
     return str(v)
+
+
+def dataset_to_check(path: str, *, write: bool, what: str) -> Dataset:
+    """The dataset a check command reads (``sync``, ``calib``): recorded frames, and with
+    ``--write`` a ``dataset.json`` to write ``what`` into (``DataError`` otherwise)."""
+    from edgerecon.io.dataset import DESCRIPTOR, open_dataset
+    from edgerecon.types import DataError
+
+    ds = open_dataset(path)
+    if ds.is_live:
+        raise DataError("a live dataset cannot be checked (its frames are not kept)")
+    if write and ds.layout != "descriptor":
+        raise DataError(
+            f"{ds.root} has no {DESCRIPTOR} to {what} (a layout detected from its files): make "
+            "one with edgerecon import"
+        )
+    return ds

@@ -11,9 +11,15 @@ from typing import Any
 
 import numpy as np
 
-from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.cli._common import (
+    add_json_flag,
+    console,
+    dataset_to_check,
+    emit_json,
+    print_table,
+)
 from edgerecon.io.calibration import save_rig
-from edgerecon.io.dataset import DESCRIPTOR, open_dataset
+from edgerecon.io.dataset import DESCRIPTOR
 from edgerecon.io.ply import atomic_write_text
 from edgerecon.progress import track
 from edgerecon.quality.calibration import (
@@ -89,14 +95,7 @@ def _times(text: str | None, num_frames: int) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    ds = open_dataset(args.dataset)
-    if ds.is_live:
-        raise DataError("a live dataset cannot be checked (its frames are not kept)")
-    if args.write and ds.layout != "descriptor":
-        raise DataError(
-            f"{ds.root} has no {DESCRIPTOR} to name a new rig in (a layout detected from its "
-            "files): make one with edgerecon import"
-        )
+    ds = dataset_to_check(args.dataset, write=args.write, what="name a new rig in")
     config = CalibrationCheckConfig(max_error_px=args.max_error)
     times = _times(args.times, ds.num_frames)
     with ds.open_frames(missing="skip_camera") as source:

@@ -11,11 +11,16 @@ from typing import Any
 
 import numpy as np
 
-from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.io.dataset import DESCRIPTOR, open_dataset
+from edgerecon.cli._common import (
+    add_json_flag,
+    console,
+    dataset_to_check,
+    emit_json,
+    print_table,
+)
+from edgerecon.io.dataset import DESCRIPTOR
 from edgerecon.io.ply import atomic_write_text
 from edgerecon.io.sync import SyncConfig, SyncResult, estimate_offsets
-from edgerecon.types import DataError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -75,14 +80,7 @@ def compare(
 
 
 def run(args: argparse.Namespace) -> int:
-    ds = open_dataset(args.dataset)
-    if ds.is_live:
-        raise DataError("a live dataset cannot be checked (its frames are not kept)")
-    if args.write and ds.layout != "descriptor":
-        raise DataError(
-            f"{ds.root} has no {DESCRIPTOR} to write offsets into (a layout detected from its "
-            "files): make one with edgerecon import"
-        )
+    ds = dataset_to_check(args.dataset, write=args.write, what="write offsets into")
     config = SyncConfig(window_s=args.window, max_offset_s=args.max_offset)
     raw = dataclasses.replace(ds.frames, offsets=(), rectify=())
     with raw.open(missing="skip_camera") as source:
