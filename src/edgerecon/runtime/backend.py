@@ -66,6 +66,14 @@ PushFn = Callable[[BackgroundUpdate | StillSnapshot], object]
 #: Replies kept for late readers (a front-end that timed out and asks again).
 _KEEP_REPLIES = 8
 
+#: The calibration check's frame sets held at most (pixels over all cameras: 3 sets of 4
+#: cameras at 1920x1080, ~75 MB; one set of a larger rig).
+_CALIB_POOL_PIXELS = 25_000_000
+
+
+def _pixels(sets: deque[FrameSet]) -> int:
+    return sum(im.shape[0] * im.shape[1] for fs in sets for im in fs.images if im is not None)
+
 
 class BackendFault(RuntimeError):
     """Raised inside the back-end by fault injection (tests and drills)."""
@@ -403,6 +411,8 @@ class BackEnd:
         if every <= 0:
             return
         self._calib_sets.append(frames)
+        while len(self._calib_sets) > 1 and _pixels(self._calib_sets) > _CALIB_POOL_PIXELS:
+            self._calib_sets.popleft()  # a rig of many large cameras: fewer sets held
         if time.monotonic() < self._calib_due:
             return
         self._calib_due = time.monotonic() + every
