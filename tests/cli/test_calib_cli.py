@@ -55,3 +55,13 @@ def test_a_turned_camera_is_named_and_written_re_aimed(tiny_dataset, tmp_path, c
 def test_bad_times_are_refused(tiny_dataset, capsys):
     assert main(["calib", "--dataset", str(tiny_dataset), "--times", "3,99"]) != 0
     assert "--times" in capsys.readouterr().err
+
+
+def test_info_check_says_whether_the_calibration_fits(tiny_dataset, tmp_path, capsys):
+    assert main(["info", "--dataset", str(tiny_dataset), "--check", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["check"]["calibration"]["fits"] is True
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    save_rig(root / "rig.json", turned(open_dataset(root).rig, 3, 2.0, (1.0, 0.0, 0.0)))
+    assert main(["info", "--dataset", str(root), "--check"]) == 3
+    assert "cam3 moved since it was calibrated" in capsys.readouterr().out

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from typing import Any
 
 import numpy as np
@@ -19,7 +20,7 @@ from edgerecon.cli._common import (
     print_table,
 )
 from edgerecon.io.calibration import save_rig
-from edgerecon.io.dataset import DESCRIPTOR
+from edgerecon.io.dataset import DESCRIPTOR, Dataset
 from edgerecon.io.ply import atomic_write_text
 from edgerecon.progress import track
 from edgerecon.quality.calibration import (
@@ -29,7 +30,9 @@ from edgerecon.quality.calibration import (
     check_calibration,
     repair,
 )
-from edgerecon.types import DataError
+from edgerecon.types import DataError, EdgereconError
+
+logger = logging.getLogger(__name__)
 
 #: The rig file ``--write`` makes next to ``dataset.json`` (the one before is kept).
 RECALIBRATED = "rig.recalibrated.json"
@@ -222,3 +225,18 @@ def _print(
             "calibrate it again",
             soft_wrap=True,
         )
+
+
+def calibration_check(ds: Dataset) -> CalibrationCheck | None:
+    """The calibration against 3 frame sets spread over a dataset (``import``'s last step,
+    ``info --check``; None where there are none to read: a live stream)."""
+    if ds.is_live or ds.num_frames < 1:
+        return None
+    sets = []
+    with ds.open_frames(missing="skip_camera") as source:
+        for t in default_times(ds.num_frames):
+            try:
+                sets.append(source.read(t))
+            except EdgereconError as exc:  # a frame that does not decode: the others serve
+                logger.debug("calibration check: time %d left out: %s", t, exc)
+    return check_calibration(sets, ds.rig) if sets else None

@@ -5,11 +5,9 @@ from __future__ import annotations
 import argparse
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli.calib import default_times
+from edgerecon.cli.calib import calibration_check
 from edgerecon.io.crs import crs_name
-from edgerecon.io.dataset import Dataset
 from edgerecon.io.importer import import_dataset, parse_offsets, parse_up
-from edgerecon.quality.calibration import CalibrationCheck, check_calibration
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -163,13 +161,3 @@ def run(args: argparse.Namespace) -> int:
             console.print(calib.message, soft_wrap=True)
     console.print(f"wrote {ds.root / 'dataset.json'} and {ds.root / 'rig.json'}")
     return 0
-
-
-def calibration_check(ds: Dataset) -> CalibrationCheck | None:
-    """The calibration against 3 frame sets spread over the new dataset (None where there
-    are none to read: a live stream)."""
-    if ds.is_live or ds.num_frames < 1:
-        return None
-    with ds.open_frames(missing="skip_camera") as source:
-        sets = [source.read(t) for t in default_times(ds.num_frames)]
-    return check_calibration(sets, ds.rig)

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
+from edgerecon.cli.calib import calibration_check
 from edgerecon.config import MIN_CAMERAS
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.crs import crs_name
@@ -40,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="decode every frame of every camera and report the unusable ones (missing, "
         "zero-byte, truncated, does not decode, wrong size, black, saturated, textureless); "
         "exit code 3 when there are any; also the stretches where a camera sent the same "
-        "frame while the others' changed (frozen)",
+        "frame while the others' changed (frozen), and whether the calibration fits the frames "
+        "(edgerecon calib; exit code 3 when it does not)",
     )
     add_json_flag(p)
     p.set_defaults(func=run)
@@ -205,9 +207,17 @@ def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[st
 def run(args: argparse.Namespace) -> int:
     ds = open_dataset(args.dataset)
     info = describe(ds)
+    calib = None
     if args.check:
         info["check"] = check_frames(ds)
-    code = 3 if args.check and info["check"]["num_unusable"] else 0
+        calib = calibration_check(ds)
+        info["check"]["calibration"] = None if calib is None else calib.to_dict()
+    code = (
+        3
+        if args.check
+        and (info["check"]["num_unusable"] or (calib is not None and calib.fits is False))
+        else 0
+    )
     if args.json:
         emit_json(info)
         return code
@@ -299,6 +309,11 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.check:
         _print_check(info["check"])
+        if calib is not None:
+            console.print(
+                calib.message + ("; `edgerecon calib` tells more" if calib.fits is False else ""),
+                soft_wrap=True,
+            )
     return code
 
 
