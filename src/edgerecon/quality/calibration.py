@@ -12,12 +12,17 @@ nothing. This check finds it from the frames alone, before any of that:
    says;
 3. their distance to the epipolar lines the calibration predicts (pixels of the frames): a
    pair that fits has a median of about a pixel, a camera that turned by a degree tens;
-4. a camera is *off* when every checked pair it is in is off while some pair fits; when no
-   checked pair fits, the calibration as a whole does not fit the frames.
+4. pairs of cameras more than ``max_angle_deg`` apart are not judged (they face each other
+   and share only wrong matches); weighted by their inliers, a camera is *off* when its own
+   pairs mostly miss while the pairs without it mostly fit (then again without its pairs,
+   for a second one); a pair with many inliers that misses while no camera is named means
+   a camera turned that the pairs cannot name; when no pair fits, the calibration as a whole
+   does not fit the frames (videos swapped, another setup's file).
 
 For a camera that is off, :func:`estimate_rotation` finds how it is turned now (its centre
-kept): the rotation that brings its matches with the cameras that fit back onto their
-epipolar lines (``edgerecon calib --write`` stores it).
+kept): the rotation that brings its matches with the other cameras back onto their epipolar
+lines; :func:`repair` re-aims the cameras one at a time, and only where that is the one
+turn that makes the pairs fit (``edgerecon calib --write`` stores it).
 
 Measured on the datasets here: see docs/BENCHMARKS.md ("A camera that moved after its
 calibration").
