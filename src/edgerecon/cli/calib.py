@@ -239,4 +239,10 @@ def calibration_check(ds: Dataset) -> CalibrationCheck | None:
                 sets.append(source.read(t))
             except EdgereconError as exc:  # a frame that does not decode: the others serve
                 logger.debug("calibration check: time %d left out: %s", t, exc)
-    return check_calibration(sets, ds.rig) if sets else None
+    if not sets:
+        return None
+    try:
+        return check_calibration(sets, ds.rig)
+    except EdgereconError as exc:  # the check is a check: what called it goes on
+        logger.warning("the calibration could not be checked: %s", exc)
+        return None
