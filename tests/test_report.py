@@ -95,6 +95,17 @@ def test_summary_names_the_distance_of_the_ground_truth_fscore(tmp_path):
     (run / "summary.json").write_text(json.dumps(summary))
     rows = dict(summary_rows(load_runs([run])[0]))
     assert rows["avg. F-score of FG (vs ground truth, d = 0.0173 m)"] == "0.500"
+    assert not any(k.startswith("calibration") for k in rows)  # no check made
+
+
+def test_summary_gives_the_calibration_verdict(tmp_path):
+    import json
+
+    run = write_run(tmp_path / "run", num_tasks=2)
+    verdict = {"time": 65, "fits": False, "off": ["cam_2"], "short": "off: cam_2"}
+    (run / "summary.json").write_text(json.dumps({"tasks": 2, "calibration": verdict}))
+    rows = dict(summary_rows(load_runs([run])[0]))
+    assert rows["calibration against the frames (time 65)"] == "off: cam_2"
 
 
 def test_the_stage_figure_is_the_critical_path(tmp_path):

@@ -390,6 +390,11 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ("frames dropped", str(s.get("frames_dropped", "-"))),
         ("wall time (s)", fmt(s.get("wall_s"), ".1f")),
         *memory,
+        *(
+            [(f"calibration against the frames (time {cal.get('time')})", str(cal.get("short")))]
+            if isinstance(cal := s.get("calibration"), dict)
+            else []
+        ),
     ]
 
 
