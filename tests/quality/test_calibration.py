@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from edgerecon.geometry import Camera, Rig
+from edgerecon.geometry.camera import rotation_angle_deg
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.calibration import (
     CalibrationCheckConfig,
@@ -33,7 +34,7 @@ def turned(rig: Rig, camera: int, degrees: float, axis: tuple[float, float, floa
 
 
 def angle_deg(a: Camera, b: Camera) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(a.R.T @ b.R) - 1) / 2, -1, 1))))
+    return rotation_angle_deg(a.R, b.R)
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ Conventions (used everywhere in edgerecon):
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Sequence
@@ -622,6 +623,12 @@ def fundamental_matrix(cam_a: Camera, cam_b: Camera) -> NDArray[np.float64]:
     E = tx @ R
     F = np.linalg.inv(cam_b.K).T @ E @ np.linalg.inv(cam_a.K)
     return F / np.linalg.norm(F)
+
+
+def rotation_angle_deg(Ra: NDArray[np.float64], Rb: NDArray[np.float64]) -> float:
+    """The angle (degrees) of the rotation that takes ``Rb`` to ``Ra``."""
+    c = (float(np.trace(Ra @ Rb.T)) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
 
 def triangulation_angle_deg(

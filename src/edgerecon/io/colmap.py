@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry.camera import Camera, Rig
+from edgerecon.geometry.camera import Camera, Rig, rotation_angle_deg
 from edgerecon.geometry.lens import CalibratedRig, FisheyeLens, calibrated_rig, lens_camera
 from edgerecon.io._errors import in_file
 from edgerecon.io.frames import IMAGE_EXTENSIONS, natural_key
@@ -821,11 +821,6 @@ def _groups(keys: Sequence[Any]) -> list[list[int]]:
     return list(out.values())
 
 
-def _angle_deg(Ra: NDArray[np.float64], Rb: NDArray[np.float64]) -> float:
-    c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, float(c)))))
-
-
 def _scale(centers: Iterable[NDArray[np.float64]]) -> float:
     c = np.asarray(list(centers))
     if len(c) < 2:
@@ -850,7 +845,7 @@ def _pose_groups(
             ref = g[0]
             if (
                 np.linalg.norm(centers[k] - centers[ref]) <= tol
-                and _angle_deg(rotations[k], rotations[ref]) <= max_spread_deg
+                and rotation_angle_deg(rotations[k], rotations[ref]) <= max_spread_deg
             ):
                 g.append(k)
                 break
@@ -867,7 +862,7 @@ def _spreads(
         C = centers[g].mean(axis=0)
         R = _mean_rotation([rotations[k] for k in g])
         d = float(np.linalg.norm(centers[g] - C, axis=1).max())
-        a = max(_angle_deg(rotations[k], R) for k in g)
+        a = max(rotation_angle_deg(rotations[k], R) for k in g)
         out.append((d, a))
     return out
 

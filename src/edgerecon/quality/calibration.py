@@ -42,16 +42,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry.camera import Camera, Rig, fundamental_matrix
+from edgerecon.geometry.camera import Camera, Rig, fundamental_matrix, rotation_angle_deg
 from edgerecon.sparse.config import SparseConfig
 from edgerecon.sparse.features import Features, extract_all
 from edgerecon.types import DataError, FrameSet
 from edgerecon.views import View, prepare_views
 
 logger = logging.getLogger(__name__)
-
-#: Verdicts of a camera (``CameraVerdict.status``).
-STATUSES = ("ok", "off", "unchecked")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -425,18 +422,14 @@ def _verdicts(rig: Rig, pairs: Sequence[PairCheck]) -> tuple[list[CameraVerdict]
     checked = [p for p in pairs if p.checked]
     off: set[int] = set()
 
-    def share(ps: list[PairCheck]) -> float | None:
-        total = sum(p.inliers for p in ps)
-        return None if total == 0 else sum(p.inliers for p in ps if p.fits) / total
-
     while True:
         live = [p for p in checked if p.a not in off and p.b not in off]
         worst, contrast = None, 0.0
         for c in range(len(rig)):
             if c in off:
                 continue
-            mine = share([p for p in live if c in (p.a, p.b)])
-            rest = share([p for p in live if c not in (p.a, p.b)])
+            mine = _fit_share([p for p in live if c in (p.a, p.b)])
+            rest = _fit_share([p for p in live if c not in (p.a, p.b)])
             if mine is None or rest is None or not (mine < 0.5 <= rest):
                 continue
             if rest - mine > contrast:
@@ -453,7 +446,7 @@ def _verdicts(rig: Rig, pairs: Sequence[PairCheck]) -> tuple[list[CameraVerdict]
         if c in off:
             status = "off"
             px = float(np.median(medians))
-        elif mine_live and (share(mine_live) or 0.0) >= 0.5:
+        elif mine_live and (_fit_share(mine_live) or 0.0) >= 0.5:
             status = "ok"
             px = min(
                 (p.median_px for p in mine_live if p.fits and p.median_px is not None), default=None
@@ -466,6 +459,12 @@ def _verdicts(rig: Rig, pairs: Sequence[PairCheck]) -> tuple[list[CameraVerdict]
         return out, None
     fits = any(p.fits for p in checked) and not off and not _strong_misfits(pairs)
     return out, fits
+
+
+def _fit_share(pairs: Sequence[PairCheck]) -> float | None:
+    """The share of the checked pairs' inliers in pairs that fit (None: no inliers)."""
+    total = sum(p.inliers for p in pairs if p.checked)
+    return None if total == 0 else sum(p.inliers for p in pairs if p.fits) / total
 
 
 def _strong_misfits(pairs: Sequence[PairCheck], min_inliers: int = 30) -> list[PairCheck]:
@@ -535,12 +534,6 @@ class Repair:
     which turned (nothing was re-aimed then)."""
 
 
-def _fit_share(check: CalibrationCheck) -> float:
-    checked = [p for p in check.pairs if p.checked]
-    total = sum(p.inliers for p in checked)
-    return 0.0 if total == 0 else sum(p.inliers for p in checked if p.fits) / total
-
-
 def repair(
     check: CalibrationCheck, rig: Rig, config: CalibrationCheckConfig | None = None
 ) -> Repair:
@@ -566,12 +559,12 @@ def repair(
             moved = with_pose(rig, est)
             judged = recheck(check, moved, config)
             if all(p.fits for p in judged.pairs if p.checked and c in (p.a, p.b)):
-                trials.append((_fit_share(judged), est, moved, judged))
+                trials.append((_fit_share(judged.pairs) or 0.0, est, moved, judged))
         if not trials:
             break
         trials.sort(key=lambda x: -x[0])
         share, est, moved, judged = trials[0]
-        if share <= _fit_share(check):
+        if share <= (_fit_share(check.pairs) or 0.0):
             break
         rivals = [t for t in trials[1:] if t[3].fits and t[0] >= share - 0.05]
         if judged.fits and rivals:
@@ -626,10 +619,10 @@ def estimate_rotation(
     obs = check.observed
     if obs is None:
         return None
-    found = {ab: _pair_inliers(obs, *ab, config, rig) for ab in sorted(obs.matches)}
-    data = []  # (the other camera's view, camera's points, the other's points)
-    for (a, b), (pair, pa, pb) in found.items():
-        if not pair.checked or camera not in (a, b):
+    data = []  # (the other camera, camera's points, the other's points)
+    for a, b in sorted(ab for ab in obs.matches if camera in ab):
+        pair, pa, pb = _pair_inliers(obs, a, b, config, rig)
+        if not pair.checked:
             continue
         mine, theirs = (pa, pb) if a == camera else (pb, pa)
         data.append((obs.camera(b if a == camera else a, rig), mine, theirs))
@@ -666,7 +659,6 @@ def estimate_rotation(
         data = trimmed
         w = np.asarray(least_squares(residuals, w, loss="soft_l1", f_scale=tol / 4).x)
     c = cam_at(w)
-    cos = np.clip((np.trace(cam0.R.T @ c.R) - 1.0) / 2.0, -1.0, 1.0)
     return PoseEstimate(
         camera=camera,
         R=np.asarray(c.R, np.float64),
@@ -675,7 +667,7 @@ def estimate_rotation(
         matches=sum(len(m) for _, m, _ in data),
         before_px=float(np.median(residuals(np.zeros(3)))) / view.scale,
         after_px=float(np.median(residuals(w))) / view.scale,
-        rotation_deg=float(np.degrees(np.arccos(cos))),
+        rotation_deg=rotation_angle_deg(c.R, cam0.R),
     )
 
 
