@@ -353,10 +353,9 @@ class BackEnd:
         return frames, fg
 
     def _rebuild(self, frames: FrameSet, fg: ForegroundResult | None) -> None:
-        """One rebuild: the calibration check when due (``calib_check_s``), the snapshot of
-        the still foreground (``scene.still``; the tasks use it at once), then the
-        background."""
-        self._check_calibration(frames)
+        """One rebuild: the snapshot of the still foreground (``scene.still``; the tasks use
+        it at once), the background, then the calibration check when due
+        (``calib_check_s``; after the background, which the tasks wait for)."""
         t0 = time.perf_counter()
         if self.config.still is not None and fg is not None and self._snapshot_due():
             try:
@@ -399,6 +398,7 @@ class BackEnd:
         self._send(
             BackgroundUpdate(version=version, cloud=cloud, seconds=seconds), f"background {version}"
         )
+        self._check_calibration(frames)
 
     def _check_calibration(self, frames: FrameSet) -> None:
         """The calibration against the frames of this rebuild and the two before (pooled),
