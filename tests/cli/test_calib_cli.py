@@ -1,5 +1,6 @@
 """``edgerecon calib``: a camera turned after its calibration is named (exit code 3), and
-``--write`` stores it re-aimed in a new rig file that dataset.json names."""
+``--write`` stores it re-aimed (or placed again, when it moved) in a new rig file that
+dataset.json names."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from edgerecon.cli import main
 from edgerecon.cli.calib import RECALIBRATED, default_times
 from edgerecon.io.calibration import load_rig, save_rig
 from edgerecon.io.dataset import open_dataset
-from tests.quality.test_calibration import angle_deg, turned
+from tests.quality.test_calibration import angle_deg, moved, turned
 
 
 def test_default_times_spread_over_the_stream():
@@ -50,6 +51,22 @@ def test_a_turned_camera_is_named_and_written_re_aimed(tiny_dataset, tmp_path, c
 
     assert main(["calib", "--dataset", str(root), "--times", "2,5"]) == 0
     assert "fits the frames" in capsys.readouterr().out
+
+
+def test_a_moved_camera_is_written_at_its_new_place(tiny_dataset, tmp_path, capsys):
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    calibrated = open_dataset(root).rig
+    save_rig(root / "rig.json", moved(calibrated, 2, (0.0, 0.3, 0.3), (0.0, 0.0, 0.0)))
+
+    assert main(["calib", "--dataset", str(root), "--write"]) == 0
+    out = capsys.readouterr().out
+    assert "cam2 moved by 0.4" in out and " m and turned by" in out
+    fixed = open_dataset(root).rig
+    assert np.linalg.norm(fixed[2].center - calibrated[2].center) < 0.05
+    assert angle_deg(fixed[2], calibrated[2]) < 0.5
+    assert main(["calib", "--dataset", str(root), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["fits"] is True
 
 
 def test_bad_times_are_refused(tiny_dataset, capsys):

@@ -1,5 +1,6 @@
-"""The calibration check: a camera turned since it was calibrated is named and re-aimed;
-frames given to the wrong cameras do not fit; a right calibration fits."""
+"""The calibration check: a camera turned since it was calibrated is named and re-aimed,
+one moved is placed again; frames given to the wrong cameras do not fit; a right
+calibration fits."""
 
 from __future__ import annotations
 
@@ -30,6 +31,20 @@ def turned(rig: Rig, camera: int, degrees: float, axis: tuple[float, float, floa
     dR = cv2.Rodrigues(np.radians(degrees) * np.asarray(axis, float))[0]
     cams = list(rig)
     cams[camera] = dataclasses.replace(c, R=dR @ c.R, t=dR @ c.t)
+    return dataclasses.replace(rig, cameras=tuple(cams))
+
+
+def moved(
+    rig: Rig, camera: int, shift: tuple[float, float, float], degrees: tuple[float, float, float]
+) -> Rig:
+    """``rig`` with one camera moved by ``shift`` along its own axes (x right, y down, z
+    forward; rig units) and turned by ``degrees`` about them."""
+    c = rig[camera]
+    dR = cv2.Rodrigues(np.radians(np.asarray(degrees, float)))[0]
+    R = dR @ c.R
+    centre = c.center + c.R.T @ np.asarray(shift, float)
+    cams = list(rig)
+    cams[camera] = dataclasses.replace(c, R=R, t=-R @ centre)
     return dataclasses.replace(rig, cameras=tuple(cams))
 
 
@@ -80,9 +95,39 @@ def test_a_camera_turned_by_two_degrees_is_named_and_re_aimed(frames):
     # Back within a few tenths of a degree of the calibration, and it fits again.
     assert angle_deg(fixed[2], rig[2]) < 0.3
     assert np.allclose(fixed[2].center, rig[2].center)
+    assert applied[0].moved == 0.0  # a turn is not taken for a move
     assert after.fits is True and after.off == []
     # The same matches judged against the rig the check started from: nothing changed.
     assert recheck(check, bumped).off == [2]
+
+
+@pytest.mark.parametrize(
+    ("shift", "degrees"),
+    [
+        ((0.0, 0.0, 0.3), (0.0, 0.0, 0.0)),
+        ((0.0, 0.3, 0.3), (0.0, 0.0, 0.0)),
+        ((0.1, 0.1, 0.2), (1.0, 1.0, 0.0)),
+    ],
+    ids=["forward", "down-forward", "kicked"],
+)
+def test_a_camera_moved_is_placed_again(frames, shift, degrees):
+    """A camera whose tripod was kicked (moved by 0.24-0.42 m, 6-10 % of the distance to
+    its neighbours, and turned) is placed again, centre and orientation, from the matches;
+    a neighbour whose turn would make one of its pairs fit is not turned (the kicked one is
+    in both pairs that miss)."""
+    rig, sets = frames
+    kicked = moved(rig, 2, shift, degrees)
+    check = check_calibration(sets, kicked)
+    assert check.off == [2]
+    fix = repair(check, kicked)
+    assert [e.camera for e in fix.applied] == [2]
+    est = fix.applied[0]
+    assert est.moved == pytest.approx(float(np.linalg.norm(shift)), abs=0.05)
+    assert est.moved >= 3 * est.uncertainty > 0
+    assert est.after_px < est.before_px / 3
+    assert np.linalg.norm(fix.rig[2].center - rig[2].center) < 0.05
+    assert angle_deg(fix.rig[2], rig[2]) < 0.5
+    assert fix.check.fits is True
 
 
 def test_frames_given_to_the_wrong_cameras_do_not_fit(frames):
@@ -111,7 +156,8 @@ def test_caliscope_charuco_calibration_fits_and_a_turned_camera_comes_back():
     degrees is named and re-aimed to within 1 degree of the board's calibration (whose own
     pairs lie 1-5 px from its lines); cam_3 panned by 2 degrees leaves two pairs that fit and
     one that does not, which either of cam_0 and cam_3 turned would explain: both are named,
-    neither is re-aimed."""
+    neither is re-aimed. Moved: cam_2 by 14 cm is placed again; cam_0 by 5 cm is not, and
+    no other camera is turned for it."""
     ds = open_dataset(shared_data("caliscope_charuco"))
     with ds.open_frames() as source:
         sets = [source.read(t) for t in (11, 55, 99)]
@@ -124,7 +170,20 @@ def test_caliscope_charuco_calibration_fits_and_a_turned_camera_comes_back():
     assert fix.check.fits is True
     assert angle_deg(fix.rig[2], ds.rig[2]) < 1.0
     panned = turned(ds.rig, 3, 2.0, (0.0, 1.0, 0.0))
-    fix = repair(check_calibration(sets, panned), panned)
+    fix = repair(recheck(check, panned), panned)
     assert fix.applied == ()
     assert fix.ambiguous == (0, 3)
+    assert fix.check.fits is False
+    # cam_2 moved 14 cm: placed again within 2 cm and 1 degree of the board's calibration.
+    kicked = moved(ds.rig, 2, (0.1, 0.0, 0.1), (0.0, 0.0, 0.0))
+    fix = repair(recheck(check, kicked), kicked)
+    assert [(e.camera, e.moved > 0.1) for e in fix.applied] == [(2, True)]
+    assert np.linalg.norm(fix.rig[2].center - ds.rig[2].center) < 0.02
+    assert angle_deg(fix.rig[2], ds.rig[2]) < 1.0
+    assert fix.check.fits is True
+    # cam_0 moved 5 cm: its two pairs (0.4 and 0.55 m baselines) and the rig's own 3-5 px
+    # leave its place uncertain to 7 cm: nothing is placed, and no other camera turned.
+    kicked = moved(ds.rig, 0, (0.05, 0.0, 0.0), (0.0, 0.0, 0.0))
+    fix = repair(recheck(check, kicked), kicked)
+    assert fix.applied == ()
     assert fix.check.fits is False

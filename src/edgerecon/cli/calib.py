@@ -42,12 +42,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "calib",
         help="check the calibration against what the cameras see; --write re-aims a camera "
-        "that turned",
+        "that turned or places again one that moved",
         description="Match every pair of cameras without the calibration (SIFT, ratio test, "
         "a fundamental matrix estimated from the matches), then measure how far those matches "
         "lie from the epipolar lines the calibration predicts. Names a camera that moved since "
         "it was calibrated (or frames given to the wrong camera, or another setup's "
-        "calibration), finds the orientation of a camera that turned (its centre kept), and "
+        "calibration), finds the orientation of a camera that turned (its centre kept) or the "
+        "pose of one that moved a little, and "
         "with --write stores it in a new rig file that dataset.json then names. Exit code 3 "
         "when a camera does not fit (and was not written) or no pair fits.",
     )
@@ -128,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(report)
     else:
-        _print(check, estimates, after, ds.rig.names, config.max_angle_deg)
+        _print(check, estimates, after, ds.rig.names, config.max_angle_deg, ds.rig.unit)
         if fix.ambiguous:
             console.print(
                 "the pairs cannot tell which of "
@@ -152,6 +153,7 @@ def _estimate_dict(est: PoseEstimate, name: str) -> dict[str, Any]:
         "camera": est.camera,
         "name": name,
         "rotation_deg": round(est.rotation_deg, 3),
+        "moved": round(est.moved, 4),
         "before_px": round(est.before_px, 2),
         "after_px": round(est.after_px, 2),
         "pairs": est.pairs,
@@ -167,6 +169,7 @@ def _print(
     after: CalibrationCheck,
     names: list[str],
     max_angle: float,
+    unit: str,
 ) -> None:
     print_table(
         f"camera pairs (matches found without the calibration; {check.frame_sets} frame sets, "
@@ -211,18 +214,24 @@ def _print(
     )
     console.print(check.message, soft_wrap=True)
     for est in estimates:
+        how = (
+            f"moved by {est.moved:.3g} {unit} and turned by {est.rotation_deg:.2f} degrees"
+            if est.moved
+            else f"turned by {est.rotation_deg:.2f} degrees (its centre kept)"
+        )
         console.print(
-            f"{names[est.camera]} turned by {est.rotation_deg:.2f} degrees (its centre kept): "
-            f"its {est.matches} matches with {est.pairs} cameras that fit lie "
-            f"{est.before_px:.1f} -> {est.after_px:.1f} px from their epipolar lines",
+            f"{names[est.camera]} {how}: its {est.matches} matches with {est.pairs} cameras "
+            f"that fit lie {est.before_px:.1f} -> {est.after_px:.1f} px from their epipolar "
+            "lines",
             soft_wrap=True,
         )
     if estimates:
-        console.print(f"re-aimed: {after.message}", soft_wrap=True)
+        done = "placed again" if any(e.moved for e in estimates) else "re-aimed"
+        console.print(f"{done}: {after.message}", soft_wrap=True)
     for c in after.off if estimates else []:
         console.print(
-            f"{names[c]}: no turn brings it back (it needs matches with two cameras that fit); "
-            "calibrate it again",
+            f"{names[c]}: no turn or move brings it back (it needs matches with two cameras "
+            "that fit); calibrate it again",
             soft_wrap=True,
         )
 

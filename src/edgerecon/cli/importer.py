@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
         if calib.fits is False:
             console.print(
                 f"[yellow]{calib.message}[/]; `edgerecon calib --dataset {ds.root}` tells more "
-                "(--write re-aims a camera that turned)",
+                "(--write re-aims a camera that turned or moved)",
                 soft_wrap=True,
             )
         else:

@@ -436,7 +436,7 @@ class BackEnd:
             return
         if verdict["fits"] is False:
             logger.warning(
-                "%s; `edgerecon calib --dataset DIR --write` re-aims a camera that turned",
+                "%s; `edgerecon calib --dataset DIR --write` re-aims a camera that turned or moved",
                 verdict["message"],
             )
         elif self._calib_said is not None:
