@@ -91,11 +91,9 @@ class CalibrationCheckConfig:
     bring its matches this much closer to their epipolar lines (median over all its checked
     matches): a camera turned about its centre keeps its centre."""
     move_certainty: float = 3.0
-    """A camera is placed again only when it moved at least this many times as far as its matches can tell
-    (:attr:`PoseEstimate.uncertainty`): on a real rig whose other pairs lie pixels from
-    their own calibration, two pairs of a camera place it only to within centimetres, and a
-    smaller move found is the calibration's own error (caliscope_charuco's cam_0, moved 5 cm,
-    was placed 12 cm from its board calibration; a turn is kept then)."""
+    """A camera is placed again only when it moved at least this many times as far as its
+    matches can tell (:attr:`PoseEstimate.uncertainty`: how far the centre found moves with
+    the matches it came from); a smaller move is the matches' noise, and a turn is kept."""
     sparse: SparseConfig = field(default_factory=SparseConfig)
     """The features' settings (the sparse stage's)."""
 
@@ -686,9 +684,8 @@ class PoseEstimate:
     """Distance between the calibrated centre and this one (rig units; 0: the centre was
     kept)."""
     uncertainty: float = 0.0
-    """How far off the centre could be (rig units; 0: kept): the larger of how far it moves
-    with the matches it came from (a jackknife over five parts of them) and of what the rest
-    of the rig's own calibration error could shift it by (:func:`_systematic`)."""
+    """How far off the centre could be (rig units; 0: kept): how far it moves with the
+    matches it came from (the jackknife's standard error over five parts of them)."""
 
 
 def _camera_data(
@@ -738,43 +735,6 @@ def _jackknife(
         centres.append(cam_at(solve(x, part)).center)
     spread = np.asarray(centres) - np.mean(centres, axis=0)
     return float(np.sqrt((folds - 1) / folds * np.sum(spread**2)))
-
-
-def _systematic(
-    check: CalibrationCheck,
-    camera: int,
-    x: NDArray[np.float64],
-    residuals: Any,
-    span: float,
-    after: float,
-    view: View,
-) -> float:
-    """How far off the centre could be for the rest of the rig's own calibration error
-    (rig units): how much it shifts per pixel of a systematic error of its matches, in the
-    direction they fix worst (the normal matrix of the distances, by central differences,
-    the orientation free), times the pixels by which the pairs that fit, without this
-    camera, lie farther from their own calibration than matching noise (their median less
-    this fit's, or a pixel of a 1000-pixel-wide frame when larger; at least a quarter of
-    this fit's)."""
-    h = 1e-6
-    J = np.stack(
-        [(residuals(x + h * e) - residuals(x - h * e)) / (2 * h) for e in np.eye(len(x))], axis=1
-    )
-    try:
-        cov = np.linalg.inv(J.T @ J / len(J))
-        per_px = span * float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
-    except np.linalg.LinAlgError:
-        return float("inf")
-    rest = [
-        p.median_px
-        for p in check.pairs
-        if p.fits and p.median_px is not None and camera not in (p.a, p.b)
-    ]
-    noise = max(after * view.scale, _unit(view))
-    excess = max(
-        float(np.median(rest)) * view.scale - noise if rest else 0.0, after * view.scale / 4
-    )
-    return per_px * excess
 
 
 def estimate_rotation(
@@ -879,10 +839,7 @@ def estimate_pose(
     after = float(np.median(residuals(x))) / view.scale
     uncertainty = 0.0
     if move:
-        uncertainty = max(
-            _jackknife(x, data, lambda x, d: place(x, d, (limit / 16,)), cam_at),
-            _systematic(check, camera, x, residuals, span, after, view),
-        )
+        uncertainty = _jackknife(x, data, lambda x, d: place(x, d, (limit / 16,)), cam_at)
     return PoseEstimate(
         camera=camera,
         R=np.asarray(c.R, np.float64),
