@@ -219,10 +219,18 @@ def _print(
             if est.moved
             else f"turned by {est.rotation_deg:.2f} degrees (its centre kept)"
         )
+        # The verdict weighs pairs by their inliers; the repair tries each camera of the
+        # pairs that miss: it can find another one than the verdict named.
+        other = (
+            f" (the check named {' and '.join(names[c] for c in check.off)}; changing "
+            f"{names[est.camera]} instead is what makes the pairs fit)"
+            if check.off and est.camera not in check.off
+            else ""
+        )
         console.print(
             f"{names[est.camera]} {how}: its {est.matches} matches with {est.pairs} cameras "
             f"that fit lie {est.before_px:.1f} -> {est.after_px:.1f} px from their epipolar "
-            "lines",
+            f"lines{other}",
             soft_wrap=True,
         )
     if estimates:

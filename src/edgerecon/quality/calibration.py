@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any
@@ -688,9 +688,11 @@ class PoseEstimate:
     matches it came from (the jackknife's standard error over five parts of them)."""
 
 
-def _camera_data(
-    obs: _Observed, rig: Rig, camera: int, config: CalibrationCheckConfig
-) -> list[tuple[Camera, NDArray[np.float64], NDArray[np.float64]]]:
+_Data = list[tuple[Camera, NDArray[np.float64], NDArray[np.float64]]]
+"""(the other camera, this camera's points, the other's points) per pair."""
+
+
+def _camera_data(obs: _Observed, rig: Rig, camera: int, config: CalibrationCheckConfig) -> _Data:
     """(the other camera, ``camera``'s points, the other's points) of each checked pair of
     ``camera``."""
     data = []
@@ -720,9 +722,9 @@ def _camera_median(
 
 def _jackknife(
     x: NDArray[np.float64],
-    data: list[tuple[Camera, NDArray[np.float64], NDArray[np.float64]]],
-    solve: Any,
-    cam_at: Any,
+    data: _Data,
+    solve: Callable[[NDArray[np.float64], _Data], NDArray[np.float64]],
+    cam_at: Callable[[NDArray[np.float64]], Camera],
     folds: int = 5,
 ) -> float:
     """How far the centre found moves with the matches it came from: the jackknife's
@@ -791,9 +793,7 @@ def estimate_pose(
         R = np.asarray(cv2.Rodrigues(x[:3])[0], np.float64) @ cam0.R
         return dataclasses.replace(cam0, R=R, t=-R @ (centre + x[3:] * span))
 
-    Data = list[tuple[Camera, NDArray[np.float64], NDArray[np.float64]]]
-
-    def residuals(x: NDArray[np.float64], d: Data | None = None) -> NDArray[np.float64]:
+    def residuals(x: NDArray[np.float64], d: _Data | None = None) -> NDArray[np.float64]:
         c = cam_at(x)
         return np.concatenate(
             [epipolar_distances(c, other, mine, theirs) for other, mine, theirs in d or data]
@@ -805,7 +805,7 @@ def estimate_pose(
         ).x
         return np.r_[w, x[3:]]
 
-    def place(x: NDArray[np.float64], d: Data, scales: Sequence[float]) -> NDArray[np.float64]:
+    def place(x: NDArray[np.float64], d: _Data, scales: Sequence[float]) -> NDArray[np.float64]:
         for f_scale in scales:
             x = np.asarray(
                 least_squares(lambda v: residuals(v, d), x, loss="cauchy", f_scale=f_scale).x
