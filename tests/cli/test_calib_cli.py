@@ -59,9 +59,14 @@ def test_a_moved_camera_is_written_at_its_new_place(tiny_dataset, tmp_path, caps
     calibrated = open_dataset(root).rig
     save_rig(root / "rig.json", moved(calibrated, 2, (0.0, 0.3, 0.3), (0.0, 0.0, 0.0)))
 
+    assert main(["calib", "--dataset", str(root), "--json"]) == 3
+    (est,) = json.loads(capsys.readouterr().out)["estimates"]
+    assert est["name"] == "cam2"
+    assert est["moved"] == pytest.approx(0.42, abs=0.05)
+    assert 0 < 3 * est["uncertainty"] <= est["moved"]
     assert main(["calib", "--dataset", str(root), "--write"]) == 0
     out = capsys.readouterr().out
-    assert "cam2 moved by 0.4" in out and " m and turned by" in out
+    assert "cam2 moved by 0.4" in out and " m (+- " in out and "turned by" in out
     fixed = open_dataset(root).rig
     assert np.linalg.norm(fixed[2].center - calibrated[2].center) < 0.05
     assert angle_deg(fixed[2], calibrated[2]) < 0.5

@@ -154,6 +154,7 @@ def _estimate_dict(est: PoseEstimate, name: str) -> dict[str, Any]:
         "name": name,
         "rotation_deg": round(est.rotation_deg, 3),
         "moved": round(est.moved, 4),
+        "uncertainty": round(est.uncertainty, 4),
         "before_px": round(est.before_px, 2),
         "after_px": round(est.after_px, 2),
         "pairs": est.pairs,
@@ -215,7 +216,8 @@ def _print(
     console.print(check.message, soft_wrap=True)
     for est in estimates:
         how = (
-            f"moved by {est.moved:.3g} {unit} and turned by {est.rotation_deg:.2f} degrees"
+            f"moved by {est.moved:.3g} {unit} (+- {est.uncertainty:.2g}) and turned by "
+            f"{est.rotation_deg:.2f} degrees"
             if est.moved
             else f"turned by {est.rotation_deg:.2f} degrees (its centre kept)"
         )
