@@ -106,6 +106,12 @@ def test_summary_gives_the_calibration_verdict(tmp_path):
     (run / "summary.json").write_text(json.dumps({"tasks": 2, "calibration": verdict}))
     rows = dict(summary_rows(load_runs([run])[0]))
     assert rows["calibration against the frames (time 65)"] == "off: cam_2"
+    verdict["repair"] = "cam_2 re-aimed by 2.01 degrees: the calibration then fits"
+    (run / "summary.json").write_text(json.dumps({"tasks": 2, "calibration": verdict}))
+    rows = dict(summary_rows(load_runs([run])[0]))
+    assert rows["calibration against the frames (time 65)"] == (
+        "off: cam_2; calib --write: cam_2 re-aimed by 2.01 degrees: the calibration then fits"
+    )
 
 
 def test_the_stage_figure_is_the_critical_path(tmp_path):

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from edgerecon.io.ply import atomic_write_bytes
+from edgerecon.quality.calibration import verdict_row
 from edgerecon.runtime.messages import AFTER_CRITICAL_PATH, TaskMetrics
 from edgerecon.runtime.session import offline_fscore_label
 from edgerecon.types import EdgereconError
@@ -390,11 +391,7 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ("frames dropped", str(s.get("frames_dropped", "-"))),
         ("wall time (s)", fmt(s.get("wall_s"), ".1f")),
         *memory,
-        *(
-            [(f"calibration against the frames (time {cal.get('time')})", str(cal.get("short")))]
-            if isinstance(cal := s.get("calibration"), dict)
-            else []
-        ),
+        *([verdict_row(cal)] if isinstance(cal := s.get("calibration"), dict) else []),
     ]
 
 

@@ -463,9 +463,13 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
     assert summary.failed == 0 and len(metrics) == 8
     assert summary.calibration is not None
     assert summary.calibration["fits"] is False and summary.calibration["off"] == ["cam1"]
+    # What `edgerecon calib --write` would do, from the run's frames.
+    assert summary.calibration["repair"].startswith("cam1 re-aimed by 2.0")
+    assert summary.calibration["repair"].endswith("the calibration then fits")
     said = [
         r.getMessage() for r in caplog.records if "moved since it was calibrated" in r.getMessage()
     ]
     assert len(said) <= 1  # said once (when two checks in a row agree), never repeated
+    assert all("cam1 re-aimed by" in m for m in said)
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["calibration"]["off"] == ["cam1"]

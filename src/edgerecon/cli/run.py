@@ -25,6 +25,7 @@ from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.cli.view import add_live_view_arguments, live_viewer
 from edgerecon.io.dataset import open_dataset
 from edgerecon.pipeline import SPARSE_SCOPES
+from edgerecon.quality.calibration import verdict_row
 from edgerecon.runtime import FrameRange, RunSummary, SessionOptions, TaskMetrics
 from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.messages import AFTER_CRITICAL_PATH
@@ -296,10 +297,7 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
     if s.calibration is not None:
-        cal = s.calibration
-        rows.append(
-            (f"calibration against the frames (time {cal.get('time')})", str(cal.get("short")))
-        )
+        rows.append(verdict_row(s.calibration))
     mem = s.memory_mb
     if mem.get("last") is not None:
         rows.append(

@@ -863,11 +863,35 @@ def with_pose(rig: Rig, estimate: PoseEstimate) -> Rig:
     return dataclasses.replace(rig, cameras=tuple(cams))
 
 
+def repair_summary(fix: Repair, rig: Rig) -> str:
+    """What :func:`repair` did, in a line: the cameras re-aimed or placed again and whether
+    every pair fits then, the cameras it could not tell between, or that nothing did."""
+    names = rig.names
+    if fix.applied:
+        done = "; ".join(
+            f"{names[e.camera]} placed again ({e.moved:.3g} {rig.unit} from its calibration, "
+            f"turned {e.rotation_deg:.2f} degrees)"
+            if e.moved
+            else f"{names[e.camera]} re-aimed by {e.rotation_deg:.2f} degrees"
+            for e in fix.applied
+        )
+        after = "the calibration then fits" if fix.check.fits else "still does not fit"
+        return f"{done}: {after}"
+    if fix.ambiguous:
+        return (
+            "re-aiming any of "
+            + " or ".join(names[c] for c in fix.ambiguous)
+            + " makes the pairs fit: which one moved is not told"
+        )
+    return "no turn or move of one camera makes the pairs fit: calibrate again"
+
+
 def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict[str, Any]:
     """``check_calibration``'s answer as a small dict (what a run's back-end sends on):
-    ``time``, ``fits``, ``off`` (camera names), ``message``."""
+    ``time``, ``fits``, ``off`` (camera names), ``message``; when it does not fit, also
+    ``repair``: what ``edgerecon calib --write`` would do (:func:`repair_summary`)."""
     check = check_calibration(frames, rig)
-    return {
+    verdict = {
         "time": check.time_index,
         "times": list(check.times),
         "fits": check.fits,
@@ -876,3 +900,14 @@ def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict
         "short": check.short,
         "message": check.message,
     }
+    if check.fits is False:
+        verdict["repair"] = repair_summary(repair(check, rig), rig)
+    return verdict
+
+
+def verdict_row(verdict: dict[str, Any]) -> tuple[str, str]:
+    """A summary table's row of a :func:`calibration_verdict` (a run's, a report's)."""
+    value = str(verdict.get("short"))
+    if verdict.get("repair"):
+        value += f"; calib --write: {verdict['repair']}"
+    return (f"calibration against the frames (time {verdict.get('time')})", value)

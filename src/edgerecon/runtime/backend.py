@@ -436,8 +436,9 @@ class BackEnd:
             return
         if verdict["fits"] is False:
             logger.warning(
-                "%s; `edgerecon calib --dataset DIR --write` re-aims a camera that turned or moved",
+                "%s; from these frames: %s (`edgerecon calib --dataset DIR --write` stores it)",
                 verdict["message"],
+                verdict.get("repair", "-"),
             )
         elif self._calib_said is not None:
             logger.warning("back-end: %s", verdict["message"])
