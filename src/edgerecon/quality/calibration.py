@@ -901,7 +901,10 @@ def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict
         "message": check.message,
     }
     if check.fits is False:
-        verdict["repair"] = repair_summary(repair(check, rig), rig)
+        try:
+            verdict["repair"] = repair_summary(repair(check, rig), rig)
+        except Exception as exc:  # the verdict stands without it
+            logger.warning("calibration: the repair could not be worked out: %s", exc)
     return verdict
 
 
