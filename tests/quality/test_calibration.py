@@ -130,6 +130,21 @@ def test_a_camera_moved_is_placed_again(frames, shift, degrees):
     assert fix.check.fits is True
 
 
+def test_two_cameras_moved_are_both_placed_again(frames):
+    """cam1 moved (0.42 m) and cam3 kicked (0.41 m): one at a time, both placed again."""
+    rig, sets = frames
+    kicked = moved(moved(rig, 1, (0.0, 0.3, 0.3), (0, 0, 0)), 3, (0.2, 0.2, 0.3), (0, 0, 0))
+    check = check_calibration(sets, kicked)
+    assert sorted(check.off) == [1, 3]
+    fix = repair(check, kicked)
+    assert sorted(e.camera for e in fix.applied) == [1, 3]
+    assert all(e.moved > 0.3 for e in fix.applied)
+    for c in (1, 3):
+        assert np.linalg.norm(fix.rig[c].center - rig[c].center) < 0.06
+        assert angle_deg(fix.rig[c], rig[c]) < 0.6
+    assert fix.check.fits is True
+
+
 def test_frames_given_to_the_wrong_cameras_do_not_fit(frames):
     rig, sets = frames
     swapped = [

@@ -604,10 +604,7 @@ def repair(
     matches ``move_gain`` closer to their lines (a small move is explained almost as well
     by a turn, with the wrong orientation). When no turn of any candidate makes every pair
     fit, the candidates are also placed again with their centres free, and one that leaves
-    more inliers fitting than any turn is taken, under the same rules. Only the first camera
-    is placed again: a second one is only re-aimed (with one camera placed wrongly, a
-    neighbour's move explains a pair as well as its own; two cameras moved: calibrate
-    again)."""
+    more inliers fitting than any turn is taken, under the same rules."""
     config = config or CalibrationCheckConfig()
     applied: list[PoseEstimate] = []
     for _ in range(len(rig)):
@@ -620,7 +617,7 @@ def repair(
         common = set.intersection(*({p.a, p.b} for p in bad)) if bad else set()
         candidates = sorted(common or {p.a for p in bad} | {p.b for p in bad})
         trials = [t for c in candidates if (t := _trial(check, rig, c, config, False))]
-        if not applied and max((t[0] for t in trials), default=0.0) < 1.0:
+        if max((t[0] for t in trials), default=0.0) < 1.0:
             # No turn makes every pair fit: a camera moved? It is placed again when that
             # leaves more pairs fitting than any turn (a neighbour's turn can absorb most of
             # a moved camera's error on a pair they share).
@@ -646,7 +643,7 @@ def repair(
                 check=check,
                 ambiguous=tuple(sorted({est.camera, *(t[1].camera for t in rivals)})),
             )
-        if not applied and est.moved == 0.0:  # turned, or moved, which a turn explains less well
+        if est.moved == 0.0:  # turned, or moved, which a turn explains less well
             refined = _trial(check, rig, est.camera, config, True)
             if (
                 refined is not None
