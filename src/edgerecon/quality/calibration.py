@@ -94,6 +94,13 @@ class CalibrationCheckConfig:
     """A camera is placed again only when it moved at least this many times as far as its
     matches can tell (:attr:`PoseEstimate.uncertainty`: how far the centre found moves with
     the matches it came from); a smaller move is the matches' noise, and a turn is kept."""
+    rival_ratio: float = 3.0
+    """Another camera whose change makes the pairs fit as well is a rival (the pairs cannot
+    tell which one moved: neither is changed) unless its matches then lie more than this many
+    times as far from their lines (median) as the chosen one's: hd4's cam1 moved 0.3 m
+    forward, its turn leaves them 0.72 px away, cam2's 3.24 px; site's cam1 panned 3
+    degrees, 0.39 and 2.89 px; caliscope_charuco's rivals lie 1.1-2.2 times as far (the
+    room's matches fit its board calibration to a few pixels: they stay rivals)."""
     sparse: SparseConfig = field(default_factory=SparseConfig)
     """The features' settings (the sparse stage's)."""
 
@@ -111,6 +118,10 @@ class CalibrationCheckConfig:
                 )
         if not 0.0 < self.max_move:
             raise ValueError(f"CalibrationCheckConfig.max_move must be > 0, got {self.max_move}")
+        if not self.rival_ratio >= 1.0:
+            raise ValueError(
+                f"CalibrationCheckConfig.rival_ratio must be >= 1, got {self.rival_ratio}"
+            )
         if not self.move_certainty > 0.0:
             raise ValueError(
                 f"CalibrationCheckConfig.move_certainty must be > 0, got {self.move_certainty}"
@@ -627,14 +638,20 @@ def repair(
                 trials = trials + placed  # a turn first among equals
         if not trials:
             break
-        trials.sort(key=lambda x: -x[0])
+        # The most inliers fitting first; among equals a turn, then the camera whose matches
+        # it brings closest to their lines.
+        spread = {id(t): _camera_median(check, t[2], t[1].camera, config) for t in trials}
+        trials.sort(key=lambda t: (-t[0], t[1].moved > 0, spread[id(t)]))
         share, est, posed, judged = trials[0]
         if share <= (_fit_share(check.pairs) or 0.0):
             break
         rivals = [
             t
             for t in trials[1:]
-            if t[1].camera != est.camera and t[3].fits and t[0] >= share - 0.05
+            if t[1].camera != est.camera
+            and t[3].fits
+            and t[0] >= share - 0.05
+            and spread[id(t)] <= config.rival_ratio * spread[id(trials[0])]
         ]
         if judged.fits and rivals:
             return Repair(
