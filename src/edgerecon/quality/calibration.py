@@ -590,7 +590,7 @@ def _trial(
         if est.moved > config.max_move * nearest:
             return None
         if est.moved < config.move_certainty * est.uncertainty:
-            return None  # a move the matches cannot tell from the calibration's own error
+            return None  # a move within the noise of the matches it came from
     posed = with_pose(rig, est)
     judged = recheck(check, posed, config)
     if not all(p.fits for p in judged.pairs if p.checked and camera in (p.a, p.b)):
@@ -607,7 +607,8 @@ def repair(
     orientation is found again (:func:`estimate_rotation`, at least 3 times closer to the
     lines) and the matches judged against the rig with it; it counts when all its own pairs
     fit then. The candidate that leaves the most inliers fitting is re-aimed, unless another
-    one makes the pairs fit as well (then the pairs cannot tell which camera turned: nothing
+    one makes the pairs fit as well and leaves its matches no more than ``rival_ratio``
+    times as far from their lines (then the pairs cannot tell which camera turned: nothing
     is re-aimed and both are named); then again, for a second camera.
 
     A turn is the commoner knock and the fewer change, so it names the camera; that camera
@@ -643,6 +644,7 @@ def repair(
         spread = {id(t): _camera_median(check, t[2], t[1].camera, config) for t in trials}
         trials.sort(key=lambda t: (-t[0], t[1].moved > 0, spread[id(t)]))
         share, est, posed, judged = trials[0]
+        best_px = spread[id(trials[0])]
         if share <= (_fit_share(check.pairs) or 0.0):
             break
         rivals = [
@@ -651,7 +653,7 @@ def repair(
             if t[1].camera != est.camera
             and t[3].fits
             and t[0] >= share - 0.05
-            and spread[id(t)] <= config.rival_ratio * spread[id(trials[0])]
+            and spread[id(t)] <= config.rival_ratio * best_px
         ]
         if judged.fits and rivals:
             return Repair(
@@ -666,7 +668,7 @@ def repair(
                 refined is not None
                 and refined[0] >= share
                 and _camera_median(check, refined[2], est.camera, config)
-                <= config.move_gain * _camera_median(check, posed, est.camera, config)
+                <= config.move_gain * best_px
             ):
                 share, est, posed, judged = refined
         rig, check = posed, judged
