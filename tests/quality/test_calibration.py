@@ -20,6 +20,7 @@ from edgerecon.quality.calibration import (
     epipolar_distances,
     recheck,
     repair,
+    repair_summary,
 )
 from edgerecon.types import FrameSet
 from tests.conftest import ring_rig, shared_data
@@ -138,6 +139,9 @@ def test_two_cameras_moved_are_both_placed_again(frames):
     assert sorted(check.off) == [1, 3]
     fix = repair(check, kicked)
     assert sorted(e.camera for e in fix.applied) == [1, 3]
+    said = repair_summary(fix, rig)
+    assert "cam1 placed again" in said and "cam3 placed again" in said
+    assert said.endswith("the calibration then fits")
     assert all(e.moved > 0.3 for e in fix.applied)
     for c in (1, 3):
         assert np.linalg.norm(fix.rig[c].center - rig[c].center) < 0.06
@@ -192,6 +196,9 @@ def test_caliscope_charuco_calibration_fits_and_a_turned_camera_comes_back():
     assert fix.applied == ()
     assert fix.ambiguous == (0, 3)
     assert fix.check.fits is False
+    assert repair_summary(fix, panned) == (
+        "re-aiming any of cam_0 or cam_3 makes the pairs fit: which one moved is not told"
+    )
     # cam_2 moved 14 cm: placed again within 2 cm and 1 degree of the board's calibration.
     kicked = moved(ds.rig, 2, (0.1, 0.0, 0.1), (0.0, 0.0, 0.0))
     fix = repair(recheck(check, kicked), kicked)

@@ -1,7 +1,8 @@
 """``edgerecon calib``: does a dataset's calibration fit its frames? Matches every pair of
 cameras without the calibration and measures how far the matches lie from the calibration's
-epipolar lines (``quality.calibration``); a camera that turned since it was calibrated is
-named, its orientation found again, and with ``--write`` stored in a new rig file."""
+epipolar lines (``quality.calibration``); a camera that turned or moved since it was
+calibrated is named, its orientation (and place) found again, and with ``--write`` stored in
+a new rig file."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from edgerecon.quality.calibration import (
     PoseEstimate,
     check_calibration,
     repair,
+    repair_summary,
 )
 from edgerecon.types import DataError, EdgereconError
 
@@ -70,7 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--write",
         action="store_true",
-        help=f"store the re-found orientation of the cameras that turned in {RECALIBRATED} "
+        help=f"store the re-found poses of the cameras that turned or moved in {RECALIBRATED} "
         "and name it in dataset.json (the rig file before is kept)",
     )
     add_json_flag(p)
@@ -132,10 +134,8 @@ def run(args: argparse.Namespace) -> int:
         _print(check, estimates, after, ds.rig.names, config.max_angle_deg, ds.rig.unit)
         if fix.ambiguous:
             console.print(
-                "the pairs cannot tell which of "
-                + " or ".join(ds.rig.names[c] for c in fix.ambiguous)
-                + " turned (re-aiming either makes them fit): nothing re-aimed; check with "
-                "other --times, or calibrate again",
+                f"{repair_summary(fix, ds.rig)}: nothing changed; check with other --times, "
+                "or calibrate again",
                 soft_wrap=True,
             )
         if written:

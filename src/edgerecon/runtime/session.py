@@ -245,8 +245,9 @@ class RunSummary:
     """The run was stopped (Ctrl-C, SIGTERM) before its last task: ``--resume`` goes on."""
     calibration: dict[str, Any] | None = None
     """The back-end's last check of the calibration against the frames
-    (``RuntimeConfig.calib_check_s``: ``time``, ``fits``, ``off``, ``message``); None: none
-    made (no background rebuild yet, or the check off)."""
+    (``RuntimeConfig.calib_check_s``: ``time``, ``fits``, ``off``, ``message``, and when it
+    does not fit ``repair``: what ``edgerecon calib --write`` would do); None: none made (no
+    background rebuild yet, or the check off)."""
     stream: dict[str, Any] = field(default_factory=dict)
     """Live streams: the source's counts (``StreamFrameSource.stats``) and the tasks' sync
     spread (mean / max seconds)."""
