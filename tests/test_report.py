@@ -112,6 +112,22 @@ def test_summary_gives_the_calibration_verdict(tmp_path):
     assert rows["calibration against the frames (time 65)"] == (
         "off: cam_2; calib --write: cam_2 re-aimed by 2.01 degrees: the calibration then fits"
     )
+    assert not any(k.startswith("cameras placed again") for k in rows)
+    # A resume that went on with cam_2 placed again (``runtime.state.Recalibration``).
+    placed = {
+        "from_task": 55,
+        "cameras": ["cam_2"],
+        "moved": [0.0135],
+        "turned_deg": [2.91],
+        "previous_rig": "rig.0.json",
+    }
+    (run / "summary.json").write_text(
+        json.dumps({"tasks": 2, "unit": "m", "calibration": verdict, "recalibrations": [placed]})
+    )
+    rows = dict(summary_rows(load_runs([run])[0]))
+    assert rows["cameras placed again at a --resume"] == (
+        "from task 55: cam_2 (moved 0.0135 m, turned 2.91 degrees)"
+    )
 
 
 def test_the_stage_figure_is_the_critical_path(tmp_path):

@@ -38,6 +38,7 @@ from edgerecon.io.ply import atomic_write_bytes
 from edgerecon.quality.calibration import verdict_row
 from edgerecon.runtime.messages import AFTER_CRITICAL_PATH, TaskMetrics
 from edgerecon.runtime.session import offline_fscore_label
+from edgerecon.runtime.state import recalibrations_row
 from edgerecon.types import EdgereconError
 from edgerecon.viewer.rundir import read_run
 
@@ -391,6 +392,7 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ("frames dropped", str(s.get("frames_dropped", "-"))),
         ("wall time (s)", fmt(s.get("wall_s"), ".1f")),
         *memory,
+        *([recalibrations_row(rc, s.get("unit"))] if (rc := s.get("recalibrations")) else []),
         *([verdict_row(cal)] if isinstance(cal := s.get("calibration"), dict) else []),
     ]
 

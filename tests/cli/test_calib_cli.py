@@ -87,3 +87,49 @@ def test_info_check_says_whether_the_calibration_fits(tiny_dataset, tmp_path, ca
     save_rig(root / "rig.json", turned(open_dataset(root).rig, 3, 2.0, (1.0, 0.0, 0.0)))
     assert main(["info", "--dataset", str(root), "--check"]) == 3
     assert "cam3 moved since it was calibrated" in capsys.readouterr().out
+
+
+def test_a_run_resumes_with_the_camera_calib_placed_again(tiny_dataset, tmp_path, capsys):
+    """The flow a run's warning gives: a camera moved since its calibration, `calib --write`,
+    then `run --resume` goes on with the new pose (not "a different calibration")."""
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    calibrated = open_dataset(root).rig
+    knocked = moved(calibrated, 2, (0.0, 0.3, 0.3), (0.0, 0.0, 0.0))
+    save_rig(root / "rig.json", knocked)
+    out = tmp_path / "run"
+
+    def run(frames, *extra):
+        args = ["run", "--dataset", str(root), "--out", str(out), "--deadline", "20"]
+        return main([*args, "--frames", frames, "--fixed", "0.6", "--json", *extra])
+
+    assert run("0:3") == 0
+    capsys.readouterr()
+    assert main(["calib", "--dataset", str(root), "--write"]) == 0
+    capsys.readouterr()
+    assert run("0:5", "--resume") == 0
+    resumed = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in resumed["tasks"]] == [0, 1, 2, 3, 4]
+    assert all(t["status"] == "ok" for t in resumed["tasks"])
+    (rec,) = resumed["summary"]["recalibrations"]
+    assert rec["from_task"] == 3 and rec["cameras"] == ["cam2"]
+    assert rec["moved"] == [pytest.approx(0.42, abs=0.05)]
+    assert rec["previous_rig"] == "rig.0.json"
+    # The run folder keeps the rig its first tasks used; rig.json is the one in use.
+    assert np.allclose(load_rig(out / "rig.0.json")[2].center, knocked[2].center)
+    assert np.linalg.norm(load_rig(out / "rig.json")[2].center - calibrated[2].center) < 0.05
+    # A later resume is a plain one; the recalibration stays in the run's record.
+    assert run("0:6", "--resume") == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["summary"]["tasks"] == 6
+    assert again["summary"]["recalibrations"] == [rec]
+    # Another world frame (every camera moved) is still another calibration: refused.
+    shifted = moved(load_rig(root / RECALIBRATED), 0, (0.5, 0.0, 0.0), (0.0, 0.0, 0.0))
+    shifted = moved(shifted, 1, (0.5, 0.0, 0.0), (0.0, 0.0, 0.0))
+    shifted = moved(shifted, 3, (0.5, 0.0, 0.0), (0.0, 0.0, 0.0))
+    save_rig(root / RECALIBRATED, shifted)
+    assert run("0:7", "--resume") == 2
+    assert "another world frame" in capsys.readouterr().err
+    # --overwrite starts again: the rigs before are removed with the run.
+    assert run("0:1", "--overwrite") == 0
+    assert not (out / "rig.0.json").exists()

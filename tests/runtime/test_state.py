@@ -240,6 +240,14 @@ def test_resume_applies_a_new_deadline_and_restarts_the_search():
     new = make_controller(ds, runtime_config(deadline_s=0.5), saved_state=saved)
     assert isinstance(new, BisectionController)
     assert new.config.deadline_s == 0.5 and new.events[-1]["reason"] == "deadline"
+    # Cameras placed again (a resume with a recalibration): pi(N') came from the poses
+    # before, so the search restarts with a golden task (which gives pi(N') again).
+    again = make_controller(
+        ds, runtime_config(deadline_s=2.0), saved_state=saved, recalibrated=True
+    )
+    assert isinstance(again, BisectionController)
+    assert again.events[-1]["reason"] == "calibration"
+    assert again.next_config().phase == "golden"
 
 
 def _state(ds, frames=(0, 4, 1)):
@@ -488,3 +496,103 @@ def test_the_golden_tasks_sfm_runs_after_its_cloud(tiny):
     out = fe.run_task(framesets[0], plan, lambda w: None, time.sleep, task=0)
     assert plan.phase == "golden" and out.metrics.stages["sfm"] > 0
     assert seen[0] == pytest.approx(out.metrics.critical_path_s, abs=1e-5)
+
+
+def test_resume_goes_on_with_cameras_placed_again_without_the_old_background(
+    tiny, tmp_path, monkeypatch
+):
+    """A resume whose dataset's rig placed a camera again (``calib --write``) goes on with
+    it, everything on: the background built with the poses before is not merged again."""
+    import dataclasses
+
+    from edgerecon.io.calibration import load_rig
+    from tests.quality.test_calibration import moved
+
+    ds = tiny[0]
+    config = runtime_config()
+    pushed = []
+    real_push = FrontEnd.push_background
+
+    def push(self, update):
+        pushed.append(update)
+        return real_push(self, update)
+
+    monkeypatch.setattr(FrontEnd, "push_background", push)
+
+    def slow(m):  # the back-end of epoch 1 pushes a background before task 1
+        if m.task == 0:
+            assert wait_until(lambda: len(pushed) > 0, timeout=180)
+
+    out = tmp_path / "run"
+    run_frames(tiny, out, 0, 3, config, fixed=(0.8, None), on_task=slow)
+    old = RunState.load(out)
+    assert old.frontend.bg_version.epoch == 1 and (out / "background.ply").exists()
+
+    placed = dataclasses.replace(ds, rig=moved(ds.rig, 1, (0.02, 0.0, 0.0), (0.0, 0.5, 0.0)))
+    summary, resumed = run_online(
+        placed,
+        config,
+        SessionOptions(frames=FrameRange(start=0, stop=6), resume=True),
+        out,
+        fixed=(0.8, None),
+    )
+    assert [m.time_index for m in resumed] == list(range(6))
+    assert all(m.status == "ok" for m in resumed)
+    # The resumed tasks merged with no background of the poses before (epoch 1).
+    assert all(m.background_version.epoch != 1 for m in resumed[3:])
+    (rec,) = summary.recalibrations
+    assert rec["from_task"] == 3 and rec["cameras"] == ["cam1"]
+    assert rec["moved"][0] == pytest.approx(0.02, abs=1e-6)
+    assert rec["turned_deg"][0] == pytest.approx(0.5, abs=1e-4)
+    state = RunState.load(out)
+    assert state.dataset == DatasetIdentity.of(placed)
+    assert [r.to_dict() for r in state.recalibrations] == [rec]
+    assert DatasetIdentity.of(dataclasses.replace(ds, rig=load_rig(out / "rig.0.json"))) == (
+        old.dataset
+    )
+    assert DatasetIdentity.of(dataclasses.replace(ds, rig=load_rig(out / "rig.json"))) == (
+        state.dataset
+    )
+
+
+def test_resume_refuses_a_calibration_that_is_not_cameras_placed_again(tiny, tmp_path):
+    import dataclasses
+
+    from edgerecon.io.calibration import save_rig
+    from tests.quality.test_calibration import moved
+
+    ds = tiny[0]
+    _state(ds).save(tmp_path)
+    save_rig(tmp_path / "rig.json", ds.rig)
+
+    def resume(rig):
+        other = dataclasses.replace(ds, rig=rig)
+        with OutputFolder(tmp_path).acquire() as folder:
+            return folder.prepare(
+                resume=True,
+                overwrite=False,
+                identity=DatasetIdentity.of(other),
+                frames=(0, 4, 1),
+                rig=other.rig,
+            )
+
+    cams = list(ds.rig)
+    cams[0] = dataclasses.replace(cams[0], K=cams[0].K * [[1.01], [1.01], [1]])
+    with pytest.raises(EdgereconError, match="cam0's lens or image size changed"):
+        resume(dataclasses.replace(ds.rig, cameras=tuple(cams)))
+    with pytest.raises(EdgereconError, match="another unit"):
+        resume(dataclasses.replace(ds.rig, unit="mm"))
+    three = ds.rig
+    for i in (0, 1, 2):
+        three = moved(three, i, (0.1, 0.0, 0.0), (0.0, 0.0, 0.0))
+    with pytest.raises(EdgereconError, match="3 of 5 cameras moved: another world frame"):
+        resume(three)
+    # Refused ones changed nothing: the run state is the one before.
+    assert RunState.load(tmp_path).dataset == DatasetIdentity.of(ds)
+    (tmp_path / "rig.json").unlink()
+    with pytest.raises(EdgereconError, match=r"own rig .* cannot be read"):
+        resume(moved(ds.rig, 1, (0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    save_rig(tmp_path / "rig.json", ds.rig)
+    state = resume(moved(ds.rig, 1, (0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert state is not None and state.recalibrations[0].cameras == ("cam1",)
+    assert (tmp_path / "rig.0.json").exists()

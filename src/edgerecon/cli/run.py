@@ -32,6 +32,7 @@ from edgerecon.runtime.messages import AFTER_CRITICAL_PATH
 from edgerecon.runtime.online import run_online
 from edgerecon.runtime.retention import RetentionConfig
 from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted, offline_fscore_label
+from edgerecon.runtime.state import recalibrations_row
 
 #: Exit codes of ``run`` (and ``demo``), documented in the README and ``run --help``.
 EXIT_OK = 0
@@ -159,7 +160,9 @@ def add_online_arguments(p: argparse.ArgumentParser) -> None:
         "--resume",
         action="store_true",
         help="continue the run in --out after its last committed task (same dataset, same "
-        "--frames start and step; a new --deadline restarts the configuration search)",
+        "--frames start and step; a new --deadline restarts the configuration search; a "
+        "calibration that placed some cameras again, `edgerecon calib --write`, is taken "
+        "from the next task on)",
     )
     p.add_argument(
         "--overwrite",
@@ -296,6 +299,8 @@ def print_summary(title: str, s: RunSummary) -> None:
         ),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
+    if s.recalibrations:
+        rows.append(recalibrations_row(s.recalibrations, s.unit))
     if s.calibration is not None:
         rows.append(verdict_row(s.calibration))
     mem = s.memory_mb

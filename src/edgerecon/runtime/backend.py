@@ -436,7 +436,8 @@ class BackEnd:
             return
         if verdict["fits"] is False:
             logger.warning(
-                "%s; from these frames: %s (`edgerecon calib --dataset DIR --write` stores it)",
+                "%s; from these frames: %s (`edgerecon calib --dataset DIR --write` stores it; "
+                "the run's --resume then goes on with it)",
                 verdict["message"],
                 verdict.get("repair", "-"),
             )

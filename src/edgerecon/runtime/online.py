@@ -12,7 +12,9 @@ restarts), pi(N') and where it came from, the background cloud and its version, 
 back-end epoch (the new back-end counts on from the next one); the background models are
 rebuilt from the stream up to the next task (they are a function of the stream alone,
 :mod:`edgerecon.scene.stream`), so the resumed run segments the next frame as an
-uninterrupted run would.
+uninterrupted run would. A dataset whose calibration placed some cameras again since the
+run's last task (``edgerecon calib --write``) is resumed with the new rig, its saved
+background dropped (:mod:`edgerecon.runtime.state`).
 
 A deadline given as a share of the original pipeline (``run --deadline 40%``,
 ``RuntimeConfig.deadline_share``) is set here, before the controller exists: the original
@@ -66,10 +68,13 @@ def make_controller(
     fixed: tuple[float, tuple[int, ...] | None] | None = None,
     controller_config: ControllerConfig | None = None,
     saved_state: dict[str, Any] | None = None,
+    recalibrated: bool = False,
 ) -> BisectionController | FixedController:
     """The optimizer (Algorithm 1) or, with ``fixed=(scale, camera_ids)``, one configuration
     for every task (None camera ids = all). A saved controller takes ``config``'s deadline
-    (a changed one restarts its search). The controller's ``r_fine`` is the rig's
+    (a changed one restarts its search); ``recalibrated`` (cameras placed again since it was
+    saved): its search restarts with a golden task, whose visibility gives pi(N') again (the
+    saved one came from the poses before). The controller's ``r_fine`` is the rig's
     (``pipeline.fine_scale_limit``; a given one capped at it), None with
     ``config.fine_foreground`` off."""
     n = len(dataset.rig)
@@ -86,6 +91,12 @@ def make_controller(
                 ctrl.config.deadline_s,
             )
             ctrl.set_deadline(config.deadline_s)
+        if recalibrated:
+            logger.warning(
+                "the camera subsets pi(N') came from the calibration before: the configuration "
+                "search restarts with a golden task"
+            )
+            ctrl.restart("calibration", golden=True)
         return ctrl
     cc = controller_config or ControllerConfig(
         deadline_s=config.deadline_s, adjust_target=config.adjust_target
@@ -285,6 +296,7 @@ def run_online(
             overwrite=options.overwrite,
             identity=DatasetIdentity.of(dataset),
             frames=(fr.start, fr.stop, fr.step),
+            rig=dataset.rig,
         )
         previous = [] if saved is None else folder.read_metrics(saved.tasks_done)
         done = {m.time_index for m in previous}
@@ -343,6 +355,7 @@ def run_online(
             fixed=fixed,
             controller_config=controller_config,
             saved_state=None if saved is None else saved.frontend.controller,
+            recalibrated=folder.recalibration is not None,
         )
         if scene is None:
             # The background models as they are at the first task still to run (the one
@@ -364,7 +377,7 @@ def run_online(
             logger.warning(
                 "resuming after %d tasks (background %s, back-end epoch %d)",
                 saved.tasks_done,
-                saved.frontend.bg_version,
+                "none yet" if background is None else saved.frontend.bg_version,
                 saved.frontend.backend_epoch,
             )
         eng: Engine
@@ -397,6 +410,7 @@ def run_online(
                 frame_check=config.frame_check,
                 previous=previous,
                 on_task=on_task,
+                recalibrations=() if saved is None else saved.recalibrations,
             )
             summary = session.run()
             return summary, session.metrics

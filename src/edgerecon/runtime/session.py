@@ -76,7 +76,13 @@ from edgerecon.runtime.frontend import TaskOutput
 from edgerecon.runtime.memory import peak_resident_mb, resident_mb
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.retention import CloudRetention, RetentionConfig
-from edgerecon.runtime.state import DatasetIdentity, OriginalTiming, OutputFolder, RunState
+from edgerecon.runtime.state import (
+    DatasetIdentity,
+    OriginalTiming,
+    OutputFolder,
+    Recalibration,
+    RunState,
+)
 from edgerecon.scene.merge import foreground_part
 from edgerecon.scene.stream import DEFAULT_FPS
 from edgerecon.types import EdgereconError, FrameSet
@@ -248,6 +254,10 @@ class RunSummary:
     (``RuntimeConfig.calib_check_s``: ``time``, ``fits``, ``off``, ``message``, and when it
     does not fit ``repair``: what ``edgerecon calib --write`` would do); None: none made (no
     background rebuild yet, or the check off)."""
+    recalibrations: list[dict[str, Any]] = field(default_factory=list)
+    """The resumes that went on with cameras placed again since the run started
+    (``runtime.state.Recalibration``: ``from_task``, ``cameras``, ``moved``, ``turned_deg``,
+    ``previous_rig``), oldest first."""
     stream: dict[str, Any] = field(default_factory=dict)
     """Live streams: the source's counts (``StreamFrameSource.stats``) and the tasks' sync
     spread (mean / max seconds)."""
@@ -378,8 +388,11 @@ class Session:
         frame_check: FrameCheckConfig | None = None,
         previous: list[TaskMetrics] | None = None,
         on_task: Callable[[TaskMetrics], None] | None = None,
+        recalibrations: tuple[Recalibration, ...] = (),
     ) -> None:
         self.dataset = dataset
+        self.recalibrations = recalibrations
+        """The run's resumes with cameras placed again (``runtime.state``), kept in its state."""
         self.engine = engine
         self.options = options
         self.folder = folder
@@ -577,6 +590,7 @@ class Session:
                 tasks_done=self.totals.tasks,
                 frontend=self.engine.state(),
                 original=self.original,
+                recalibrations=self.recalibrations,
             ).save(self.out)
             if m.status == "ok":  # after the commit point: older clouds beyond --keep-clouds
                 self.retention.committed((m.bg_epoch, m.bg_version))
@@ -715,6 +729,7 @@ class Session:
             original_s=None if self.original is None else self.original.seconds,
             original_node=None if self.original is None else self.original.node,
             engine=getattr(self.engine, "name", ""),
+            recalibrations=[r.to_dict() for r in self.recalibrations],
             stream=dict(self._stream),
             clouds_written=t.clouds_written,
             clouds_kept=len(self.retention.kept),

@@ -13,11 +13,20 @@ that task redone.
 is refused, naming the holder; the lock dies with its process, kill -9 included), a non-empty
 folder that is not this run is refused unless ``--overwrite``, and a resume must match the
 saved dataset and frame range. All of it is checked before any heavy work.
+
+One change of the dataset is resumed: some cameras' poses, in the same world frame (what
+``edgerecon calib --write`` stores when a run said a camera moved). The run goes on with the
+new rig (:class:`Recalibration`, in the run state and the summary): the rig before is kept as
+``rig.<k>.json`` (``rig.json`` is the rig in use), and the saved background, built with the
+poses before, is dropped (the back-end builds the next one with the new rig; the tasks until
+then merge with none). Any other change of the calibration (another camera's lens or size,
+more than half the cameras moved, another world frame) is refused as before.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -34,6 +43,8 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.geometry.camera import Rig
+from edgerecon.io.calibration import read_rig_json
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.ply import atomic_write_bytes, atomic_write_text, read_ply, write_ply
 from edgerecon.runtime.frontend import FrontEndState
@@ -89,6 +100,118 @@ def comment_background(comments: Sequence[str]) -> tuple[int, int] | None:
     return None
 
 
+#: ``rig.json``: the rig the run's tasks use now; ``rig.<k>.json``: the rig before the k-th
+#: recalibration (:class:`Recalibration`).
+RIG_FILE = "rig.json"
+#: A camera whose centre moved less than this share of the rig's size and that turned less
+#: than ``_SAME_ANGLE_RAD`` keeps its pose (a rig file written again holds its float64 poses
+#: to ~1e-12 of the rig's size).
+_SAME_CENTRE = 1e-6
+_SAME_ANGLE_RAD = 1e-6
+
+
+def previous_rig_file(k: int) -> str:
+    """The run folder's file of the rig before the ``k``-th recalibration (0: the first)."""
+    return f"rig.{int(k)}.json"
+
+
+def rig_fingerprint(rig: Rig) -> str:
+    """SHA-256 (16 hex digits) of every camera's name, size, K, distortion and pose, and the
+    rig's unit, up direction, local origin and reference system."""
+    h = hashlib.sha256()
+    h.update(repr((rig.unit, tuple(rig.up), tuple(rig.origin), rig.crs)).encode())
+    for cam in rig:
+        h.update(cam.name.encode())
+        h.update(np.asarray(cam.size, np.int64).tobytes())
+        for a in (cam.K, cam.dist, cam.R, cam.t):
+            h.update(np.round(np.asarray(a, np.float64), 9).tobytes())
+    return h.hexdigest()[:16]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Recalibration:
+    """A ``--resume`` whose dataset's rig changed the poses of some cameras since the run's
+    last task (``edgerecon calib --write``): tasks numbered ``from_task`` and later use the new
+    rig; the run folder's ``previous_rig`` holds the rig before."""
+
+    from_task: int
+    cameras: tuple[str, ...]
+    moved: tuple[float, ...]
+    """Each camera's centre shift, in rig units."""
+    turned_deg: tuple[float, ...]
+    """Each camera's rotation, in degrees."""
+    previous_rig: str
+
+    def describe(self, unit: str | None = None) -> str:
+        """E.g. "cam_2 (moved 0.0135 m, turned 2.91 degrees)"."""
+        u = f" {unit}" if unit else ""
+        parts = [
+            f"{name} (moved {m:.3g}{u}, turned {a:.2f} degrees)"
+            for name, m, a in zip(self.cameras, self.moved, self.turned_deg, strict=True)
+        ]
+        return ", ".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "from_task": self.from_task,
+            "cameras": list(self.cameras),
+            "moved": list(self.moved),
+            "turned_deg": list(self.turned_deg),
+            "previous_rig": self.previous_rig,
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Recalibration:
+        return cls(
+            from_task=int(d["from_task"]),
+            cameras=tuple(str(x) for x in d["cameras"]),
+            moved=tuple(float(x) for x in d["moved"]),
+            turned_deg=tuple(float(x) for x in d["turned_deg"]),
+            previous_rig=str(d["previous_rig"]),
+        )
+
+
+def recalibrations_row(
+    items: Sequence[Mapping[str, Any]], unit: str | None = None
+) -> tuple[str, str]:
+    """The summary table's row of a run's recalibrations (``RunSummary.recalibrations``; the
+    rig's ``unit``), for ``run`` and ``report``."""
+    said = [
+        f"from task {r['from_task']}: " + Recalibration.from_dict(r).describe(unit) for r in items
+    ]
+    return ("cameras placed again at a --resume", "; ".join(said) or "-")
+
+
+def pose_changes(before: Rig, after: Rig) -> list[tuple[str, float, float]]:
+    """The cameras whose pose differs between two calibrations of one rig in the same world
+    frame, as (name, centre shift in rig units, rotation in degrees). Raises
+    :class:`EdgereconError` saying why ``after`` is not such a recalibration of ``before``:
+    other cameras, another lens or image size, another unit, up direction or local origin,
+    or more than half the cameras (or all but one) moved (another world frame)."""
+    if before.names != after.names:
+        raise EdgereconError(f"cameras {list(after.names)} instead of {list(before.names)}")
+    for what in ("unit", "up", "origin", "crs"):
+        if getattr(before, what) != getattr(after, what):
+            raise EdgereconError(f"another {what} ({getattr(after, what)!r})")
+    size = max(before.scene_scale(), 1e-12)
+    changed = []
+    for a, b in zip(before, after, strict=True):
+        if a.size != b.size or not (
+            np.allclose(a.K, b.K, rtol=1e-9, atol=1e-9)
+            and np.allclose(a.dist, b.dist, rtol=1e-9, atol=1e-12)
+        ):
+            raise EdgereconError(f"{a.name}'s lens or image size changed")
+        moved = float(np.linalg.norm(a.center - b.center))
+        cos = (np.trace(a.R @ b.R.T) - 1.0) / 2.0
+        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+        if moved > _SAME_CENTRE * size or angle > _SAME_ANGLE_RAD:
+            changed.append((a.name, moved, float(np.degrees(angle))))
+    kept = len(before) - len(changed)
+    if kept < 2 or kept < len(before) / 2:
+        raise EdgereconError(f"{len(changed)} of {len(before)} cameras moved: another world frame")
+    return changed
+
+
 def task_dir(folder: str | os.PathLike[str], time_index: int) -> Path:
     """Where a run writes the files of the task at ``time_index``."""
     return Path(folder) / "tasks" / f"{time_index:06d}"
@@ -104,22 +227,16 @@ class DatasetIdentity:
     num_frames: int
     cameras: tuple[str, ...]
     rig_fingerprint: str
-    """SHA-256 (16 hex digits) of every camera's size, K, distortion and pose."""
+    """``rig_fingerprint``: the cameras' sizes, lenses and poses, the rig's frame and unit."""
 
     @classmethod
     def of(cls, dataset: Dataset) -> DatasetIdentity:
-        h = hashlib.sha256()
-        for cam in dataset.rig:
-            h.update(cam.name.encode())
-            h.update(np.asarray(cam.size, np.int64).tobytes())
-            for a in (cam.K, cam.dist, cam.R, cam.t):
-                h.update(np.round(np.asarray(a, np.float64), 9).tobytes())
         return cls(
             root=str(Path(dataset.root).resolve()),
             name=dataset.name,
             num_frames=int(dataset.num_frames),
             cameras=tuple(dataset.rig.names),
-            rig_fingerprint=h.hexdigest()[:16],
+            rig_fingerprint=rig_fingerprint(dataset.rig),
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -210,6 +327,8 @@ class RunState:
     original: OriginalTiming | None = None
     """The original pipeline's measured time, when the run measured it (``--deadline P%``):
     a resumed run keeps its deadline."""
+    recalibrations: tuple[Recalibration, ...] = ()
+    """The resumes that went on with cameras placed again (oldest first)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -222,6 +341,7 @@ class RunState:
             "tasks_done": self.tasks_done,
             "frontend": self.frontend.to_dict(),
             "original": None if self.original is None else self.original.to_dict(),
+            "recalibrations": [r.to_dict() for r in self.recalibrations],
             "saved_at": time.time(),
         }
 
@@ -243,6 +363,7 @@ class RunState:
             tasks_done=int(d["tasks_done"]),
             frontend=FrontEndState.from_dict(d["frontend"]),
             original=None if d.get("original") is None else OriginalTiming.from_dict(d["original"]),
+            recalibrations=tuple(Recalibration.from_dict(r) for r in d.get("recalibrations", ())),
         )
 
     def save(self, folder: Path) -> None:
@@ -263,6 +384,8 @@ class OutputFolder:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self._lock: IO[str] | None = None
+        self.recalibration: Recalibration | None = None
+        """What :meth:`prepare` found: the resumed run goes on with cameras placed again."""
 
     # ------------------------------------------------------------------ lock
     def acquire(self, command: str = "") -> OutputFolder:
@@ -311,16 +434,29 @@ class OutputFolder:
         return sorted(p.name for p in self.path.iterdir() if p.name != LOCK_NAME)
 
     def prepare(
-        self, *, resume: bool, overwrite: bool, identity: DatasetIdentity, frames: tuple[Any, ...]
+        self,
+        *,
+        resume: bool,
+        overwrite: bool,
+        identity: DatasetIdentity,
+        frames: tuple[Any, ...],
+        rig: Rig | None = None,
     ) -> RunState | None:
         """Check the folder's contents against what this run will do; returns the saved
-        state to resume from (None: a fresh run in an empty folder)."""
+        state to resume from (None: a fresh run in an empty folder). ``rig``: the dataset's
+        rig (``identity``'s), which a resume may go on with when only some cameras' poses
+        changed (:attr:`recalibration`; see the module docstring)."""
         entries = self.entries()
         has_state = (self.path / "state.json").exists()
+        self.recalibration = None
         if resume and has_state:
             state = RunState.load(self.path)
             diff = state.dataset.difference(identity)
-            if diff is not None:
+            same_else = dataclasses.replace(identity, rig_fingerprint=state.dataset.rig_fingerprint)
+            recalibrated = (
+                diff is not None and rig is not None and state.dataset.difference(same_else) is None
+            )
+            if diff is not None and not recalibrated:
                 raise EdgereconError(
                     f"--resume: {self.path} holds a run of {state.dataset.name} "
                     f"({state.dataset.root}); this dataset has {diff}"
@@ -334,6 +470,9 @@ class OutputFolder:
                     f"{_frames_text(state.frames)}; resume it with the same start and step "
                     f"(its end may grow), got {_frames_text(frames)}"
                 )
+            if recalibrated:
+                assert rig is not None
+                state = self._recalibrate(state, identity, rig)
             return state
         if resume and not entries:
             logger.warning("--resume: %s holds no run yet: starting one", self.path)
@@ -355,7 +494,68 @@ class OutputFolder:
                 shutil.rmtree(p)
             else:
                 p.unlink(missing_ok=True)
+        for p in self.path.glob("rig.*.json"):  # the rigs before recalibrations
+            p.unlink(missing_ok=True)
         return None
+
+    def _recalibrate(self, state: RunState, identity: DatasetIdentity, rig: Rig) -> RunState:
+        """A resume whose dataset's calibration changed: go on when only some cameras'
+        poses did (``pose_changes``), committed before any task: the rig before kept as
+        ``rig.<k>.json``, the saved background dropped, then the state saved with the new
+        identity (the commit point; the session writes the new ``rig.json``). Raises when
+        the change is another."""
+        where = f"--resume: {self.path} holds a run of {state.dataset.name}; this dataset has"
+        path = self.path / RIG_FILE
+        try:
+            before = read_rig_json(path)
+        except (OSError, EdgereconError) as exc:
+            raise EdgereconError(
+                f"{where} a different calibration, and the run's own rig ({path}) cannot be "
+                f"read ({exc}): start again with --overwrite"
+            ) from None
+        if rig_fingerprint(before) != state.dataset.rig_fingerprint:
+            raise EdgereconError(
+                f"{where} a different calibration, and {path} is not the rig of the run's "
+                "last task: start again with --overwrite"
+            )
+        try:
+            changes = pose_changes(before, rig)
+        except EdgereconError as exc:
+            raise EdgereconError(
+                f"{where} a different calibration ({exc}): start again with --overwrite, or "
+                "resume with the calibration the run started with"
+            ) from None
+        previous = previous_rig_file(len(state.recalibrations))
+        recalibration = None
+        if changes:
+            recalibration = Recalibration(
+                from_task=state.tasks_done,
+                cameras=tuple(c[0] for c in changes),
+                moved=tuple(round(c[1], 6) for c in changes),
+                turned_deg=tuple(round(c[2], 4) for c in changes),
+                previous_rig=previous,
+            )
+            shutil.copyfile(path, self.path / f".{previous}.tmp")
+            os.replace(self.path / f".{previous}.tmp", self.path / previous)
+            (self.path / "background.ply").unlink(missing_ok=True)
+        state = dataclasses.replace(
+            state,
+            dataset=identity,
+            recalibrations=state.recalibrations
+            + (() if recalibration is None else (recalibration,)),
+        )
+        state.save(self.path)  # the commit point: a later resume is a plain one
+        self.recalibration = recalibration
+        if recalibration is not None:
+            logger.warning(
+                "--resume with a new calibration of %s: tasks from %d on use it (the rig "
+                "before is kept as %s); the saved background was built with the poses "
+                "before: dropped, the back-end builds the next",
+                recalibration.describe(rig.unit),
+                recalibration.from_task,
+                previous,
+            )
+        return state
 
     # ------------------------------------------------------------------ metrics
     def read_metrics(self, committed: int) -> list[TaskMetrics]:
