@@ -74,6 +74,28 @@ def test_a_moved_camera_is_written_at_its_new_place(tiny_dataset, tmp_path, caps
     assert json.loads(capsys.readouterr().out)["fits"] is True
 
 
+def test_adopt_takes_only_the_calibration_with_cameras_placed_again(tiny_dataset, tmp_path, capsys):
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    calibrated = open_dataset(root).rig
+    assert main(["calib", "--dataset", str(root), "--adopt", str(root / "rig.json")]) == 0
+    assert "nothing to adopt" in capsys.readouterr().out
+    one = moved(calibrated, 1, (0.0, 0.1, 0.0), (0.0, 1.0, 0.0))
+    save_rig(tmp_path / "one.json", one)
+    assert main(["calib", "--dataset", str(root), "--adopt", str(tmp_path / "one.json")]) == 0
+    assert "adopted" in capsys.readouterr().out
+    assert np.allclose(open_dataset(root).rig[1].center, one[1].center)
+    three = one
+    for i in (0, 2, 3):
+        three = moved(three, i, (0.2, 0.0, 0.0), (0.0, 0.0, 0.0))
+    save_rig(tmp_path / "three.json", three)
+    assert main(["calib", "--dataset", str(root), "--adopt", str(tmp_path / "three.json")]) == 2
+    assert "another world frame" in capsys.readouterr().err
+    args = ["calib", "--dataset", str(root), "--adopt", str(tmp_path / "one.json"), "--write"]
+    assert main(args) == 2
+    assert "not with --write" in capsys.readouterr().err
+
+
 def test_bad_times_are_refused(tiny_dataset, capsys):
     assert main(["calib", "--dataset", str(tiny_dataset), "--times", "3,99"]) != 0
     assert "--times" in capsys.readouterr().err

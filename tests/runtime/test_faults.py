@@ -459,8 +459,8 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
         return dense(*args, **kwargs)
 
     monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
-    summary, metrics = run_frames((ds, learn_scene_model(ds)), tmp_path, 0, 8, config=config)
-    assert summary.failed == 0 and len(metrics) == 8
+    summary, metrics = run_frames((ds, learn_scene_model(ds)), tmp_path, 0, 7, config=config)
+    assert summary.failed == 0 and len(metrics) == 7
     assert summary.calibration is not None
     assert summary.calibration["fits"] is False and summary.calibration["off"] == ["cam1"]
     # What `edgerecon calib --write` would do, from the run's frames.
@@ -473,3 +473,33 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
     assert all("cam1 re-aimed by" in m for m in said)
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["calibration"]["off"] == ["cam1"]
+    # The rig the repair made fit is in the run folder (not in the summary), and
+    # `calib --adopt` names it in the dataset (what a live dataset has to go by); the run's
+    # --resume goes on with it.
+    from edgerecon.cli import main
+    from edgerecon.cli.calib import RECALIBRATED
+    from edgerecon.io.calibration import load_rig
+    from edgerecon.runtime import FrameRange, SessionOptions, run_online
+    from tests.quality.test_calibration import angle_deg
+
+    assert saved["calibration"]["repaired_rig_file"] == "rig.repaired.json"
+    assert "repaired_rig" not in saved["calibration"]
+    repaired = load_rig(tmp_path / "rig.repaired.json")
+    calibrated = open_dataset(tiny_dataset).rig
+    assert angle_deg(repaired[1], calibrated[1]) < 0.3
+    assert (
+        main(["calib", "--dataset", str(src), "--adopt", str(tmp_path / "rig.repaired.json")]) == 0
+    )
+    assert json.loads((src / "dataset.json").read_text())["rig"] == RECALIBRATED
+    adopted = open_dataset(src)
+    assert angle_deg(adopted.rig[1], calibrated[1]) < 0.3
+    summary, metrics = run_online(
+        adopted,
+        config,
+        SessionOptions(frames=FrameRange(start=0, stop=8), resume=True),
+        tmp_path,
+    )
+    assert summary.failed == 0 and [m.time_index for m in metrics] == list(range(8))
+    (rec,) = summary.recalibrations
+    assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)
+    assert summary.calibration is None or summary.calibration["fits"] is not False

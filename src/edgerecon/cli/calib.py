@@ -2,7 +2,8 @@
 cameras without the calibration and measures how far the matches lie from the calibration's
 epipolar lines (``quality.calibration``); a camera that turned or moved since it was
 calibrated is named, its orientation (and place) found again, and with ``--write`` stored in
-a new rig file."""
+a new rig file. ``--adopt`` names instead the rig a run's back-end found from its frames
+(``rig.repaired.json`` in the run folder: a live dataset's only way)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from edgerecon.cli._common import (
     emit_json,
     print_table,
 )
-from edgerecon.io.calibration import save_rig
+from edgerecon.geometry.camera import Rig
+from edgerecon.io.calibration import load_rig, save_rig
 from edgerecon.io.dataset import DESCRIPTOR, Dataset
 from edgerecon.io.ply import atomic_write_text
 from edgerecon.progress import track
@@ -52,7 +54,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "calibration), finds the orientation of a camera that turned (its centre kept) or the "
         "pose of one that moved a little, and "
         "with --write stores it in a new rig file that dataset.json then names. Exit code 3 "
-        "when a camera does not fit (and was not written) or no pair fits.",
+        "when a camera does not fit (and was not written) or no pair fits. --adopt FILE "
+        "names instead a rig that a run's back-end found from its own frames "
+        "(OUT/rig.repaired.json; a live dataset too), once it is the dataset's calibration "
+        "with some cameras placed again.",
     )
     p.add_argument("--dataset", required=True, metavar="DIR", help="dataset folder")
     p.add_argument(
@@ -74,6 +79,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help=f"store the re-found poses of the cameras that turned or moved in {RECALIBRATED} "
         "and name it in dataset.json (the rig file before is kept)",
+    )
+    p.add_argument(
+        "--adopt",
+        metavar="RIG",
+        help="name RIG (a run's rig.repaired.json: the calibration with the cameras its "
+        f"back-end placed again) in dataset.json, copied to {RECALIBRATED}; refused unless "
+        "RIG is the dataset's calibration with some cameras' poses changed",
     )
     add_json_flag(p)
     p.set_defaults(func=run)
@@ -100,7 +112,58 @@ def _times(text: str | None, num_frames: int) -> list[int]:
     return times
 
 
+def _name_rig(ds: Dataset, rig: Rig) -> tuple[str, str]:
+    """``rig`` saved as ``RECALIBRATED`` next to ``dataset.json``, which then names it:
+    (the file written, the rig file named before)."""
+    written = str(save_rig(ds.root / RECALIBRATED, rig.in_world()))
+    descriptor = ds.root / DESCRIPTOR
+    data = json.loads(descriptor.read_text())
+    before = str(data["rig"])
+    data["rig"] = RECALIBRATED
+    atomic_write_text(descriptor, json.dumps(data, indent=2) + "\n")
+    return written, before
+
+
+def _adopt(args: argparse.Namespace) -> int:
+    """``--adopt RIG``: a run's repaired rig named in the dataset (see ``register``)."""
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.runtime.state import describe_changes, pose_changes
+
+    if args.write or args.times is not None:
+        raise DataError("--adopt names a rig found before: not with --write or --times")
+    ds = open_dataset(args.dataset)
+    if ds.layout != "descriptor":
+        raise DataError(f"{ds.root} has no {DESCRIPTOR} to name a rig in")
+    rig = load_rig(args.adopt)
+    try:
+        changes = pose_changes(ds.rig.in_world(), rig.in_world())
+    except EdgereconError as exc:
+        raise DataError(
+            f"--adopt {args.adopt}: not this dataset's calibration with cameras placed again "
+            f"({exc})"
+        ) from None
+    written = before = None
+    if changes:
+        written, before = _name_rig(ds, rig)
+    cams = [{"name": n, "moved": round(m, 6), "turned_deg": round(a, 4)} for n, m, a in changes]
+    if args.json:
+        emit_json({"dataset": str(ds.root), "adopted": cams, "written": written, "before": before})
+    elif not changes:
+        console.print(f"{args.adopt} is the dataset's calibration already: nothing to adopt")
+    else:
+        said = describe_changes(changes, ds.rig.unit)
+        console.print(
+            f"adopted {args.adopt}: {said}; wrote {written} and named it in "
+            f"{ds.root / DESCRIPTOR} (the rig before: {before}); a run's --resume goes on "
+            "with it",
+            soft_wrap=True,
+        )
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.adopt is not None:
+        return _adopt(args)
     ds = dataset_to_check(args.dataset, write=args.write, what="name a new rig in")
     config = CalibrationCheckConfig(max_error_px=args.max_error)
     times = _times(args.times, ds.num_frames)
@@ -111,12 +174,7 @@ def run(args: argparse.Namespace) -> int:
     fixed, estimates, after = fix.rig, list(fix.applied), fix.check
     written = before = None
     if args.write and estimates:
-        written = str(save_rig(ds.root / RECALIBRATED, fixed.in_world()))
-        descriptor = ds.root / DESCRIPTOR
-        data = json.loads(descriptor.read_text())
-        before = data["rig"]
-        data["rig"] = RECALIBRATED
-        atomic_write_text(descriptor, json.dumps(data, indent=2) + "\n")
+        written, before = _name_rig(ds, fixed)
     report: dict[str, Any] = {
         "dataset": str(ds.root),
         **check.to_dict(),

@@ -905,7 +905,9 @@ def repair_summary(fix: Repair, rig: Rig) -> str:
 def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict[str, Any]:
     """``check_calibration``'s answer as a small dict (what a run's back-end sends on):
     ``time``, ``fits``, ``off`` (camera names), ``message``; when it does not fit, also
-    ``repair``: what ``edgerecon calib --write`` would do (:func:`repair_summary`)."""
+    ``repair``: what ``edgerecon calib --write`` would do (:func:`repair_summary`), and when
+    that makes the calibration fit, ``repaired_rig``: that rig in world coordinates (rig
+    JSON, ``Rig.to_dict``; a run writes it as ``rig.repaired.json``)."""
     check = check_calibration(frames, rig)
     verdict = {
         "time": check.time_index,
@@ -918,7 +920,10 @@ def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict
     }
     if check.fits is False:
         try:
-            verdict["repair"] = repair_summary(repair(check, rig), rig)
+            fix = repair(check, rig)
+            verdict["repair"] = repair_summary(fix, rig)
+            if fix.applied and fix.check.fits:
+                verdict["repaired_rig"] = fix.rig.in_world().to_dict()
         except Exception as exc:  # the verdict stands without it
             logger.warning("calibration: the repair could not be worked out: %s", exc)
     return verdict

@@ -436,8 +436,10 @@ class BackEnd:
             return
         if verdict["fits"] is False:
             logger.warning(
-                "%s; from these frames: %s (`edgerecon calib --dataset DIR --write` stores it; "
-                "the run's --resume then goes on with it)",
+                "%s; from these frames: %s (the run writes it to rig.repaired.json in its "
+                "folder when it ends: `edgerecon calib --dataset DIR --adopt "
+                "OUT/rig.repaired.json`, or `calib --write` on recorded frames; `--resume` then "
+                "goes on with it)",
                 verdict["message"],
                 verdict.get("repair", "-"),
             )

@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from edgerecon.config import MIN_CAMERAS
+from edgerecon.geometry.camera import Rig
 from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.frames import FrameSource
@@ -77,6 +78,7 @@ from edgerecon.runtime.memory import peak_resident_mb, resident_mb
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
 from edgerecon.runtime.retention import CloudRetention, RetentionConfig
 from edgerecon.runtime.state import (
+    REPAIRED_RIG_FILE,
     DatasetIdentity,
     OriginalTiming,
     OutputFolder,
@@ -252,8 +254,10 @@ class RunSummary:
     calibration: dict[str, Any] | None = None
     """The back-end's last check of the calibration against the frames
     (``RuntimeConfig.calib_check_s``: ``time``, ``fits``, ``off``, ``message``, and when it
-    does not fit ``repair``: what ``edgerecon calib --write`` would do); None: none made (no
-    background rebuild yet, or the check off)."""
+    does not fit ``repair``: what ``edgerecon calib --write`` would do, and when that fits
+    ``repaired_rig_file``: ``rig.repaired.json`` in the run folder, the rig it makes,
+    which ``edgerecon calib --adopt`` names in the dataset); None: none made (no background
+    rebuild yet, or the check off)."""
     recalibrations: list[dict[str, Any]] = field(default_factory=list)
     """The resumes that went on with cameras placed again since the run started
     (``runtime.state.Recalibration``: ``from_task``, ``cameras``, ``moved``, ``turned_deg``,
@@ -521,7 +525,7 @@ class Session:
             summary.backend_restarts = int(status.get("backend_restarts", 0))
             summary.abandoned_threads = [str(w) for w in status.get("abandoned_threads", [])]
             backend = status.get("backend") or {}
-            summary.calibration = backend.get("calibration")
+            summary.calibration = self._repaired_rig(backend.get("calibration"))
             if summary.abandoned_threads:
                 logger.warning(
                     "%d abandoned thread(s) still running at the end: %s",
@@ -532,6 +536,26 @@ class Session:
             logger.warning("engine status unavailable for the summary: %s", exc)
         atomic_write_text(self.out / "summary.json", json.dumps(summary.to_dict(), indent=2) + "\n")
         return summary
+
+    def _repaired_rig(self, verdict: dict[str, Any] | None) -> dict[str, Any] | None:
+        """The back-end's last calibration verdict for the summary: a rig its repair made
+        fit is written to ``rig.repaired.json`` (named in the verdict's
+        ``repaired_rig_file``); a verdict without one removes an older one there (none
+        made: it stays)."""
+        if verdict is None:
+            return None
+        path = self.out / REPAIRED_RIG_FILE
+        verdict = dict(verdict)
+        rig = verdict.pop("repaired_rig", None)
+        try:
+            if rig is None:
+                path.unlink(missing_ok=True)
+            else:
+                save_rig(path, Rig.from_dict(rig))
+                verdict["repaired_rig_file"] = REPAIRED_RIG_FILE
+        except (OSError, ValueError) as exc:
+            logger.warning("%s: %s", path, exc)
+        return verdict
 
     def _task(self, source: FrameSource, t: int, task: int) -> None:
         for when, kind, seconds in self.options.faults:

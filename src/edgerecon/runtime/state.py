@@ -35,7 +35,7 @@ import os
 import shutil
 import socket
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -65,6 +65,7 @@ RUN_FILES = (
     "backgrounds",
     "tasks",
     "rig.json",
+    "rig.repaired.json",
     "report",
 )
 LOCK_NAME = ".lock"
@@ -103,6 +104,9 @@ def comment_background(comments: Sequence[str]) -> tuple[int, int] | None:
 #: ``rig.json``: the rig the run's tasks use now; ``rig.<k>.json``: the rig before the k-th
 #: recalibration (:class:`Recalibration`).
 RIG_FILE = "rig.json"
+#: The rig the back-end's last calibration check found fitting the frames, when the run's
+#: calibration did not (written when the run ends; ``edgerecon calib --adopt`` takes it).
+REPAIRED_RIG_FILE = "rig.repaired.json"
 #: A camera whose centre moved less than this share of the rig's size and that turned less
 #: than ``_SAME_ANGLE_RAD`` keeps its pose (a rig file written again holds its float64 poses
 #: to ~1e-12 of the rig's size).
@@ -128,6 +132,15 @@ def rig_fingerprint(rig: Rig) -> str:
     return h.hexdigest()[:16]
 
 
+def describe_changes(changes: Iterable[tuple[str, float, float]], unit: str | None = None) -> str:
+    """Cameras' pose changes (name, centre shift, degrees; ``pose_changes``) in words."""
+    u = f" {unit}" if unit else ""
+    return ", ".join(
+        f"{name} ({f'moved {m:.3g}{u}, ' if round(m, 6) > 0 else ''}turned {a:.2f} degrees)"
+        for name, m, a in changes
+    )
+
+
 @dataclass(frozen=True, kw_only=True)
 class Recalibration:
     """A ``--resume`` whose dataset's rig changed the poses of some cameras since the run's
@@ -143,13 +156,8 @@ class Recalibration:
     previous_rig: str
 
     def describe(self, unit: str | None = None) -> str:
-        """E.g. "cam_2 (moved 0.0135 m, turned 2.91 degrees)"."""
-        u = f" {unit}" if unit else ""
-        parts = [
-            f"{name} (moved {m:.3g}{u}, turned {a:.2f} degrees)"
-            for name, m, a in zip(self.cameras, self.moved, self.turned_deg, strict=True)
-        ]
-        return ", ".join(parts)
+        """E.g. "cam_2 (moved 0.0135 m, turned 2.91 degrees)", "cam1 (turned 2.00 degrees)"."""
+        return describe_changes(zip(self.cameras, self.moved, self.turned_deg, strict=True), unit)
 
     def to_dict(self) -> dict[str, Any]:
         return {
