@@ -26,7 +26,7 @@ from edgerecon.runtime import RuntimeConfig
 from edgerecon.runtime.backend import RebuildTimeout, _RebuildWorker, rebuild_background
 from edgerecon.runtime.interrupt import Runner, ThreadAbandoned, stop_thread
 from edgerecon.scene.foreground import RigForeground
-from tests.runtime.conftest import run_frames, runtime_config
+from tests.runtime.conftest import run_frames, runtime_config, wait_until
 
 
 def test_frame_defects_known_answers():
@@ -503,3 +503,49 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
     (rec,) = summary.recalibrations
     assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)
     assert summary.calibration is None or summary.calibration["fits"] is not False
+
+
+def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
+    tiny_dataset, tmp_path, caplog, capsys, monkeypatch
+):
+    """``run --adopt-repairs``, everything on: the back-end's confirmed repair is named in
+    the dataset and the run goes on with it (as a --resume would), every task once."""
+    from edgerecon.cli import main
+    from edgerecon.cli.calib import RECALIBRATED
+    from edgerecon.io.calibration import save_rig
+    from tests.quality.test_calibration import angle_deg, turned
+
+    src = tmp_path / "scene"
+    shutil.copytree(tiny_dataset, src)
+    calibrated = open_dataset(src).rig
+    save_rig(src / "rig.json", turned(calibrated, 1, 2.0, (1.0, 0.0, 0.0)))
+    (tmp_path / "cfg.toml").write_text("[runtime]\ncalib_check_s = 0.001\n")
+    dense = edgerecon.pipeline.reconstruct_foreground
+    calls = []
+
+    def said():
+        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
+
+    def slow(*args, **kwargs):  # tasks of a second or so: rebuilds and checks run beside
+        calls.append(1)
+        time.sleep(1.0)
+        if len(calls) == 4:  # the 4th task waits for the back-end's (confirmed) verdict
+            assert wait_until(said, timeout=120)
+        return dense(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    caplog.set_level(logging.WARNING)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(src), "--out", str(out), "--deadline", "20"]
+    args += ["--config", str(tmp_path / "cfg.toml"), "--adopt-repairs", "--json"]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in result["tasks"]] == list(range(8))
+    assert all(t["status"] == "ok" for t in result["tasks"])
+    (rec,) = result["summary"]["recalibrations"]
+    assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)
+    assert 0 < rec["from_task"] < 8
+    assert json.loads((src / "dataset.json").read_text())["rig"] == RECALIBRATED
+    assert angle_deg(open_dataset(src).rig[1], calibrated[1]) < 0.3
+    adopted = [r.getMessage() for r in caplog.records if "--adopt-repairs" in r.getMessage()]
+    assert len(adopted) == 1 and "cam1 (turned 2.0" in adopted[0]

@@ -124,27 +124,41 @@ def _name_rig(ds: Dataset, rig: Rig) -> tuple[str, str]:
     return written, before
 
 
-def _adopt(args: argparse.Namespace) -> int:
-    """``--adopt RIG``: a run's repaired rig named in the dataset (see ``register``)."""
-    from edgerecon.io.dataset import open_dataset
-    from edgerecon.runtime.state import describe_changes, pose_changes
+def adopt_rig(
+    ds: Dataset, rig: Rig
+) -> tuple[list[tuple[str, float, float]], str | None, str | None]:
+    """Name ``rig`` in ``ds`` (``RECALIBRATED``) when it is the dataset's calibration with
+    some cameras placed again (``runtime.state.pose_changes``; ``DataError`` otherwise):
+    (the changes, the file written, the rig file named before; None, None when ``rig`` is
+    the calibration already). ``calib --adopt`` and ``run --adopt-repairs``."""
+    from edgerecon.runtime.state import pose_changes
 
-    if args.write or args.times is not None:
-        raise DataError("--adopt names a rig found before: not with --write or --times")
-    ds = open_dataset(args.dataset)
     if ds.layout != "descriptor":
         raise DataError(f"{ds.root} has no {DESCRIPTOR} to name a rig in")
-    rig = load_rig(args.adopt)
     try:
         changes = pose_changes(ds.rig.in_world(), rig.in_world())
     except EdgereconError as exc:
         raise DataError(
-            f"--adopt {args.adopt}: not this dataset's calibration with cameras placed again "
-            f"({exc})"
+            f"not this dataset's calibration with cameras placed again ({exc})"
         ) from None
-    written = before = None
-    if changes:
-        written, before = _name_rig(ds, rig)
+    if not changes:
+        return changes, None, None
+    written, before = _name_rig(ds, rig)
+    return changes, written, before
+
+
+def _adopt(args: argparse.Namespace) -> int:
+    """``--adopt RIG``: a run's repaired rig named in the dataset (see ``register``)."""
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.runtime.state import describe_changes
+
+    if args.write or args.times is not None:
+        raise DataError("--adopt names a rig found before: not with --write or --times")
+    ds = open_dataset(args.dataset)
+    try:
+        changes, written, before = adopt_rig(ds, load_rig(args.adopt))
+    except DataError as exc:
+        raise DataError(f"--adopt {args.adopt}: {exc}") from None
     cams = [{"name": n, "moved": round(m, 6), "turned_deg": round(a, 4)} for n, m, a in changes]
     if args.json:
         emit_json({"dataset": str(ds.root), "adopted": cams, "written": written, "before": before})

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
+import logging
 import math
 import shlex
 import signal
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -21,6 +24,7 @@ from edgerecon.cli._config import (
     write_effective,
 )
 from edgerecon.cli._live import TaskDisplay
+from edgerecon.cli.calib import adopt_rig
 from edgerecon.cli.reconstruct import parse_cameras
 from edgerecon.cli.view import add_live_view_arguments, live_viewer
 from edgerecon.io.dataset import open_dataset
@@ -31,8 +35,16 @@ from edgerecon.runtime.config import ONLINE_QUALITIES
 from edgerecon.runtime.messages import AFTER_CRITICAL_PATH
 from edgerecon.runtime.online import run_online
 from edgerecon.runtime.retention import RetentionConfig
-from edgerecon.runtime.session import FAULT_KINDS, RunInterrupted, offline_fscore_label
-from edgerecon.runtime.state import recalibrations_row
+from edgerecon.runtime.session import (
+    FAULT_KINDS,
+    RepairDue,
+    RunInterrupted,
+    offline_fscore_label,
+)
+from edgerecon.runtime.state import describe_changes, recalibrations_row
+from edgerecon.types import DataError
+
+logger = logging.getLogger(__name__)
 
 #: Exit codes of ``run`` (and ``demo``), documented in the README and ``run --help``.
 EXIT_OK = 0
@@ -197,6 +209,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset", required=True, help="dataset folder")
     p.add_argument("--out", "-o", required=True, help="output folder")
     add_online_arguments(p)
+    p.add_argument(
+        "--adopt-repairs",
+        action="store_true",
+        help="when the back-end's calibration check finds a camera moved and a re-aim or "
+        "placement that makes the calibration fit (twice in a row), name that rig in the "
+        "dataset (as `edgerecon calib --adopt`: the dataset's dataset.json changes) and go on "
+        f"with it, as a --resume would (at most {MAX_ADOPTIONS} times a run)",
+    )
     add_json_flag(p)
     p.set_defaults(func=run)
 
@@ -368,6 +388,7 @@ def build_options(
         resume=args.resume,
         overwrite=args.overwrite or (overwrite and not args.resume),
         faults=parse_faults(args.inject_fault),
+        adopt_repairs=getattr(args, "adopt_repairs", False),
     )
 
 
@@ -406,6 +427,7 @@ def resume_command(args: argparse.Namespace) -> str:
         words += ["--background-scale", f"{args.background_scale:g}"]
     words += ["--no-background-updates"] if args.no_background_updates else []
     words += ["--no-clouds"] if args.no_clouds else []
+    words += ["--adopt-repairs"] if getattr(args, "adopt_repairs", False) else []
     if args.keep_clouds is not None:
         words += ["--keep-clouds", str(args.keep_clouds)]
     if args.min_free_mb != RetentionConfig.min_free_mb:
@@ -431,6 +453,11 @@ def sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+#: ``--adopt-repairs``: repaired calibrations a run takes at most (a rig whose repair
+#: keeps coming back needs a calibration).
+MAX_ADOPTIONS = 3
+
+
 def run(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.dataset)
     config, controller_config = online_configs(args, load_config(args))
@@ -439,20 +466,51 @@ def run(args: argparse.Namespace) -> int:
     args.deadline = config.deadline_s if share is None else DeadlineShare(share)
     fixed = parse_fixed(args, dataset)
     options = build_options(args, dataset, config.eval_threshold_for(dataset.rig))
+    if options.adopt_repairs and dataset.layout != "descriptor":
+        raise DataError(
+            f"--adopt-repairs: {dataset.root} has no dataset.json to name a repaired rig in "
+            "(make one with edgerecon import)"
+        )
+
+    def start(on_task: Callable[[TaskMetrics], None]) -> tuple[RunSummary, list[TaskMetrics]]:
+        ds, opts = dataset, options
+        for adoptions in itertools.count(1):
+            try:
+                return run_online(
+                    ds,
+                    config,
+                    opts,
+                    args.out,
+                    engine=args.engine,
+                    address=args.address,
+                    fixed=fixed,
+                    controller_config=controller_config,
+                    on_task=on_task,
+                    command=resume_command(args).removesuffix(" --resume"),
+                )
+            except RepairDue as due:
+                more = adoptions < MAX_ADOPTIONS
+                try:
+                    changes, written, _ = adopt_rig(ds, due.rig)
+                except DataError as exc:  # not adopted: the run goes on as it was
+                    logger.warning("--adopt-repairs: the repaired rig is %s: not adopted", exc)
+                    more = False
+                else:
+                    logger.warning(
+                        "--adopt-repairs: %s after %d tasks: %s named in the dataset; the run "
+                        "goes on with it%s",
+                        describe_changes(changes, ds.rig.unit) or "nothing changed",
+                        due.summary.tasks,
+                        written,
+                        "" if more else f" (the last of {MAX_ADOPTIONS} a run takes)",
+                    )
+                ds = open_dataset(args.dataset)
+                opts = dataclasses.replace(opts, resume=True, overwrite=False, adopt_repairs=more)
+        raise AssertionError("unreachable")
+
     code = run_and_report(
         args,
-        lambda on_task: run_online(
-            dataset,
-            config,
-            options,
-            args.out,
-            engine=args.engine,
-            address=args.address,
-            fixed=fixed,
-            controller_config=controller_config,
-            on_task=on_task,
-            command=resume_command(args).removesuffix(" --resume"),
-        ),
+        start,
         title=f"{dataset.name}: online run, deadline "
         + (f"{config.deadline_s:g} s" if share is None else f"{args.deadline} of the original"),
         total=num_tasks(args, dataset),

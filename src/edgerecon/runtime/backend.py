@@ -429,6 +429,7 @@ class BackEnd:
         # One frame set's matches vary: its verdict counts when the next check agrees (it
         # comes at the next rebuild); pooled ones count at once.
         confirmed = key == self._calib_last or len(verdict["times"]) > 1
+        verdict["confirmed"] = confirmed
         self._calib_last = key
         if not confirmed and key != self._calib_said and verdict["fits"] is not None:
             self._calib_due = 0.0

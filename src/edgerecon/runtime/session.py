@@ -156,6 +156,11 @@ class SessionOptions:
     faults: tuple[tuple[int, str, float], ...] = ()
     """Drills: (task number, fault kind, seconds) injected before that task (``hang``: into
     the front-end, the others into the back-end)."""
+    adopt_repairs: bool = False
+    """``run --adopt-repairs``: when the back-end's calibration check (confirmed) finds a
+    camera it can re-aim or place again so that the calibration fits, the session stops
+    after the task in progress with :class:`RepairDue` (summary and ``rig.repaired.json``
+    written); the caller names that rig in the dataset and resumes."""
 
     def __post_init__(self) -> None:
         if self.policy not in ("all", "newest"):
@@ -276,6 +281,18 @@ class RunSummary:
             if isinstance(v, float) and not math.isfinite(v):
                 d[k] = None
         return d
+
+
+class RepairDue(Exception):
+    """The run stopped at a task boundary to take a repaired calibration
+    (``SessionOptions.adopt_repairs``): its summary and ``rig.repaired.json`` are written;
+    ``rig`` (world coordinates) is what to name in the dataset before a ``--resume``."""
+
+    def __init__(self, summary: RunSummary, metrics: list[TaskMetrics], rig: Rig) -> None:
+        super().__init__(f"a repaired calibration after {summary.tasks} tasks")
+        self.summary = summary
+        self.metrics = metrics
+        self.rig = rig
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -505,6 +522,10 @@ class Session:
                 try:
                     for t in schedule:
                         self._task(source, t, self.totals.tasks)
+                        repaired = self._repair_due()
+                        if repaired is not None:
+                            summary = self._finish(wall0, interrupted=True)
+                            raise RepairDue(summary, self.metrics, repaired)
                 finally:
                     if self.dataset.is_live:
                         self._stream_stats(source)
@@ -536,6 +557,21 @@ class Session:
             logger.warning("engine status unavailable for the summary: %s", exc)
         atomic_write_text(self.out / "summary.json", json.dumps(summary.to_dict(), indent=2) + "\n")
         return summary
+
+    def _repair_due(self) -> Rig | None:
+        """With ``adopt_repairs``: the rig of the back-end's confirmed repair, when there is
+        one (asked after each task: a look-up in the back-end's counters)."""
+        if not self.options.adopt_repairs:
+            return None
+        if not self.dataset.is_live and self._next_bound() is None:
+            return None  # the last task: rig.repaired.json is written at the end anyway
+        try:
+            verdict = (self.engine.status().get("backend") or {}).get("calibration") or {}
+            rig = verdict.get("repaired_rig") if verdict.get("confirmed") else None
+            return None if rig is None else Rig.from_dict(rig)
+        except Exception as exc:  # a back-end that does not answer: no repair now
+            logger.debug("calibration verdict unavailable: %s", exc)
+            return None
 
     def _repaired_rig(self, verdict: dict[str, Any] | None) -> dict[str, Any] | None:
         """The back-end's last calibration verdict for the summary: a rig its repair made
