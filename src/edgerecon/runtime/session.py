@@ -27,6 +27,12 @@ Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn 
 * ``background.ply``: the newest of them (the background itself, as the back-end built it;
   ``--resume`` restores it);
 * ``rig.json``: the rig (written when the run starts; the viewer draws its cameras);
+  ``rig.<k>.json``: the rig before the k-th resume with cameras placed again
+  (:mod:`edgerecon.runtime.state`);
+* ``rig.repaired.json``: written at the end when the back-end's last calibration check
+  found a camera moved and a re-aim or placement that makes the calibration fit (``edgerecon
+  calib --adopt`` names it in the dataset; ``run --adopt-repairs`` does so during the run,
+  :class:`RepairDue`);
 * ``state.json``: the run state (:class:`~edgerecon.runtime.state.RunState`), written last for
   each task: the commit point of ``--resume``;
 * ``summary.json``: the run's summary (the paper's Table III), also after Ctrl-C;
