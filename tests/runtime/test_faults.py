@@ -534,6 +534,16 @@ def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
         return dense(*args, **kwargs)
 
     monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    import edgerecon.runtime.online as online
+
+    learned = []
+    learn = online.learn_scene_model
+
+    def counted(*args, **kwargs):
+        learned.append(args)
+        return learn(*args, **kwargs)
+
+    monkeypatch.setattr(online, "learn_scene_model", counted)
     caplog.set_level(logging.WARNING)
     out = tmp_path / "run"
     args = ["run", "--dataset", str(src), "--out", str(out), "--deadline", "20"]
@@ -549,3 +559,5 @@ def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
     assert angle_deg(open_dataset(src).rig[1], calibrated[1]) < 0.3
     adopted = [r.getMessage() for r in caplog.records if "--adopt-repairs" in r.getMessage()]
     assert len(adopted) == 1 and "cam1 (turned 2.0" in adopted[0]
+    # The background models went on across the adoption: learned once, at the start.
+    assert len(learned) == 1

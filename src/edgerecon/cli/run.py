@@ -473,7 +473,7 @@ def run(args: argparse.Namespace) -> int:
         )
 
     def start(on_task: Callable[[TaskMetrics], None]) -> tuple[RunSummary, list[TaskMetrics]]:
-        ds, opts = dataset, options
+        ds, opts, scene = dataset, options, None
         for adoptions in itertools.count(1):
             try:
                 return run_online(
@@ -487,6 +487,7 @@ def run(args: argparse.Namespace) -> int:
                     controller_config=controller_config,
                     on_task=on_task,
                     command=resume_command(args).removesuffix(" --resume"),
+                    scene=scene,
                 )
             except RepairDue as due:
                 more = adoptions < MAX_ADOPTIONS
@@ -506,6 +507,7 @@ def run(args: argparse.Namespace) -> int:
                     )
                 ds = open_dataset(args.dataset)
                 opts = dataclasses.replace(opts, resume=True, overwrite=False, adopt_repairs=more)
+                scene = due.scene  # the models go on (not learned again from the stream)
         raise AssertionError("unreachable")
 
     code = run_and_report(

@@ -638,7 +638,10 @@ class _RebuildWorker:
             ) from None
 
     def close(self) -> None:
+        """Stop the worker: a rebuild or check still running there is killed (nothing
+        takes its result once the back-end stops; left alone it held the back-end's stop
+        for up to its join timeout and went on using a core after the run)."""
         with self._lock:
             pool, self._pool = self._pool, None
         if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+            _kill_pool(pool)

@@ -15,6 +15,7 @@ the next task on.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -69,6 +70,30 @@ class SceneModel:
     static_floors: tuple[Plane | None, ...] = ()
     """Per static cloud, its ground plane (or None)."""
 
+    @classmethod
+    def of_tracker(
+        cls, tracker: SceneTracker, initial_background: FrameSet | None = None, seconds: float = 0.0
+    ) -> SceneModel:
+        """What ``tracker``'s models are now (their states are taken as they are: pass a
+        copy of a tracker that goes on learning)."""
+        return cls(
+            states=tuple(tracker.foreground.states()),
+            step=tracker.step,
+            next_update=tracker.next_update,
+            initial_background=initial_background,
+            learned_from=tracker.learned_from,
+            seconds=seconds,
+            static_step=tracker.static_step,
+            static_from=tracker.static_from,
+            static_clouds=tracker.foreground.static_clouds,
+            static_floors=tracker.foreground.static_floors,
+        )
+
+    def without_geometry(self) -> SceneModel:
+        """The models without their static scenes (3D clouds made with the rig's poses):
+        what goes on after cameras were placed again (the next static step builds them)."""
+        return dataclasses.replace(self, static_clouds=(), static_floors=(), static_from=None)
+
     def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
         """Live background models (a copy: the snapshot stays as it is)."""
         fg = RigForeground.from_states(
@@ -106,18 +131,7 @@ def learn_scene_model(
     finally:
         if clip is not None:
             clip.close()
-    return SceneModel(
-        states=tuple(tracker.foreground.states()),
-        step=tracker.step,
-        next_update=tracker.next_update,
-        initial_background=initial,
-        learned_from=tracker.learned_from,
-        seconds=time.perf_counter() - t0,
-        static_step=tracker.static_step,
-        static_from=tracker.static_from,
-        static_clouds=tracker.foreground.static_clouds,
-        static_floors=tracker.foreground.static_floors,
-    )
+    return SceneModel.of_tracker(tracker, initial, time.perf_counter() - t0)
 
 
 def foreground_at(
@@ -175,6 +189,12 @@ class Engine(Protocol):
 
     def inject_frontend_fault(self, kind: str) -> None:
         """Drill: ``hang`` (the next task loops for ever; ``FrontEnd.inject_fault``)."""
+        ...
+
+    def scene_model(self) -> SceneModel | None:
+        """The front-end's background models as they are now, between two tasks (None:
+        none), with the clip frame set the engine started from: what a run that goes on
+        starts from instead of learning them again."""
         ...
 
     def close(self) -> None: ...
@@ -415,6 +435,12 @@ class EmbeddedEngine:
 
     def inject_frontend_fault(self, kind: str) -> None:
         self.frontend.inject_fault(kind)
+
+    def scene_model(self) -> SceneModel | None:
+        model = self.frontend.scene_model()
+        if model is None:
+            return None
+        return dataclasses.replace(model, initial_background=self.scene.initial_background)
 
     def close(self) -> None:
         self.backend.stop(timeout=5.0)

@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,6 +67,9 @@ from edgerecon.scene.foreground import ForegroundResult
 from edgerecon.scene.still import StillCache, StillPlan, StillSnapshot
 from edgerecon.scene.stream import SceneTracker
 from edgerecon.types import FrameSet, PointCloud, StageTimings
+
+if TYPE_CHECKING:
+    from edgerecon.runtime.engine import SceneModel
 
 logger = logging.getLogger(__name__)
 
@@ -383,6 +386,18 @@ class FrontEnd:
             what,
             saved.next_update,
         )
+
+    def scene_model(self) -> SceneModel | None:
+        """A copy of the background models as they are now (``SceneModel``, without a clip
+        frame set; None: none), between two tasks: what a run that goes on with another rig
+        starts from (``run --adopt-repairs``)."""
+        from edgerecon.runtime.engine import SceneModel
+
+        if self.scene is None:
+            return None
+        with self._holding_scene() as scene:
+            copy = scene.snapshot()
+        return SceneModel.of_tracker(copy)
 
     def pending_updates(self, time_index: int) -> list[int]:
         """Time indices of the scheduled background updates still to apply before the task

@@ -25,6 +25,7 @@ again.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import socket
@@ -300,6 +301,12 @@ class _FrontendActor:
     def inject_fault(self, kind: str) -> None:
         self.frontend.inject_fault(kind)
 
+    def scene_model(self) -> SceneModel | None:
+        model = self.frontend.scene_model()
+        if model is None:
+            return None
+        return dataclasses.replace(model, initial_background=self._initial_background)
+
     def run_task(
         self,
         frames_ref: list[Any],
@@ -507,6 +514,11 @@ class RayEngine:
 
     def inject_frontend_fault(self, kind: str) -> None:
         _ray().get(self.frontend.inject_fault.remote(kind))
+
+    def scene_model(self) -> SceneModel | None:
+        limit = self.config.watchdog_s + 2 * _RPC_GRACE_S
+        model: SceneModel | None = _ray().get(self.frontend.scene_model.remote(), timeout=limit)
+        return model
 
     def close(self) -> None:
         ray = _ray()

@@ -78,7 +78,7 @@ from edgerecon.quality.frames import (
     without_defective,
 )
 from edgerecon.quality.metrics import fscore
-from edgerecon.runtime.engine import Engine
+from edgerecon.runtime.engine import Engine, SceneModel
 from edgerecon.runtime.frontend import TaskOutput
 from edgerecon.runtime.memory import peak_resident_mb, resident_mb
 from edgerecon.runtime.messages import TaskMetrics, describe_exception
@@ -292,13 +292,23 @@ class RunSummary:
 class RepairDue(Exception):
     """The run stopped at a task boundary to take a repaired calibration
     (``SessionOptions.adopt_repairs``): its summary and ``rig.repaired.json`` are written;
-    ``rig`` (world coordinates) is what to name in the dataset before a ``--resume``."""
+    ``rig`` (world coordinates) is what to name in the dataset before a ``--resume``;
+    ``scene``: the front-end's background models at the next task, without their static
+    scenes (made with the poses before), for ``run_online(scene=...)`` (None: learn them
+    again)."""
 
-    def __init__(self, summary: RunSummary, metrics: list[TaskMetrics], rig: Rig) -> None:
+    def __init__(
+        self,
+        summary: RunSummary,
+        metrics: list[TaskMetrics],
+        rig: Rig,
+        scene: SceneModel | None = None,
+    ) -> None:
         super().__init__(f"a repaired calibration after {summary.tasks} tasks")
         self.summary = summary
         self.metrics = metrics
         self.rig = rig
+        self.scene = scene
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -530,8 +540,9 @@ class Session:
                         self._task(source, t, self.totals.tasks)
                         repaired = self._repair_due()
                         if repaired is not None:
+                            scene = self._scene_model()
                             summary = self._finish(wall0, interrupted=True)
-                            raise RepairDue(summary, self.metrics, repaired)
+                            raise RepairDue(summary, self.metrics, repaired, scene)
                 finally:
                     if self.dataset.is_live:
                         self._stream_stats(source)
@@ -578,6 +589,16 @@ class Session:
         except Exception as exc:  # a back-end that does not answer: no repair now
             logger.debug("calibration verdict unavailable: %s", exc)
             return None
+
+    def _scene_model(self) -> SceneModel | None:
+        """The front-end's background models now, without their static scenes (None when
+        the engine cannot give them: the next run learns them again)."""
+        try:
+            model = self.engine.scene_model()
+        except Exception as exc:
+            logger.warning("the background models could not be handed on: %s", exc)
+            return None
+        return None if model is None else model.without_geometry()
 
     def _repaired_rig(self, verdict: dict[str, Any] | None) -> dict[str, Any] | None:
         """The back-end's last calibration verdict for the summary: a rig its repair made
