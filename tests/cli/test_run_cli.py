@@ -7,6 +7,7 @@ import json
 import sys
 import time
 
+import numpy as np
 import pytest
 
 import edgerecon.pipeline
@@ -292,3 +293,72 @@ def test_the_original_pipeline_is_timed_on_usable_frames(
     assert main([*words, "--out", str(tmp_path / "b"), "--frames", "3:4"]) == 2
     err = capsys.readouterr().err
     assert "could not be measured" in err and "give --deadline in seconds" in err
+
+
+def test_adopt_repairs_loop_adopts_resumes_and_stops_adopting(
+    tiny_dataset, tmp_path, capsys, monkeypatch
+):
+    """``run --adopt-repairs``'s loop (``run_online`` replaced): each ``RepairDue`` names
+    its rig in the dataset and resumes with the models it hands on and the rest of
+    ``--duration``; after ``MAX_ADOPTIONS`` the run stops adopting; a rig that is not the
+    calibration with cameras placed again is not adopted and the run goes on as it was."""
+    import shutil
+
+    import edgerecon.cli.run as cli_run
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.runtime.session import RepairDue, RunSummary
+    from tests.quality.test_calibration import moved
+
+    root = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, root)
+    rig = open_dataset(root).rig
+    fixes = [moved(rig, 1, (0.0, 0.0, 0.0), (0.0, d, 0.0)) for d in (1.0, 1.5, 2.0)]
+    calls = []
+
+    def fake(ds, config, options, out, **kw):
+        calls.append((ds.rig, options, kw["scene"]))
+        if len(calls) <= len(fixes):
+            summary = RunSummary(tasks=len(calls))
+            raise RepairDue(summary, [], fixes[len(calls) - 1], scene=f"models {len(calls)}")
+        return RunSummary(tasks=9), []
+
+    monkeypatch.setattr(cli_run, "run_online", fake)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(root), "--out", str(out), "--deadline", "20"]
+    assert main([*args, "--adopt-repairs", "--duration", "60", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["summary"]["tasks"] == 9
+    assert len(calls) == 4
+    assert not calls[0][1].resume and calls[0][2] is None
+    for i, (used, options, scene) in enumerate(calls[1:]):
+        assert options.resume and not options.overwrite
+        assert np.allclose(used[1].R, fixes[i][1].R)  # the adopted rig, read from the dataset
+        assert scene == f"models {i + 1}"
+        assert 0 < options.duration_s < 60  # the rest of the run's --duration
+    assert [c[1].adopt_repairs for c in calls] == [True, True, True, False]  # at most 3
+
+    # A repaired rig that is another world frame is not adopted: the run goes on as it was.
+    calls.clear()
+    fixes[:] = [
+        moved(
+            moved(moved(rig, 0, (1, 0, 0), (0, 0, 0)), 2, (1, 0, 0), (0, 0, 0)),
+            3,
+            (1, 0, 0),
+            (0, 0, 0),
+        )
+    ]
+    before = (root / "dataset.json").read_text()
+    assert main([*args, "--adopt-repairs", "--overwrite", "--json"]) == 0
+    capsys.readouterr()
+    assert len(calls) == 2 and not calls[1][1].adopt_repairs
+    assert (root / "dataset.json").read_text() == before
+
+
+def test_adopt_repairs_needs_a_dataset_json(tmp_path, capsys):
+    from tests.conftest import shared_data
+
+    root = shared_data("utrecht4cam")  # a layout recognised from its files: no dataset.json
+    out = tmp_path / "o"
+    args = ["run", "--dataset", str(root), "--out", str(out), "--deadline", "1"]
+    assert main([*args, "--adopt-repairs"]) == 2
+    assert "no dataset.json to name a repaired rig in" in capsys.readouterr().err
+    assert not out.exists()  # refused before any work

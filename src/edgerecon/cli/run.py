@@ -9,6 +9,7 @@ import logging
 import math
 import shlex
 import signal
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -474,6 +475,7 @@ def run(args: argparse.Namespace) -> int:
 
     def start(on_task: Callable[[TaskMetrics], None]) -> tuple[RunSummary, list[TaskMetrics]]:
         ds, opts, scene = dataset, options, None
+        began = time.monotonic()
         for adoptions in itertools.count(1):
             try:
                 return run_online(
@@ -506,7 +508,12 @@ def run(args: argparse.Namespace) -> int:
                         "" if more else f" (the last of {MAX_ADOPTIONS} a run takes)",
                     )
                 ds = open_dataset(args.dataset)
-                opts = dataclasses.replace(opts, resume=True, overwrite=False, adopt_repairs=more)
+                duration = options.duration_s
+                if duration is not None:  # --duration is the whole run's, restarts included
+                    duration = max(duration - (time.monotonic() - began), 1e-3)
+                opts = dataclasses.replace(
+                    opts, resume=True, overwrite=False, adopt_repairs=more, duration_s=duration
+                )
                 scene = due.scene  # the models go on (not learned again from the stream)
         raise AssertionError("unreachable")
 
