@@ -470,7 +470,7 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
         r.getMessage() for r in caplog.records if "moved since it was calibrated" in r.getMessage()
     ]
     assert len(said) <= 1  # said once (when two checks in a row agree), never repeated
-    assert all("cam1 re-aimed by" in m for m in said)
+    assert all("cam1 re-aimed by" in m and "rig.repaired.json" in m for m in said)
     saved = json.loads((tmp_path / "summary.json").read_text())
     assert saved["calibration"]["off"] == ["cam1"]
     # The rig the repair made fit is in the run folder (not in the summary), and

@@ -437,12 +437,14 @@ class BackEnd:
             return
         if verdict["fits"] is False:
             logger.warning(
-                "%s; from these frames: %s (the run writes it to rig.repaired.json in its "
-                "folder when it ends: `edgerecon calib --dataset DIR --adopt "
-                "OUT/rig.repaired.json`, or `calib --write` on recorded frames; `--resume` then "
-                "goes on with it)",
+                "%s; from these frames: %s%s",
                 verdict["message"],
                 verdict.get("repair", "-"),
+                " (the run writes that rig to rig.repaired.json in its folder when it ends: "
+                "`edgerecon calib --dataset DIR --adopt OUT/rig.repaired.json`, or `calib "
+                "--write` on recorded frames; `--resume` then goes on with it)"
+                if "repaired_rig" in verdict
+                else "",
             )
         elif self._calib_said is not None:
             logger.warning("back-end: %s", verdict["message"])
