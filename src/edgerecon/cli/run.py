@@ -214,7 +214,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--adopt-repairs",
         action="store_true",
         help="when the back-end's calibration check finds a camera moved and a re-aim or "
-        "placement that makes the calibration fit (twice in a row), name that rig in the "
+        "placement that makes the calibration fit (two checks agree, or frame sets pooled), "
+        "name that rig in the "
         "dataset (as `edgerecon calib --adopt`: the dataset's dataset.json changes) and go on "
         f"with it, as a --resume would (at most {MAX_ADOPTIONS} times a run)",
     )
