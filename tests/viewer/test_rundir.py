@@ -13,6 +13,17 @@ def test_poll_reads_new_tasks_incrementally(tmp_path):
     assert [m.task for m in folder.poll()] == [0, 1]
     assert folder.poll() == []
     assert folder.rig() is not None and len(folder.rig()) == 5
+    assert folder.rig() is folder.rig()  # read once
+    # A resume with a camera placed again writes rig.json anew: read again.
+    from edgerecon.io.calibration import save_rig
+    from tests.quality.test_calibration import moved
+
+    first = folder.rig()
+    save_rig(run / "rig.json", moved(first, 1, (0.1, 0.0, 0.0), (0.0, 1.0, 0.0)))
+    placed = folder.rig()
+    assert placed is not first and placed is folder.rig()
+    assert placed[1].center == pytest.approx(moved(first, 1, (0.1, 0, 0), (0, 1, 0))[1].center)
+    assert placed[0].center == pytest.approx(first[0].center)
     # A line written in two pieces is read once it is complete.
     line = json.dumps(task_metrics(2).to_dict())
     with open(run / "metrics.jsonl", "a") as f:

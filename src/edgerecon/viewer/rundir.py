@@ -73,6 +73,7 @@ class RunFolder:
         self._partial = b""
         self._rig: Rig | None = None
         self._rig_tried = False
+        self._rig_file: tuple[int, int, int] | None = None  # rig.json's (inode, mtime, size)
         self._bg_cache: tuple[tuple[int, int], PointCloud] | None = None
 
     @property
@@ -123,17 +124,27 @@ class RunFolder:
         self._inode = None
         self._rig = None
         self._rig_tried = False
+        self._rig_file = None
         self.resets += 1
 
     # ------------------------------------------------------------------ files
     def rig(self) -> Rig | None:
-        """The run's rig: ``rig.json`` (written by the session), else the dataset named in
+        """The run's rig: ``rig.json`` (written by the session; read again when it is
+        replaced: a resume with cameras placed again), else the dataset named in
         ``state.json`` (older runs); None when neither is readable."""
-        if self._rig is not None or (self._rig_tried and not (self.path / RIG).exists()):
+        try:
+            st = (self.path / RIG).stat()
+            current: tuple[int, int, int] | None = (st.st_ino, st.st_mtime_ns, st.st_size)
+        except OSError:
+            current = None
+        if current is not None and current != self._rig_file:
+            self._rig_tried = False
+        if self._rig_tried:
             return self._rig
         self._rig_tried = True
         try:
-            if (self.path / RIG).exists():
+            if current is not None:
+                self._rig_file = current  # a file that does not read is tried once
                 self._rig = read_rig_json(self.path / RIG)
             elif (self.path / STATE).exists():
                 from edgerecon.io.dataset import open_dataset

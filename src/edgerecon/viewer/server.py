@@ -208,8 +208,9 @@ class RunViewer:
             new = self.run.poll()
             if self.run.resets != resets:
                 self._shown = None
-            if self._rig is None and self.run.rig() is not None:
-                self._set_rig(self.run.rig())  # type: ignore[arg-type]
+            rig = self.run.rig()
+            if rig is not None and rig is not self._rig:  # the first, or placed again
+                self._set_rig(rig)
             if not new and self._shown is not None:
                 self._update_status()
                 return 0
