@@ -328,6 +328,35 @@ def test_a_background_rebuild_that_hangs_has_its_process_killed():
         RuntimeConfig(deadline_s=2.0, rebuild_timeout_s=0.0)
 
 
+def test_closing_the_rebuild_worker_kills_what_runs_there():
+    # A rebuild (or calibration check) still running when the back-end stops: its result
+    # has no taker; the stop waited for it (up to 5 s) and it ran on after the run ended.
+    import concurrent.futures
+    import threading
+    from concurrent.futures.process import BrokenProcessPool
+
+    worker = _RebuildWorker(nice=0)
+    pid = worker.call(os.getpid, timeout_s=120.0)
+    errors: list[BaseException] = []
+
+    def rebuild() -> None:
+        try:
+            worker.call(_sleep_for_ever, timeout_s=600.0)
+        except BaseException as exc:  # what the rebuild loop gets
+            errors.append(exc)
+
+    th = threading.Thread(target=rebuild)
+    th.start()
+    time.sleep(1.0)
+    t0 = time.monotonic()
+    worker.close()
+    th.join(10.0)
+    assert not th.is_alive() and time.monotonic() - t0 < 10.0
+    assert len(errors) == 1
+    assert isinstance(errors[0], (BrokenProcessPool, concurrent.futures.CancelledError))
+    assert _gone(pid), "the worker's process was killed"
+
+
 def _rebuild_hanging_once(rig, config, frames, masks):  # runs in the rebuild process
     marker = Path(os.environ["EDGERECON_TEST_REBUILD_MARKER"])
     if not marker.exists():

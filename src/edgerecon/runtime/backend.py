@@ -363,6 +363,8 @@ class BackEnd:
             except RebuildTimeout:
                 raise
             except Exception as exc:  # the background is still rebuilt
+                if self._stop:  # the run ended under it (its process killed): ends quietly
+                    raise
                 logger.warning(
                     "back-end: the still foreground of time %d failed: %s",
                     frames.time_index,
@@ -422,6 +424,8 @@ class BackEnd:
         except RebuildTimeout:
             raise
         except Exception as exc:  # a check that fails is not the run's problem
+            if self._stop:  # the run ended under it (its process killed): ends quietly
+                raise
             logger.warning("back-end: the calibration check failed: %s", describe_exception(exc))
             return
         self.stats["calibration"] = verdict
