@@ -61,6 +61,15 @@ def test_only_the_newest_of_several_new_tasks_is_drawn(tmp_path):
         assert viewer.replay(1)
         assert viewer._shown.task == 1
         assert "measured / inferred" not in viewer._gui["coloring"].options
+        # A resume with cam1 placed again replaces rig.json: its frustum moves.
+        from edgerecon.io.calibration import load_rig, save_rig
+        from tests.quality.test_calibration import moved
+
+        before = np.array(viewer._frusta[1].position)
+        save_rig(run / "rig.json", moved(load_rig(run / "rig.json"), 1, (0.5, 0, 0), (0, 0, 0)))
+        viewer.refresh()
+        after = np.array(viewer._frusta[1].position)
+        assert np.linalg.norm(after - before) == pytest.approx(0.5, abs=1e-6)
 
 
 def test_initial_view_looks_at_the_scene_with_the_rigs_up():
