@@ -596,3 +596,30 @@ def test_resume_refuses_a_calibration_that_is_not_cameras_placed_again(tiny, tmp
     state = resume(moved(ds.rig, 1, (0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
     assert state is not None and state.recalibrations[0].cameras == ("cam1",)
     assert (tmp_path / "rig.0.json").exists()
+
+
+def test_a_run_saved_with_the_fingerprint_before_resumes(tiny, tmp_path):
+    """Run states saved before the fingerprint covered the rig's frame and unit resume
+    (the same rig: no recalibration recorded; the state takes the new fingerprint)."""
+    import dataclasses
+
+    from edgerecon.io.calibration import save_rig
+    from edgerecon.runtime.state import rig_fingerprint
+
+    ds = tiny[0]
+    old = _state(ds)
+    legacy = dataclasses.replace(old.dataset, rig_fingerprint=rig_fingerprint(ds.rig, frame=False))
+    dataclasses.replace(old, dataset=legacy).save(tmp_path)
+    save_rig(tmp_path / "rig.json", ds.rig)
+    with OutputFolder(tmp_path).acquire() as folder:
+        state = folder.prepare(
+            resume=True,
+            overwrite=False,
+            identity=DatasetIdentity.of(ds),
+            frames=(0, 4, 1),
+            rig=ds.rig,
+        )
+        assert folder.recalibration is None
+    assert state is not None and state.recalibrations == ()
+    assert RunState.load(tmp_path).dataset == DatasetIdentity.of(ds)
+    assert not (tmp_path / "rig.0.json").exists()

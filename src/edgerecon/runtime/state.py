@@ -119,11 +119,13 @@ def previous_rig_file(k: int) -> str:
     return f"rig.{int(k)}.json"
 
 
-def rig_fingerprint(rig: Rig) -> str:
+def rig_fingerprint(rig: Rig, *, frame: bool = True) -> str:
     """SHA-256 (16 hex digits) of every camera's name, size, K, distortion and pose, and the
-    rig's unit, up direction, local origin and reference system."""
+    rig's unit, up direction, local origin and reference system (``frame=False``: without
+    them, as run states saved before 2026-12-07 have it)."""
     h = hashlib.sha256()
-    h.update(repr((rig.unit, tuple(rig.up), tuple(rig.origin), rig.crs)).encode())
+    if frame:
+        h.update(repr((rig.unit, tuple(rig.up), tuple(rig.origin), rig.crs)).encode())
     for cam in rig:
         h.update(cam.name.encode())
         h.update(np.asarray(cam.size, np.int64).tobytes())
@@ -521,7 +523,8 @@ class OutputFolder:
                 f"{where} a different calibration, and the run's own rig ({path}) cannot be "
                 f"read ({exc}): start again with --overwrite"
             ) from None
-        if rig_fingerprint(before) != state.dataset.rig_fingerprint:
+        saved = state.dataset.rig_fingerprint
+        if saved not in (rig_fingerprint(before), rig_fingerprint(before, frame=False)):
             raise EdgereconError(
                 f"{where} a different calibration, and {path} is not the rig of the run's "
                 "last task: start again with --overwrite"
