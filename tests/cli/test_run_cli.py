@@ -362,3 +362,27 @@ def test_adopt_repairs_needs_a_dataset_json(tmp_path, capsys):
     assert main([*args, "--adopt-repairs"]) == 2
     assert "no dataset.json to name a repaired rig in" in capsys.readouterr().err
     assert not out.exists()  # refused before any work
+
+
+def test_a_run_that_wrote_a_repaired_rig_says_how_to_take_it(
+    tiny_dataset, tmp_path, capsys, monkeypatch
+):
+    import edgerecon.cli.run as cli_run
+    from edgerecon.runtime.session import RunSummary
+
+    verdict = {"fits": False, "short": "off: cam1", "repair": "cam1 re-aimed by 2.00 degrees"}
+
+    def fake(ds, config, options, out, **kw):
+        return RunSummary(tasks=3, calibration=dict(verdict)), []
+
+    monkeypatch.setattr(cli_run, "run_online", fake)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(tiny_dataset), "--out", str(out), "--deadline", "20"]
+    assert main(args) == 0
+    assert "calib --dataset" not in capsys.readouterr().err  # no rig written: nothing said
+    verdict["repaired_rig_file"] = "rig.repaired.json"
+    assert main([*args, "--json"]) == 0
+    said = capsys.readouterr()
+    json.loads(said.out)  # stdout stays the JSON
+    assert f"calib --dataset {tiny_dataset} --adopt {out / 'rig.repaired.json'}" in said.err
+    assert "cam1 re-aimed by 2.00 degrees" in said.err and "--resume" in said.err

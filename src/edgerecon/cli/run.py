@@ -12,6 +12,7 @@ import signal
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, error_console, print_table
@@ -530,6 +531,24 @@ def run(args: argparse.Namespace) -> int:
     return code
 
 
+def say_repaired_rig(args: argparse.Namespace, summary: RunSummary) -> None:
+    """When the run wrote ``rig.repaired.json`` (its calibration check found a camera moved
+    and the rig that fits): the commands that take it (on stderr: ``--json`` keeps stdout)."""
+    cal = summary.calibration or {}
+    name = cal.get("repaired_rig_file")
+    if not name or not getattr(args, "dataset", None):
+        return
+    path = Path(args.out) / str(name)
+    adopt = shlex.join(["edgerecon", "calib", "--dataset", str(args.dataset), "--adopt", str(path)])
+    error_console.print(
+        f"[yellow]the calibration does not fit the frames[/]: {path} holds the rig that "
+        f"fits ({cal.get('repair')}); take it with:\n  {adopt}\nthen go on "
+        f"with:\n  {resume_command(args)}",
+        highlight=False,
+        soft_wrap=True,
+    )
+
+
 def run_and_report(
     args: argparse.Namespace, start: Any, *, title: str, total: int | None = None
 ) -> int:
@@ -549,6 +568,7 @@ def run_and_report(
             highlight=False,
             soft_wrap=True,
         )
+        say_repaired_rig(args, stop.summary)
         if args.json:
             emit_json(
                 {"summary": stop.summary.to_dict(), "tasks": [m.to_dict() for m in stop.metrics]}
@@ -559,6 +579,7 @@ def run_and_report(
     else:
         print_summary(title, summary)
         console.print(f"outputs in {args.out}")
+    say_repaired_rig(args, summary)
     if summary.failed:
         error_console.print(
             f"[red]{summary.failed} of {summary.tasks} tasks failed[/] (reasons in "
