@@ -108,7 +108,15 @@ def test_info_check_says_whether_the_calibration_fits(tiny_dataset, tmp_path, ca
     shutil.copytree(tiny_dataset, root)
     save_rig(root / "rig.json", turned(open_dataset(root).rig, 3, 2.0, (1.0, 0.0, 0.0)))
     assert main(["info", "--dataset", str(root), "--check"]) == 3
-    assert "cam3 moved since it was calibrated" in capsys.readouterr().out
+    out = " ".join(capsys.readouterr().out.split())
+    assert "cam3 moved since it was calibrated" in out
+    # What `calib --write` would do, from the same frames.
+    assert "from these frames: cam3 re-aimed by " in out
+    assert main(["info", "--dataset", str(root), "--check", "--json"]) == 3
+    calibration = json.loads(capsys.readouterr().out)["check"]["calibration"]
+    assert calibration["repair"].startswith("cam3 re-aimed by ")
+    assert float(calibration["repair"].split()[3]) == pytest.approx(2.0, abs=0.1)
+    assert calibration["repair"].endswith("the calibration then fits")
 
 
 def test_a_run_resumes_with_the_camera_calib_placed_again(tiny_dataset, tmp_path, capsys):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 
 import cv2
@@ -572,3 +573,19 @@ def test_sources_named_after_no_camera_are_left_out_and_said(scene, tmp_path, ca
     report = json.loads(capsys.readouterr().out)
     assert [c["matched_by"] for c in report["cameras"]] == ["name"] * len(ds.rig)
     assert any("left out: aria01_214-1" in n for n in report["notes"]), report["notes"]
+
+
+def test_import_of_a_calibration_a_camera_moved_since_says_what_calib_would_do(
+    scene, tmp_path, capsys
+):
+    from tests.quality.test_calibration import turned
+
+    ds, _ = scene
+    calib = tmp_path / "rig.json"
+    save_rig(calib, turned(ds.rig, 1, 2.0, (1.0, 0.0, 0.0)))
+    out = tmp_path / "knocked"
+    assert main(["import", str(calib), str(ds.root / "frames"), "--out", str(out)]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "cam1 moved since it was calibrated" in text and "calib --dataset" in text
+    said = re.search(r"from these frames: cam1 re-aimed by ([0-9.]+) degrees", text)
+    assert said is not None and float(said[1]) == pytest.approx(2.0, abs=0.1)

@@ -318,6 +318,19 @@ def _print(
         )
 
 
+def repair_hint(check: CalibrationCheck | None, rig: Rig) -> str | None:
+    """What ``calib --write`` would do from ``check``'s frames (``repair_summary``) when the
+    calibration does not fit them (``import``, ``info --check``); None when it fits, or when
+    that cannot be worked out."""
+    if check is None or check.fits is not False:
+        return None
+    try:
+        return repair_summary(repair(check, rig), rig)
+    except Exception as exc:  # the check stands without it
+        logger.warning("calibration: the repair could not be worked out: %s", exc)
+        return None
+
+
 def calibration_check(ds: Dataset) -> CalibrationCheck | None:
     """The calibration against 3 frame sets spread over a dataset (``import``'s last step,
     ``info --check``; None where there are none to read: a live stream)."""

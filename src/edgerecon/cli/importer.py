@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli.calib import calibration_check
+from edgerecon.cli.calib import calibration_check, repair_hint
 from edgerecon.io.crs import crs_name
 from edgerecon.io.importer import import_dataset, parse_offsets, parse_up
 
@@ -113,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
         overwrite=args.force,
     )
     calib = None if args.no_calib_check else calibration_check(report.dataset)
+    hint = repair_hint(calib, report.dataset.rig)
     if args.json:
-        emit_json({**report.to_dict(), "calibration": None if calib is None else calib.to_dict()})
+        cal = None if calib is None else {**calib.to_dict(), "repair": hint}
+        emit_json({**report.to_dict(), "calibration": cal})
         return 0
     ds = report.dataset
     rig = ds.rig
@@ -153,8 +155,10 @@ def run(args: argparse.Namespace) -> int:
     if calib is not None:
         if calib.fits is False:
             console.print(
-                f"[yellow]{calib.message}[/]; `edgerecon calib --dataset {ds.root}` tells more "
-                "(--write re-aims a camera that turned or moved)",
+                f"[yellow]{calib.message}[/]"
+                + ("" if hint is None else f"; from these frames: {hint}")
+                + f"; `edgerecon calib --dataset {ds.root}` tells more (--write re-aims a "
+                "camera that turned or places again one that moved)",
                 soft_wrap=True,
             )
         else:

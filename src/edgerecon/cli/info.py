@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from edgerecon.cli._common import add_json_flag, console, emit_json, print_table
-from edgerecon.cli.calib import calibration_check
+from edgerecon.cli.calib import calibration_check, repair_hint
 from edgerecon.config import MIN_CAMERAS
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.crs import crs_name
@@ -211,7 +211,10 @@ def run(args: argparse.Namespace) -> int:
     if args.check:
         info["check"] = check_frames(ds)
         calib = calibration_check(ds)
-        info["check"]["calibration"] = None if calib is None else calib.to_dict()
+        hint = repair_hint(calib, ds.rig)
+        info["check"]["calibration"] = (
+            None if calib is None else {**calib.to_dict(), "repair": hint}
+        )
     code = (
         3
         if args.check
@@ -310,8 +313,15 @@ def run(args: argparse.Namespace) -> int:
     if args.check:
         _print_check(info["check"])
         if calib is not None:
+            hint = info["check"]["calibration"]["repair"]
             console.print(
-                calib.message + ("; `edgerecon calib` tells more" if calib.fits is False else ""),
+                calib.message
+                + ("" if hint is None else f"; from these frames: {hint}")
+                + (
+                    "; `edgerecon calib` tells more (--write stores it)"
+                    if calib.fits is False
+                    else ""
+                ),
                 soft_wrap=True,
             )
     return code
