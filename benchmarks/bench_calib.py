@@ -18,13 +18,11 @@ followed by ``/TX,TY,TZ`` (turned too). Moves are in the rig's unit: choose them
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from _report import SHARED, print_rows, report_header, write_report
@@ -32,7 +30,7 @@ from edgerecon.cli.calib import default_times
 from edgerecon.geometry.camera import Rig, rotation_angle_deg
 from edgerecon.io.dataset import open_dataset
 from edgerecon.quality.board import read_corner_csv, triangulate_corners
-from edgerecon.quality.calibration import check_calibration, recheck, repair
+from edgerecon.quality.calibration import check_calibration, knocked, recheck, repair
 
 DEFAULT_CASES = [
     "turn:2,0,0",
@@ -55,16 +53,6 @@ def parse_case(text: str) -> tuple[np.ndarray, np.ndarray]:
     if kind not in ("turn", "move") or a.shape != (3,) or b.shape != (3,):
         raise SystemExit(f"bad case {text!r}: turn:TX,TY,TZ or move:DX,DY,DZ[/TX,TY,TZ]")
     return (np.zeros(3), a) if kind == "turn" else (a, b)
-
-
-def knocked(rig: Rig, camera: int, shift: np.ndarray, degrees: np.ndarray) -> Rig:
-    """``rig`` with one camera moved by ``shift`` and turned by ``degrees`` (its own axes)."""
-    c = rig[camera]
-    R = cv2.Rodrigues(np.radians(degrees))[0] @ c.R
-    centre = c.center + c.R.T @ shift
-    cams = list(rig)
-    cams[camera] = dataclasses.replace(c, R=R, t=-R @ centre)
-    return dataclasses.replace(rig, cameras=tuple(cams))
 
 
 def board_px(root: Path, rig: Rig, camera: int) -> float | None:

@@ -18,6 +18,7 @@ from edgerecon.quality.calibration import (
     CalibrationCheckConfig,
     check_calibration,
     epipolar_distances,
+    knocked,
     recheck,
     repair,
     repair_summary,
@@ -39,14 +40,8 @@ def moved(
     rig: Rig, camera: int, shift: tuple[float, float, float], degrees: tuple[float, float, float]
 ) -> Rig:
     """``rig`` with one camera moved by ``shift`` along its own axes (x right, y down, z
-    forward; rig units) and turned by ``degrees`` about them."""
-    c = rig[camera]
-    dR = cv2.Rodrigues(np.radians(np.asarray(degrees, float)))[0]
-    R = dR @ c.R
-    centre = c.center + c.R.T @ np.asarray(shift, float)
-    cams = list(rig)
-    cams[camera] = dataclasses.replace(c, R=R, t=-R @ centre)
-    return dataclasses.replace(rig, cameras=tuple(cams))
+    forward; rig units) and turned by ``degrees`` about them (``knocked``)."""
+    return knocked(rig, camera, shift, degrees)
 
 
 def angle_deg(a: Camera, b: Camera) -> float:

@@ -33,6 +33,7 @@ from edgerecon.quality.calibration import (
     check_calibration,
     repair,
     repair_summary,
+    try_repair,
 )
 from edgerecon.types import DataError, EdgereconError
 
@@ -322,13 +323,8 @@ def repair_hint(check: CalibrationCheck | None, rig: Rig) -> str | None:
     """What ``calib --write`` would do from ``check``'s frames (``repair_summary``) when the
     calibration does not fit them (``import``, ``info --check``); None when it fits, or when
     that cannot be worked out."""
-    if check is None or check.fits is not False:
-        return None
-    try:
-        return repair_summary(repair(check, rig), rig)
-    except Exception as exc:  # the check stands without it
-        logger.warning("calibration: the repair could not be worked out: %s", exc)
-        return None
+    fix = None if check is None else try_repair(check, rig)
+    return None if fix is None else repair_summary(fix, rig)
 
 
 def calibration_check(ds: Dataset) -> CalibrationCheck | None:

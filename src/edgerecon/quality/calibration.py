@@ -629,11 +629,13 @@ def repair(
         common = set.intersection(*({p.a, p.b} for p in bad)) if bad else set()
         candidates = sorted(common or {p.a for p in bad} | {p.b for p in bad})
         trials = [t for c in candidates if (t := _trial(check, rig, c, config, False))]
+        placements: dict[int, _Trial | None] = {}  # each camera placed once (a jackknife)
         if max((t[0] for t in trials), default=0.0) < 1.0:
             # No turn makes every pair fit: a camera moved? It is placed again when that
             # leaves more pairs fitting than any turn (a neighbour's turn can absorb most of
             # a moved camera's error on a pair they share).
-            placed = [t for c in candidates if (t := _trial(check, rig, c, config, True))]
+            placements = {c: _trial(check, rig, c, config, True) for c in candidates}
+            placed = [t for t in placements.values() if t]
             best = max((t[0] for t in trials), default=0.0)
             if any(t[0] > best + 0.02 for t in placed):
                 trials = trials + placed  # a turn first among equals
@@ -663,7 +665,11 @@ def repair(
                 ambiguous=tuple(sorted({est.camera, *(t[1].camera for t in rivals)})),
             )
         if est.moved == 0.0:  # turned, or moved, which a turn explains less well
-            refined = _trial(check, rig, est.camera, config, True)
+            refined = (
+                placements[est.camera]
+                if est.camera in placements
+                else _trial(check, rig, est.camera, config, True)
+            )
             if (
                 refined is not None
                 and refined[0] >= share
@@ -879,6 +885,30 @@ def with_pose(rig: Rig, estimate: PoseEstimate) -> Rig:
     return dataclasses.replace(rig, cameras=tuple(cams))
 
 
+def knocked(rig: Rig, camera: int, shift: Sequence[float], degrees: Sequence[float]) -> Rig:
+    """``rig`` with one camera moved by ``shift`` along its own axes (x right, y down, z
+    forward; rig units) and turned by ``degrees`` about them: a knock simulated
+    (``benchmarks/bench_calib.py``, the tests)."""
+    c = rig[camera]
+    R = np.asarray(cv2.Rodrigues(np.radians(np.asarray(degrees, float)))[0], np.float64) @ c.R
+    centre = c.center + c.R.T @ np.asarray(shift, float)
+    cams = list(rig)
+    cams[camera] = dataclasses.replace(c, R=R, t=-R @ centre)
+    return dataclasses.replace(rig, cameras=tuple(cams))
+
+
+def try_repair(check: CalibrationCheck, rig: Rig) -> Repair | None:
+    """:func:`repair` when the calibration does not fit the frames; None when it fits, or
+    when the repair raises (said once: the check stands without it)."""
+    if check.fits is not False:
+        return None
+    try:
+        return repair(check, rig)
+    except Exception as exc:
+        logger.warning("calibration: the repair could not be worked out: %s", exc)
+        return None
+
+
 def repair_summary(fix: Repair, rig: Rig) -> str:
     """What :func:`repair` did, in a line: the cameras re-aimed or placed again and whether
     every pair fits then, the cameras it could not tell between, or that nothing did."""
@@ -918,14 +948,11 @@ def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict
         "short": check.short,
         "message": check.message,
     }
-    if check.fits is False:
-        try:
-            fix = repair(check, rig)
-            verdict["repair"] = repair_summary(fix, rig)
-            if fix.applied and fix.check.fits:
-                verdict["repaired_rig"] = fix.rig.in_world().to_dict()
-        except Exception as exc:  # the verdict stands without it
-            logger.warning("calibration: the repair could not be worked out: %s", exc)
+    fix = try_repair(check, rig)
+    if fix is not None:
+        verdict["repair"] = repair_summary(fix, rig)
+        if fix.applied and fix.check.fits:
+            verdict["repaired_rig"] = fix.rig.in_world().to_dict()
     return verdict
 
 
