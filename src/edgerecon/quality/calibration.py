@@ -504,7 +504,11 @@ def _verdicts(rig: Rig, pairs: Sequence[PairCheck]) -> tuple[list[CameraVerdict]
     while the pairs without it mostly fit: the camera with the largest such contrast is off
     (when its own pairs fit less than half and the others more than half), its pairs are set
     aside and the rest judged again, for a second one. A single pair that does not fit says
-    little alone: two cameras facing each other share few features and match wrongly."""
+    little alone: two cameras facing each other share few features and match wrongly. A
+    second camera is named only when its own pairs that miss hold as many inliers as a
+    strong misfit (:func:`_strong_misfits`): with the first one's pairs set aside few are
+    left, and a weak pair that missed before the knock named a camera that had not moved
+    (utrecht4cam's cam1-cam4, 24 inliers 6 px off its calibration, when cam2 tilted)."""
     checked = [p for p in pairs if p.checked]
     off: set[int] = set()
 
@@ -518,6 +522,9 @@ def _verdicts(rig: Rig, pairs: Sequence[PairCheck]) -> tuple[list[CameraVerdict]
             rest = _fit_share([p for p in live if c not in (p.a, p.b)])
             if mine is None or rest is None or not (mine < 0.5 <= rest):
                 continue
+            missing = sum(p.inliers for p in live if c in (p.a, p.b) and not p.fits)
+            if off and missing < _STRONG_INLIERS:
+                continue  # a second camera on weak evidence
             if rest - mine > contrast:
                 worst, contrast = c, rest - mine
         if worst is None:
@@ -553,7 +560,14 @@ def _fit_share(pairs: Sequence[PairCheck]) -> float | None:
     return None if total == 0 else sum(p.inliers for p in pairs if p.fits) / total
 
 
-def _strong_misfits(pairs: Sequence[PairCheck], min_inliers: int = 30) -> list[PairCheck]:
+#: Inliers of a pair that does not fit, or of a camera's pairs that do not fit, that are too
+#: many to be wrong matches.
+_STRONG_INLIERS = 30
+
+
+def _strong_misfits(
+    pairs: Sequence[PairCheck], min_inliers: int = _STRONG_INLIERS
+) -> list[PairCheck]:
     """Checked pairs with at least ``min_inliers`` inliers that do not fit: too many matches
     to be wrong ones (pairs with fewer can be: utrecht4cam's two cameras 105 degrees apart
     share 15, 115 px off the lines of a calibration that serves)."""
