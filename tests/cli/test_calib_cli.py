@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from edgerecon.cli import main
-from edgerecon.cli.calib import RECALIBRATED, default_times
+from edgerecon.cli.calib import MORE_TIMES, RECALIBRATED, default_times
 from edgerecon.io.calibration import load_rig, save_rig
 from edgerecon.io.dataset import open_dataset
+from tests.conftest import shared_data
 from tests.quality.test_calibration import angle_deg, moved, turned
 
 
@@ -51,6 +52,38 @@ def test_a_turned_camera_is_named_and_written_re_aimed(tiny_dataset, tmp_path, c
 
     assert main(["calib", "--dataset", str(root), "--times", "2,5"]) == 0
     assert "fits the frames" in capsys.readouterr().out
+
+
+def test_a_camera_that_3_frame_sets_cannot_check_is_checked_on_7(tmp_path, capsys):
+    """caliscope_charuco's cam_1 shares too few features with the others while the person
+    sits (times 11, 55, 99): tilted by 2 degrees it went unnoticed ("fits", cam_1 not
+    checked). The check reads 4 more frame sets then (7 spread over the stream) and names
+    it; times given are taken as they are. A repair does not change another camera in its
+    stead."""
+    src = shared_data("caliscope_charuco")
+    root = tmp_path / "ds"
+    root.mkdir()
+    desc = json.loads((src / "dataset.json").read_text())
+    desc["frames"]["cameras"] = {k: str(src / v) for k, v in desc["frames"]["cameras"].items()}
+    (root / "dataset.json").write_text(json.dumps(desc))
+    save_rig(root / "rig.json", turned(open_dataset(src).rig, 1, 2.0, (1.0, 0.0, 0.0)))
+
+    assert main(["calib", "--dataset", str(root), "--json"]) == 3
+    report = json.loads(capsys.readouterr().out)
+    assert report["times"] == default_times(111, MORE_TIMES)
+    assert report["off"] == [1]
+    assert main(["calib", "--dataset", str(root), "--times", "11,55,99", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["times"] == [11, 55, 99]
+    assert report["cameras"][1]["status"] == "unchecked"
+    # Moved by 5 cm: cam_1 has one pair that can be judged, which a 0.3-degree turn of cam_0
+    # also brings back (cam_0's other pairs fit either way): which one moved is not told.
+    save_rig(root / "rig.json", moved(open_dataset(src).rig, 1, (0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert main(["calib", "--dataset", str(root), "--json"]) == 3
+    report = json.loads(capsys.readouterr().out)
+    assert report["off"] == [1]
+    assert report["estimates"] == []
+    assert report["ambiguous"] == ["cam_0", "cam_1"]
 
 
 def test_a_moved_camera_is_written_at_its_new_place(tiny_dataset, tmp_path, capsys):

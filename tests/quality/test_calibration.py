@@ -78,6 +78,19 @@ def test_the_right_calibration_fits(frames):
     assert check.to_dict()["fits"] is True
 
 
+def test_a_check_goes_on_with_more_frame_sets(frames):
+    """``previous``: its features and matches are pooled with the new frame sets'."""
+    rig, sets = frames
+    two = check_calibration(sets[:2], rig)
+    three = check_calibration(sets[2:], rig, previous=two)
+    assert three.times == (1, 4, 7) and three.frame_sets == 3 and three.time_index == 7
+    assert three.fits is True
+    for before, after in zip(two.pairs, three.pairs, strict=True):
+        assert (before.a, before.b) == (after.a, after.b)
+        assert after.matches >= before.matches
+    assert three.seconds >= two.seconds
+
+
 def test_a_camera_turned_by_two_degrees_is_named_and_re_aimed(frames):
     rig, sets = frames
     bumped = turned(rig, 2, 2.0, (1.0, 0.0, 0.0))

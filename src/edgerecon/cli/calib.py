@@ -35,12 +35,16 @@ from edgerecon.quality.calibration import (
     repair_summary,
     try_repair,
 )
-from edgerecon.types import DataError, EdgereconError
+from edgerecon.types import DataError, EdgereconError, FrameSet
 
 logger = logging.getLogger(__name__)
 
 #: The rig file ``--write`` makes next to ``dataset.json`` (the one before is kept).
 RECALIBRATED = "rig.recalibrated.json"
+
+#: Frame sets pooled in all when a camera shares too few features with the others in the
+#: first 3 (``check_dataset``).
+MORE_TIMES = 7
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -65,7 +69,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--times",
         default=None,
         metavar="T1,T2,...",
-        help="time indices whose matches are pooled (default: 3 spread over the stream)",
+        help="time indices whose matches are pooled (default: 3 spread over the stream, "
+        f"{MORE_TIMES} when a camera shares too few features with the others in those)",
     )
     p.add_argument(
         "--max-error",
@@ -100,9 +105,9 @@ def default_times(num_frames: int, count: int = 3) -> list[int]:
     return sorted({int(x) for x in np.rint(at)})
 
 
-def _times(text: str | None, num_frames: int) -> list[int]:
+def _times(text: str | None, num_frames: int) -> list[int] | None:
     if text is None:
-        return default_times(num_frames)
+        return None
     try:
         times = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
@@ -181,10 +186,8 @@ def run(args: argparse.Namespace) -> int:
         return _adopt(args)
     ds = dataset_to_check(args.dataset, write=args.write, what="name a new rig in")
     config = CalibrationCheckConfig(max_error_px=args.max_error)
-    times = _times(args.times, ds.num_frames)
-    with ds.open_frames(missing="skip_camera") as source:
-        sets = [source.read(t) for t in track(times, "reading frames")]
-    check = check_calibration(sets, ds.rig, config)
+    check = check_dataset(ds, _times(args.times, ds.num_frames), config, progress=True)
+    times = list(check.times)
     fix = repair(check, ds.rig, config)
     fixed, estimates, after = fix.rig, list(fix.applied), fix.check
     written = before = None
@@ -211,6 +214,8 @@ def run(args: argparse.Namespace) -> int:
                 "or calibrate again",
                 soft_wrap=True,
             )
+        elif check.fits is False and not estimates:
+            console.print(repair_summary(fix, ds.rig), soft_wrap=True)
         if written:
             console.print(
                 f"wrote {written} and named it in {ds.root / DESCRIPTOR} (the rig before: "
@@ -327,22 +332,59 @@ def repair_hint(check: CalibrationCheck | None, rig: Rig) -> str | None:
     return None if fix is None else repair_summary(fix, rig)
 
 
+def check_dataset(
+    ds: Dataset,
+    times: list[int] | None = None,
+    config: CalibrationCheckConfig | None = None,
+    *,
+    progress: bool = False,
+) -> CalibrationCheck:
+    """The calibration against frame sets of a recorded dataset, pooled: ``times``, or 3
+    spread over the stream and, when a camera could not be checked on those (it shares too
+    few features with the others there: caliscope_charuco's cam_1 while the person sits),
+    those of ``MORE_TIMES`` spread over it (the first 3 are not read again). A frame set
+    that cannot be read is left out (said); none read is a ``DataError``."""
+    auto = times is None
+    first = default_times(ds.num_frames) if times is None else times
+    with ds.open_frames(missing="skip_camera") as source:
+        sets = _read_sets(source, first, progress)
+        if not sets:
+            raise DataError(f"the calibration check read no frame set (times {first})")
+        check = check_calibration(sets, ds.rig, config)
+        unchecked = [v.name for v in check.cameras if v.status == "unchecked"]
+        more = [t for t in default_times(ds.num_frames, MORE_TIMES) if t not in first]
+        if auto and unchecked and more:
+            logger.info(
+                "calibration check: %s not checked on times %s (too few features shared with "
+                "the others): %d more frame sets",
+                ", ".join(unchecked),
+                ", ".join(str(t) for t in first),
+                len(more),
+            )
+            extra = _read_sets(source, more, progress)
+            if extra:
+                check = check_calibration(extra, ds.rig, config, previous=check)
+    return check
+
+
+def _read_sets(source: Any, times: list[int], progress: bool) -> list[FrameSet]:
+    sets = []
+    for t in track(times, "reading frames") if progress else times:
+        try:
+            sets.append(source.read(t))
+        except EdgereconError as exc:  # a frame that does not decode: the others serve
+            logger.warning("calibration check: time %d left out: %s", t, exc)
+    return sets
+
+
 def calibration_check(ds: Dataset) -> CalibrationCheck | None:
-    """The calibration against 3 frame sets spread over a dataset (``import``'s last step,
-    ``info --check``; None where there are none to read: a live stream)."""
+    """The calibration against frame sets spread over a dataset (``check_dataset``;
+    ``import``'s last step, ``info --check``; None where there are none to read: a live
+    stream)."""
     if ds.is_live or ds.num_frames < 1:
         return None
-    sets = []
-    with ds.open_frames(missing="skip_camera") as source:
-        for t in default_times(ds.num_frames):
-            try:
-                sets.append(source.read(t))
-            except EdgereconError as exc:  # a frame that does not decode: the others serve
-                logger.debug("calibration check: time %d left out: %s", t, exc)
-    if not sets:
-        return None
     try:
-        return check_calibration(sets, ds.rig)
+        return check_dataset(ds)
     except EdgereconError as exc:  # the check is a check: what called it goes on
         logger.warning("the calibration could not be checked: %s", exc)
         return None

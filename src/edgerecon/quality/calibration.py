@@ -396,11 +396,20 @@ class _Observed:
         return dataclasses.replace(c, R=rig[cam].R, t=rig[cam].t)
 
 
-def _observe(sets: Sequence[FrameSet], rig: Rig, config: CalibrationCheckConfig) -> _Observed:
-    views: list[dict[int, View]] = []
-    feats: list[dict[int, Features]] = []
-    matches: dict[tuple[int, int], list[tuple[int, NDArray[np.int64]]]] = {}
-    for s, fs in enumerate(sets):
+def _observe(
+    sets: Sequence[FrameSet],
+    rig: Rig,
+    config: CalibrationCheckConfig,
+    before: _Observed | None = None,
+) -> _Observed:
+    """The views, features and pair matches of ``sets`` (after ``before``'s, which are
+    kept as they are)."""
+    views: list[dict[int, View]] = [] if before is None else list(before.views)
+    feats: list[dict[int, Features]] = [] if before is None else list(before.feats)
+    matches: dict[tuple[int, int], list[tuple[int, NDArray[np.int64]]]] = (
+        {} if before is None else {k: list(v) for k, v in before.matches.items()}
+    )
+    for s, fs in enumerate(sets, start=len(views)):
         vs = prepare_views(fs, rig, _scale(rig, config))
         fe = extract_all(vs, config.sparse)
         views.append({v.camera_id: v for v in vs})
@@ -575,21 +584,33 @@ def _strong_misfits(
 
 
 def check_calibration(
-    frames: FrameSet | Sequence[FrameSet], rig: Rig, config: CalibrationCheckConfig | None = None
+    frames: FrameSet | Sequence[FrameSet],
+    rig: Rig,
+    config: CalibrationCheckConfig | None = None,
+    *,
+    previous: CalibrationCheck | None = None,
 ) -> CalibrationCheck:
     """Whether the calibration fits the frames (see the module docstring): one frame set, or
     several whose matches are pooled per pair of cameras (people who move give new
-    correspondences in each; the static scene's repeat and count once)."""
+    correspondences in each; the static scene's repeat and count once). ``previous``: a
+    check of other frame sets of the same rig, whose features and matches join these (its
+    frame sets are not read again)."""
     config = config or CalibrationCheckConfig()
     t0 = time.perf_counter()
     sets = [frames] if isinstance(frames, FrameSet) else list(frames)
     if not sets:
         raise DataError("calibration check: no frames")
+    before = None if previous is None else previous.observed
+    if previous is not None and before is None:
+        raise DataError("calibration check: the previous check kept no matches")
     # FLANN's trees and MAGSAC draw from OpenCV's generator: seeded, one answer per input.
     cv2.setRNGSeed(0)
-    obs = _observe(sets, rig, config)
-    check = _judged(obs, rig, config, tuple(fs.time_index for fs in sets))
-    check = dataclasses.replace(check, seconds=time.perf_counter() - t0)
+    obs = _observe(sets, rig, config, before)
+    times = (() if previous is None else previous.times) + tuple(fs.time_index for fs in sets)
+    times = tuple(sorted(times)) if previous is not None else times
+    check = _judged(obs, rig, config, times)
+    seconds = time.perf_counter() - t0 + (0.0 if previous is None else previous.seconds)
+    check = dataclasses.replace(check, seconds=seconds)
     logger.info("%s", check.message)
     return check
 
@@ -600,7 +621,7 @@ def _judged(
     pairs = [_pair_inliers(obs, a, b, config, rig)[0] for a, b in sorted(obs.matches)]
     cameras, fits = _verdicts(rig, pairs)
     return CalibrationCheck(
-        time_index=times[-1],
+        time_index=max(times),
         times=times,
         pairs=tuple(pairs),
         cameras=tuple(cameras),
@@ -713,6 +734,14 @@ def repair(
         best_px = spread[id(trials[0])]
         if share <= (_fit_share(check.pairs) or 0.0):
             break
+        # A camera the check named whose matches cannot pose it at all (one pair with the
+        # others that fit: caliscope_charuco's cam_1) is not ruled out by another camera's
+        # turn that makes its one pair fit (cam_1 moved 5 cm: cam_0 turned 0.3 degrees).
+        unposed = [
+            c
+            for c in check.off
+            if c != est.camera and estimate_pose(check, rig, c, config, move=False) is None
+        ]
         rivals = [
             t
             for t in trials[1:]
@@ -721,12 +750,12 @@ def repair(
             and t[0] >= share - 0.05
             and spread[id(t)] <= config.rival_ratio * best_px
         ]
-        if judged.fits and rivals:
+        if judged.fits and (rivals or unposed):
             return Repair(
                 rig=rig,
                 applied=tuple(applied),
                 check=check,
-                ambiguous=tuple(sorted({est.camera, *(t[1].camera for t in rivals)})),
+                ambiguous=tuple(sorted({est.camera, *(t[1].camera for t in rivals), *unposed})),
             )
         if est.moved == 0.0:  # turned, or moved, which a turn explains less well
             refined = (
