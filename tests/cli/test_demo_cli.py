@@ -28,3 +28,8 @@ def test_demo_runs_online_system_and_reuses_scene(tmp_path, capsys):
     assert main([*args, "--frames", "0:2"]) == 0
     again = json.loads(capsys.readouterr().out)
     assert again["generated"] is False and len(again["tasks"]) == 2
+    # The closing table says what each F-score scores (the original's whole scene, the online
+    # tasks' foreground): not one column of two things.
+    assert main([a for a in args if a != "--json"] + ["--frames", "0:2"]) == 0
+    out = capsys.readouterr().out
+    assert "whole scene (t=2)" in out and "foreground (each task)" in out
