@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from edgerecon.quality.calibration import (
     try_repair,
 )
 from edgerecon.types import DataError, EdgereconError, FrameSet
+
+if TYPE_CHECKING:
+    from edgerecon.scene.stream import FrameReader
 
 logger = logging.getLogger(__name__)
 
@@ -367,7 +370,7 @@ def check_dataset(
     return check
 
 
-def _read_sets(source: Any, times: list[int], progress: bool) -> list[FrameSet]:
+def _read_sets(source: FrameReader, times: list[int], progress: bool) -> list[FrameSet]:
     sets = []
     for t in track(times, "reading frames") if progress else times:
         try:

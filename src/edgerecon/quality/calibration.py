@@ -607,7 +607,7 @@ def check_calibration(
     cv2.setRNGSeed(0)
     obs = _observe(sets, rig, config, before)
     times = (() if previous is None else previous.times) + tuple(fs.time_index for fs in sets)
-    times = tuple(sorted(times)) if previous is not None else times
+    times = tuple(sorted(times))
     check = _judged(obs, rig, config, times)
     seconds = time.perf_counter() - t0 + (0.0 if previous is None else previous.seconds)
     check = dataclasses.replace(check, seconds=seconds)
@@ -621,7 +621,7 @@ def _judged(
     pairs = [_pair_inliers(obs, a, b, config, rig)[0] for a, b in sorted(obs.matches)]
     cameras, fits = _verdicts(rig, pairs)
     return CalibrationCheck(
-        time_index=max(times),
+        time_index=times[-1],
         times=times,
         pairs=tuple(pairs),
         cameras=tuple(cameras),
@@ -734,14 +734,6 @@ def repair(
         best_px = spread[id(trials[0])]
         if share <= (_fit_share(check.pairs) or 0.0):
             break
-        # A camera the check named whose matches cannot pose it at all (one pair with the
-        # others that fit: caliscope_charuco's cam_1) is not ruled out by another camera's
-        # turn that makes its one pair fit (cam_1 moved 5 cm: cam_0 turned 0.3 degrees).
-        unposed = [
-            c
-            for c in check.off
-            if c != est.camera and estimate_pose(check, rig, c, config, move=False) is None
-        ]
         rivals = [
             t
             for t in trials[1:]
@@ -750,6 +742,18 @@ def repair(
             and t[0] >= share - 0.05
             and spread[id(t)] <= config.rival_ratio * best_px
         ]
+        # A camera the check named whose matches cannot pose it at all (one pair with the
+        # others that fit: caliscope_charuco's cam_1) is not ruled out by another camera's
+        # turn that makes its one pair fit (cam_1 moved 5 cm: cam_0 turned 0.3 degrees).
+        unposed = (
+            [
+                c
+                for c in check.off
+                if c != est.camera and estimate_pose(check, rig, c, config, move=False) is None
+            ]
+            if judged.fits
+            else []
+        )
         if judged.fits and (rivals or unposed):
             return Repair(
                 rig=rig,
