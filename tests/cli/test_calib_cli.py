@@ -72,10 +72,16 @@ def test_a_camera_that_3_frame_sets_cannot_check_is_checked_on_7(tmp_path, capsy
     report = json.loads(capsys.readouterr().out)
     assert report["times"] == default_times(111, MORE_TIMES)
     assert report["off"] == [1]
+    weak = next(p for p in report["pairs"] if (p["a"], p["b"]) == (1, 2))
+    assert not weak["checked"] and weak["inliers"] < 1.5 * weak["chance"]
     assert main(["calib", "--dataset", str(root), "--times", "11,55,99", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["times"] == [11, 55, 99]
     assert report["cameras"][1]["status"] == "unchecked"
+    # What a person reads: the pairs whose matches do not beat chance, and why.
+    assert main(["calib", "--dataset", str(root)]) == 3
+    out = capsys.readouterr().out
+    assert "by chance" in out and "are not judged" in out and "calibrate again" in out
     # Moved by 5 cm: cam_1 has one pair that can be judged, which a 0.3-degree turn of cam_0
     # also brings back (cam_0's other pairs fit either way): which one moved is not told.
     save_rig(root / "rig.json", moved(open_dataset(src).rig, 1, (0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))

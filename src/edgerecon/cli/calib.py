@@ -210,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         emit_json(report)
     else:
-        _print(check, estimates, after, ds.rig.names, config.max_angle_deg, ds.rig.unit)
+        _print(check, estimates, after, ds.rig.names, config, ds.rig.unit)
         if fix.ambiguous:
             console.print(
                 f"{repair_summary(fix, ds.rig)}: nothing changed; check with other --times, "
@@ -250,9 +250,10 @@ def _print(
     estimates: list[PoseEstimate],
     after: CalibrationCheck,
     names: list[str],
-    max_angle: float,
+    config: CalibrationCheckConfig,
     unit: str,
 ) -> None:
+    max_angle = config.max_angle_deg
     print_table(
         f"camera pairs (matches found without the calibration; {check.frame_sets} frame sets, "
         f"{check.seconds:.1f} s)",
@@ -261,6 +262,7 @@ def _print(
             "axes (deg)",
             "matches",
             "inliers",
+            "by chance",
             "median (px)",
             "p90 (px)",
             "limit (px)",
@@ -272,6 +274,7 @@ def _print(
                 f"{p.angle_deg:.0f}",
                 p.matches,
                 p.inliers,
+                "-" if p.chance is None else p.chance,
                 "-" if p.median_px is None else f"{p.median_px:.2f}",
                 "-" if p.p90_px is None else f"{p.p90_px:.2f}",
                 f"{p.limit_px:.1f}",
@@ -286,6 +289,12 @@ def _print(
             for p in check.pairs
         ],
     )
+    if any(p.chance is not None and not p.checked for p in check.pairs):
+        console.print(
+            f"(pairs whose inliers are fewer than {config.chance_ratio:g} times those of the "
+            'same points paired at random, "by chance", are not judged: wrong matches)',
+            soft_wrap=True,
+        )
     print_table(
         "cameras",
         ["camera", "verdict", "px from the lines"],
