@@ -20,6 +20,7 @@ The class is plain Python (usable without any cluster); the Ray engine wraps it 
 
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing
 import os
@@ -42,7 +43,7 @@ from edgerecon.pipeline import (
     reconstruct_task,
     task_sparse,
 )
-from edgerecon.quality.calibration import calibration_verdict
+from edgerecon.quality.calibration import CheckPool, pooled_verdict
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.interrupt import AbandonedThreads, Runner, ThreadAbandoned
 from edgerecon.runtime.messages import (
@@ -69,6 +70,9 @@ _KEEP_REPLIES = 8
 #: The calibration check's frame sets held at most (pixels over all cameras: 3 sets of 4
 #: cameras at 1920x1080, ~75 MB; one set of a larger rig).
 _CALIB_POOL_PIXELS = 25_000_000
+#: The most frame sets a run's calibration checks pool for a camera that the last three
+#: rebuilds' frame sets cannot check (``edgerecon calib`` reads 7: ``cli.calib.MORE_TIMES``).
+_CALIB_KEEP = 7
 
 
 def _pixels(sets: deque[FrameSet]) -> int:
@@ -137,6 +141,7 @@ class BackEnd:
         # last verdict, and the one a warning or a note was last given for.
         self._calib_due = 0.0
         self._calib_sets: deque[FrameSet] = deque(maxlen=3)
+        self._calib_pool: CheckPool | None = None
         self._calib_last: tuple[bool | None, tuple[str, ...]] | None = None
         self._calib_said: tuple[bool | None, tuple[str, ...]] | None = None
 
@@ -404,7 +409,10 @@ class BackEnd:
 
     def _check_calibration(self, frames: FrameSet) -> None:
         """The calibration against the frames of this rebuild and the two before (pooled),
-        when due (``calib_check_s``). A
+        when due (``calib_check_s``); a camera they cannot check (few features shared with
+        the others) is checked on the matches of the earlier checks too, up to
+        ``_CALIB_KEEP`` frame sets (``pooled_verdict``), and the next check comes at the
+        next rebuild until it is checked or the pool is full. A
         verdict is said when the check pooled two or more frame sets, or when two checks in a
         row give it (the first, of one frame set, is checked again at the next rebuild): a
         warning when a camera is named or the frames do not fit, a note when it fits again
@@ -420,7 +428,12 @@ class BackEnd:
         self._calib_due = time.monotonic() + every
         try:
             # The last three rebuilds' frame sets, pooled (as ``edgerecon calib``).
-            verdict = self._bounded(calibration_verdict, self.rig, list(self._calib_sets))
+            verdict, self._calib_pool = self._bounded(
+                functools.partial(pooled_verdict, keep=_CALIB_KEEP),
+                self.rig,
+                list(self._calib_sets),
+                self._calib_pool,
+            )
         except RebuildTimeout:
             raise
         except Exception as exc:  # a check that fails is not the run's problem
@@ -437,6 +450,8 @@ class BackEnd:
         self._calib_last = key
         if not confirmed and key != self._calib_said and verdict["fits"] is not None:
             self._calib_due = 0.0
+        if verdict["unchecked"] and len(self._calib_pool.times) < _CALIB_KEEP:
+            self._calib_due = 0.0  # more frame sets for a camera not checked yet
         if not confirmed or key == self._calib_said or verdict["fits"] is None:
             return
         if verdict["fits"] is False:

@@ -1,0 +1,42 @@
+"""A run's calibration checks (the back-end's, after its background rebuilds): a camera that
+the last rebuilds' frames cannot check is checked on the earlier checks' matches too, and
+the checks come at every rebuild until it is checked or ``_CALIB_KEEP`` frame sets are
+pooled; then every ``calib_check_s``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from edgerecon.runtime import backend
+from tests.runtime.conftest import runtime_config
+
+
+def test_a_camera_not_checked_is_checked_at_every_rebuild_until_the_pool_is_full(tiny, monkeypatch):
+    ds, _ = tiny
+    be = backend.BackEnd(ds.rig, runtime_config(background_process=False))
+    checks: list[list[int]] = []
+    verdict_of = backend.pooled_verdict
+
+    def counted(*args, **kwargs):
+        verdict, pool = verdict_of(*args, **kwargs)
+        checks.append(verdict["times"])
+        return verdict, pool
+
+    monkeypatch.setattr(backend, "pooled_verdict", counted)
+    with ds.open_frames() as source:
+        for t in range(8):
+            fs = source.read(t)
+            # cam3 sees nothing (lights out on its side): no pair with it can be checked.
+            images = list(fs.images)
+            images[3] = np.zeros_like(images[3])
+            be._check_calibration(dataclasses.replace(fs, images=tuple(images)))
+    keep = backend._CALIB_KEEP
+    assert keep == 7
+    # Checked at each of the first 7 rebuilds, on all the frame sets pooled so far (the
+    # newest three alone leave cam3 unchecked); the 8th comes within calib_check_s (60 s).
+    assert checks == [list(range(k + 1)) for k in range(keep)]
+    verdict = be.stats["calibration"]
+    assert verdict["fits"] is True and verdict["unchecked"] == ["cam3"]
+    assert be._calib_pool is not None and be._calib_pool.times == tuple(range(keep))
