@@ -1,7 +1,7 @@
 """A run's calibration checks (the back-end's, after its background rebuilds): a camera that
-the last rebuilds' frames cannot check is checked on the earlier checks' matches too, and
-the checks come at every rebuild until it is checked or ``_CALIB_KEEP`` frame sets are
-pooled; then every ``calib_check_s``."""
+the last rebuilds' frames cannot check is checked on the earlier checks' matches too (up to
+``_CALIB_KEEP`` frame sets), and the checks come at every rebuild while it is not checked;
+then every ``calib_check_s``."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from edgerecon.runtime import backend
 from tests.runtime.conftest import runtime_config
 
 
-def test_a_camera_not_checked_is_checked_at_every_rebuild_until_the_pool_is_full(tiny, monkeypatch):
+def test_a_camera_not_checked_is_checked_at_every_rebuild_on_up_to_7_frame_sets(tiny, monkeypatch):
     ds, _ = tiny
     be = backend.BackEnd(ds.rig, runtime_config(background_process=False))
     checks: list[list[int]] = []
@@ -34,9 +34,17 @@ def test_a_camera_not_checked_is_checked_at_every_rebuild_until_the_pool_is_full
             be._check_calibration(dataclasses.replace(fs, images=tuple(images)))
     keep = backend._CALIB_KEEP
     assert keep == 7
-    # Checked at each of the first 7 rebuilds, on all the frame sets pooled so far (the
-    # newest three alone leave cam3 unchecked); the 8th comes within calib_check_s (60 s).
-    assert checks == [list(range(k + 1)) for k in range(keep)]
+    # Checked at each rebuild on all the frame sets pooled so far (the newest three alone
+    # leave cam3 unchecked), the newest 7 once there are more.
+    assert checks == [list(range(k + 1)) for k in range(keep)] + [list(range(1, 8))]
     verdict = be.stats["calibration"]
     assert verdict["fits"] is True and verdict["unchecked"] == ["cam3"]
-    assert be._calib_pool is not None and be._calib_pool.times == tuple(range(keep))
+    assert be._calib_pool is not None and be._calib_pool.times == tuple(range(1, 8))
+    # Every camera checked: the next check within calib_check_s (60 s).
+    with ds.open_frames() as source:
+        fs = source.read(0)
+    be._calib_due = 0.0
+    be._check_calibration(dataclasses.replace(fs, time_index=8))
+    assert be.stats["calibration"]["unchecked"] == [] and len(checks) == 9
+    be._check_calibration(dataclasses.replace(fs, time_index=9))
+    assert len(checks) == 9

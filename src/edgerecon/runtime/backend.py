@@ -411,8 +411,8 @@ class BackEnd:
         """The calibration against the frames of this rebuild and the two before (pooled),
         when due (``calib_check_s``); a camera they cannot check (few features shared with
         the others) is checked on the matches of the earlier checks too, up to
-        ``_CALIB_KEEP`` frame sets (``pooled_verdict``), and the next check comes at the
-        next rebuild until it is checked or the pool is full. A
+        ``_CALIB_KEEP`` frame sets (``pooled_verdict``), and the checks come at every
+        rebuild while a camera is not checked (each reads one frame set more). A
         verdict is said when the check pooled two or more frame sets, or when two checks in a
         row give it (the first, of one frame set, is checked again at the next rebuild): a
         warning when a camera is named or the frames do not fit, a note when it fits again
@@ -450,8 +450,10 @@ class BackEnd:
         self._calib_last = key
         if not confirmed and key != self._calib_said and verdict["fits"] is not None:
             self._calib_due = 0.0
-        if verdict["unchecked"] and len(self._calib_pool.times) < _CALIB_KEEP:
-            self._calib_due = 0.0  # more frame sets for a camera not checked yet
+        if verdict["unchecked"]:
+            # A camera not checked yet: one frame set more at each rebuild (the pool's
+            # matches are kept; caliscope_charuco's cam_1 is checked once the board is up).
+            self._calib_due = 0.0
         if not confirmed or key == self._calib_said or verdict["fits"] is None:
             return
         if verdict["fits"] is False:
