@@ -71,7 +71,8 @@ _KEEP_REPLIES = 8
 #: cameras at 1920x1080, ~75 MB; one set of a larger rig).
 _CALIB_POOL_PIXELS = 25_000_000
 #: The most frame sets a run's calibration checks pool for a camera that the last three
-#: rebuilds' frame sets cannot check (``edgerecon calib`` reads 7: ``cli.calib.MORE_TIMES``).
+#: rebuilds' frame sets cannot check (``edgerecon calib`` reads 7: ``cli.calib.MORE_TIMES``;
+#: the pool keeps the newest).
 _CALIB_KEEP = 7
 
 

@@ -103,8 +103,8 @@ class RuntimeConfig:
     (``quality.calibration``, as ``edgerecon calib``: a camera knocked during the run), after
     the first rebuild and then at most every this many seconds, in the rebuild's process,
     the last three rebuilds' frame sets pooled (a camera they cannot check: with the
-    earlier checks' matches, up to 7 frame sets, and checked at every rebuild until it is
-    checked or 7 are pooled; ``quality.calibration.pooled_verdict``); a verdict that names a
+    earlier checks' matches, the newest 7 frame sets, and a check at every rebuild while it
+    is not checked; ``quality.calibration.pooled_verdict``); a verdict that names a
     camera (or finds the
     frames do not fit) gives one warning (one frame set's: once the next check agrees), and
     the summary keeps the last verdict. 0 = never."""
