@@ -302,6 +302,12 @@ def test_utrecht4cam_a_tilted_camera_is_named_alone():
     check = recheck(first, tilted)
     assert check.off_names == ["cam2"], check.message
     assert check.fits is False
+    # Re-aimed from its two pairs of mostly right matches (85 and 71 inliers against 21 and
+    # 16 by chance; its pair with cam3, 15 against 10, lies 115 px off its own calibration):
+    # before, all three turned it 11 degrees, and nothing was written.
+    fix = repair(check, tilted)
+    assert [e.camera for e in fix.applied] == [1] and fix.check.fits is True
+    assert angle_deg(fix.rig[1], ds.rig[1]) < 0.6
 
 
 def test_caliscope_charuco_wrong_matches_of_two_cameras_that_share_little_name_no_camera():
@@ -321,24 +327,19 @@ def test_caliscope_charuco_wrong_matches_of_two_cameras_that_share_little_name_n
 
 def test_caliscope_charuco_a_person_s_few_matches_do_not_re_pose_a_camera_wrongly():
     """cam_1 tilted by 2 degrees, checked as a run checks (one frame set more each time):
-    its two pairs of 18 and 20 inliers at times 57-79 placed it 5 cm away and turned by 4.1
-    degrees (six parameters fit their noise; the jackknife said 1.2 cm) where a turn of 1.9
-    degrees fits; at times 66-80 the turn's matches that came back lay in one pair, 14 of
-    them, and re-aimed it by 12.3 degrees, "fits". A run writes such a rig for
-    ``--adopt-repairs``."""
+    its two pairs of 20 and 18 inliers (13 and 11 of them by chance) at times 57-79 placed
+    it 5 cm away and turned by 4.1 degrees, "fits" (six parameters fit their noise; the
+    jackknife said 1.2 cm); at times 66-80 the turn's matches that came back lay in one
+    pair, 14 of them, and re-aimed it by 12.3 degrees, "fits". A run writes such a rig for
+    ``--adopt-repairs``. Pairs of mostly wrong matches pose no camera now: "calibrate
+    again"."""
     ds = open_dataset(shared_data("caliscope_charuco"))
     tilted = turned(ds.rig, 1, 2.0, (1.0, 0.0, 0.0))
     with ds.open_frames() as source:
         sets = {t: source.read(t) for t in (57, 66, 70, 73, 79, 80)}
-    for times, repaired in (((57, 70, 79), True), ((66, 73, 80), False)):
+    for times in ((57, 70, 79), (66, 73, 80)):
         pool = None
         for k in range(1, 4):
             verdict, pool = pooled_verdict(tilted, [sets[t] for t in times[:k]], pool)
         assert verdict["off"] == ["cam_1"], verdict["message"]
-        if repaired:
-            assert verdict["repair"].startswith("cam_1 re-aimed by 1.")
-            fixed = Rig.from_dict(verdict["repaired_rig"])
-            # 0.85 degrees from the board's calibration (cam_2's repair: 0.89-0.95).
-            assert angle_deg(fixed[1], ds.rig[1]) < 1.2
-        else:
-            assert "repaired_rig" not in verdict and "calibrate again" in verdict["repair"]
+        assert "repaired_rig" not in verdict and "calibrate again" in verdict["repair"]

@@ -112,13 +112,16 @@ class CalibrationCheckConfig:
     """A camera is placed again only when it moved at least this many times as far as its
     matches can tell (:attr:`PoseEstimate.uncertainty`: how far the centre found moves with
     the matches it came from); a smaller move is the matches' noise, and a turn is kept."""
-    place_chance_ratio: float = 2.0
-    """A camera is placed again (its centre found, six parameters) only from two or more of
-    its pairs whose inliers are at least this many times what chance explains (pairs not
-    shuffled, ``chance_below``, count): with more of the inliers possibly wrong matches than
-    right ones, the robust fit can follow the wrong ones (caliscope_charuco's cam_1 tilted 2
-    degrees, pairs of 20 and 18 inliers against 13 and 11 by chance: placed 5 cm away and
-    turned 4.1 degrees, where a turn of 1.9 degrees fits). A turn is tried still."""
+    pose_chance_ratio: float = 2.0
+    """A camera is re-aimed or placed again (:func:`estimate_pose`) only when two or more of
+    its pairs hold at least this many times the inliers that chance explains (pairs not
+    shuffled, ``chance_below``, count), and a turn is found from those pairs alone (its other
+    pairs neither pose it nor have to fit after): with more of the inliers possibly wrong
+    matches than right ones, the robust fit can follow the wrong ones (caliscope_charuco's
+    cam_1 tilted 2 degrees, pairs of 20 and 18 inliers against 13 and 11 by chance: placed
+    5 cm away and turned 4.1 degrees; utrecht4cam's cam2 tilted 1 degree, with a pair of 15
+    against 10 that lies 115 px off its own calibration: turned by 11 degrees). A move is
+    fitted to every checked pair, and all of them have to fit after it."""
     rival_ratio: float = 3.0
     """Another camera whose change makes the pairs fit as well is a rival (the pairs cannot
     tell which one moved: neither is changed) unless its matches then lie more than this many
@@ -147,10 +150,10 @@ class CalibrationCheckConfig:
             raise ValueError(
                 f"CalibrationCheckConfig.rival_ratio must be >= 1, got {self.rival_ratio}"
             )
-        if not self.place_chance_ratio >= 1.0:
+        if not self.pose_chance_ratio >= 1.0:
             raise ValueError(
-                "CalibrationCheckConfig.place_chance_ratio must be >= 1, got "
-                f"{self.place_chance_ratio}"
+                "CalibrationCheckConfig.pose_chance_ratio must be >= 1, got "
+                f"{self.pose_chance_ratio}"
             )
         if not self.move_certainty > 0.0:
             raise ValueError(
@@ -715,16 +718,6 @@ def _trial(
     if est is None or est.after_px > est.before_px / 3:
         return None
     if move:
-        # Two of its pairs whose inliers are mostly right matches (``place_chance_ratio``;
-        # the jackknife does not see matches that are wrong together: it said 1.2 cm of the
-        # 5 cm that caliscope_charuco's cam_1 was placed off).
-        sure = [
-            p for p in check.pairs
-            if p.checked and camera in (p.a, p.b)
-            and (p.chance is None or p.inliers >= config.place_chance_ratio * p.chance)
-        ]  # fmt: skip
-        if len(sure) < 2:
-            return None
         centre = rig[camera].center
         nearest = min(
             float(np.linalg.norm(rig[o].center - centre)) for o in range(len(rig)) if o != camera
@@ -735,7 +728,12 @@ def _trial(
             return None  # a move within the noise of the matches it came from
     posed = with_pose(rig, est)
     judged = recheck(check, posed, config)
-    if not all(p.fits for p in judged.pairs if p.checked and camera in (p.a, p.b)):
+    # Its pairs fit then (a turn: those of mostly right matches, which alone posed it).
+    if not all(
+        p.fits
+        for p in judged.pairs
+        if camera in (p.a, p.b) and (_sure(p, config) if not move else p.checked)
+    ):
         return None
     return (_fit_share(judged.pairs) or 0.0, est, posed, judged)
 
@@ -868,13 +866,22 @@ _Data = list[tuple[Camera, NDArray[np.float64], NDArray[np.float64]]]
 """(the other camera, this camera's points, the other's points) per pair."""
 
 
-def _camera_data(obs: _Observed, rig: Rig, camera: int, config: CalibrationCheckConfig) -> _Data:
+def _sure(pair: PairCheck, config: CalibrationCheckConfig) -> bool:
+    """Whether a pair's inliers are mostly right matches (``pose_chance_ratio``)."""
+    return pair.checked and (
+        pair.chance is None or pair.inliers >= config.pose_chance_ratio * pair.chance
+    )
+
+
+def _camera_data(
+    obs: _Observed, rig: Rig, camera: int, config: CalibrationCheckConfig, sure: bool = False
+) -> _Data:
     """(the other camera, ``camera``'s points, the other's points) of each checked pair of
-    ``camera``."""
+    ``camera`` (``sure``: of those whose inliers are mostly right matches, :func:`_sure`)."""
     data = []
     for a, b in sorted(ab for ab in obs.matches if camera in ab):
         pair, pa, pb = _pair_inliers(obs, a, b, config, rig)
-        if not pair.checked:
+        if not (_sure(pair, config) if sure else pair.checked):
             continue
         mine, theirs = (pa, pb) if a == camera else (pb, pa)
         data.append((obs.camera(b if a == camera else a, rig), mine, theirs))
@@ -948,17 +955,20 @@ def estimate_pose(
     16.5-degree turn to 0.64 px; placed again, 0.03 degrees and 7 mm from the truth).
     Least squares with a loss that gives wrong matches no weight (Cauchy's), tightened in
     steps; ``uncertainty`` says how far off the centre could be. None with fewer than two
-    pairs (also when the turn's matches that come back to their lines lie in one pair), or
-    without the check's matches."""
+    pairs of mostly right matches (``pose_chance_ratio``: a turn is found from those alone),
+    when the turn's matches that come back to their lines lie in one pair, or without the
+    check's matches."""
     from scipy.optimize import least_squares
 
     config = config or CalibrationCheckConfig()
     obs = check.observed
     if obs is None:
         return None
-    data = _camera_data(obs, rig, camera, config)
-    if len(data) < 2:
+    # A turn from the pairs of mostly right matches; a move (the bolder claim) from every
+    # checked pair, and only when two of them are such pairs.
+    if sum(1 for p in check.pairs if camera in (p.a, p.b) and _sure(p, config)) < 2:
         return None
+    data = _camera_data(obs, rig, camera, config, sure=not move)
     view = obs.view(camera)
     cam0 = obs.camera(camera, rig)
     centre = cam0.center
