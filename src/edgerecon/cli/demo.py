@@ -118,7 +118,8 @@ def run(args: argparse.Namespace) -> int:
     rt, controller_config = online_configs(args, cfg)
     original = OriginalTiming.of(t_mid, golden.timings)
     # Like for like with the online tasks: the golden configuration's foreground at t_mid
-    # (r = 1, every camera; the masks the online system has at that time).
+    # as the online system runs it (r = 1, every camera, the masks it has at that time, its
+    # sparse scope: with the visual hull's depth ranges, no SfM on the critical path).
     tracker = dataset_scene_at(dataset, t_mid, rt.foreground)
     fg = tracker.segment(frames)
     fg_config, split_config = rt.task_configs(1.0, dataset.rig)
@@ -129,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         fg_config,
         background=PointCloud.empty(),
         split_config=split_config,
+        sparse_scope=rt.sparse_scope,
     )
     ref_fg = gt.reference_cloud(t_mid, "foreground", min_views=2)
     golden_fg_score = evaluate_clouds(golden_fg.foreground.cloud, ref_fg, threshold)[0]
