@@ -765,7 +765,9 @@ def repair(
     A turn is the commoner knock and the fewer change, so it names the camera; that camera
     is then placed again with its centre free (:func:`estimate_pose`) when that brings its
     matches ``move_gain`` closer to their lines (a small move is explained almost as well
-    by a turn, with the wrong orientation). When no turn of any candidate makes every pair
+    by a turn, with the wrong orientation), unless the turn already leaves them closer to
+    their lines than the other cameras' pairs lie to theirs (the rest the matches cannot
+    tell from the calibration's own error). When no turn of any candidate makes every pair
     fit, the candidates are also placed again with their centres free, and one that leaves
     more inliers fitting than any turn is taken, under the same rules."""
     config = config or CalibrationCheckConfig()
