@@ -594,3 +594,66 @@ def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
     assert len(adopted) == 1 and "cam1 (turned 2.0" in adopted[0]
     # The background models went on across the adoption: learned once, at the start.
     assert len(learned) == 1
+
+
+def test_a_camera_knocked_during_a_run_is_re_aimed_once_and_stays_so(
+    tiny_dataset, tmp_path, caplog, capsys, monkeypatch
+):
+    """``run --adopt-repairs`` with cam1 knocked by 2 degrees at time 2 (its frames from there
+    seen turned; the empty-scene clip and the first frames as calibrated): the repair is
+    adopted once and kept. The back-end that the adoption starts rebuilt and checked the
+    clip, which shows cam1 as it was: it named cam1 again and the run turned it back."""
+    from edgerecon.cli import main
+    from tests.quality.test_calibration import angle_deg
+
+    src = tmp_path / "scene"
+    shutil.copytree(tiny_dataset, src)
+    calibrated = open_dataset(src).rig
+    c = calibrated[1]
+    dR = cv2.Rodrigues(np.radians(2.0) * np.array([1.0, 0.0, 0.0]))[0]
+    H = c.K @ dR @ np.linalg.inv(c.K)
+    for t in range(2, 8):
+        path = src / "frames" / "cam1" / f"{t:06d}.png"
+        image = cv2.imread(str(path))
+        h, w = image.shape[:2]
+        warped = cv2.warpPerspective(image, H, (w, h), borderMode=cv2.BORDER_REPLICATE)
+        cv2.imwrite(str(path), warped)
+    (tmp_path / "cfg.toml").write_text("[runtime]\ncalib_check_s = 0.001\n")
+    dense = edgerecon.pipeline.reconstruct_foreground
+    calls = []
+
+    def said():
+        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
+
+    def slow(*args, **kwargs):  # tasks of a second or so: rebuilds and checks run beside
+        calls.append(1)
+        time.sleep(1.0)
+        if len(calls) == 5:  # the 5th task waits for the back-end's (confirmed) verdict
+            assert wait_until(said, timeout=120)
+        return dense(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    import edgerecon.runtime.engine as engine
+
+    seeded = []  # each back-end's first rebuild source (the clip's frames: time -1)
+    backend_class = engine.BackEnd
+
+    def backend(*args, **kwargs):
+        first = kwargs.get("initial_background")
+        seeded.append(None if first is None else first.time_index)
+        return backend_class(*args, **kwargs)
+
+    monkeypatch.setattr(engine, "BackEnd", backend)
+    caplog.set_level(logging.WARNING)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(src), "--out", str(out), "--deadline", "20"]
+    args += ["--config", str(tmp_path / "cfg.toml"), "--adopt-repairs", "--json"]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in result["tasks"]] == list(range(8))
+    # The clip seeds the first back-end only: after the adoption it shows cam1 as it was.
+    assert seeded == [-1, None]
+    (rec,) = result["summary"]["recalibrations"]
+    assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)
+    # The rig the run goes on with: cam1 as knocked.
+    assert angle_deg(open_dataset(src).rig[1], calibrated[1]) == pytest.approx(2.0, abs=0.3)

@@ -362,6 +362,18 @@ def run_online(
             # stream definition of edgerecon.scene.stream: a resumed run continues with the
             # models an uninterrupted run would have).
             scene = learn_scene_model(dataset, config.foreground, first)
+        if scene.initial_background is not None and (
+            folder.recalibration is not None or (saved is not None and saved.recalibrations)
+        ):
+            # The empty-scene clip shows the cameras as they were before the run re-posed one:
+            # rebuilt with the new poses, or checked (the check turned the camera back to
+            # where the clip has it: a repaired run undid its own repair), it misleads. The
+            # back-end starts from the stream's frames.
+            logger.info(
+                "the empty-scene clip predates the cameras re-posed in this run: the back-end "
+                "rebuilds from the stream's frames"
+            )
+            scene = dataclasses.replace(scene, initial_background=None)
         if on_ready is not None:
             on_ready(scene)
         restored = None if saved is None else saved.frontend
