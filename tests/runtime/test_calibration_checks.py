@@ -48,3 +48,14 @@ def test_a_camera_not_checked_is_checked_at_every_rebuild_on_up_to_7_frame_sets(
     assert be.stats["calibration"]["unchecked"] == [] and len(checks) == 9
     be._check_calibration(dataclasses.replace(fs, time_index=9))
     assert len(checks) == 9
+
+
+def test_scene_models_learned_from_the_clip_stay_so_without_its_frame_set(tiny):
+    """A run that re-posed a camera hands its back-end no clip frame set (it shows the camera
+    as it was); the models learned from the clip are still clip models (the person model's
+    ``auto`` stays off), not taken for models learned from the stream."""
+    ds, scene = tiny
+    assert scene.initial_background is not None
+    plain = dataclasses.replace(scene, initial_background=None)
+    assert plain.tracker(ds.rig).foreground.from_stream is False
+    assert scene.tracker(ds.rig).foreground.from_stream is False

@@ -69,6 +69,9 @@ class SceneModel:
     """The static scene's clouds, oldest first (the ghost check's; ``scene.stream``)."""
     static_floors: tuple[Plane | None, ...] = ()
     """Per static cloud, its ground plane (or None)."""
+    from_stream: bool | None = None
+    """Whether the models were learned from the stream, not from a clip of the empty scene
+    (the person model's ``auto``); None: as ``initial_background`` says (no clip frame)."""
 
     @classmethod
     def of_tracker(
@@ -87,6 +90,7 @@ class SceneModel:
             static_from=tracker.static_from,
             static_clouds=tracker.foreground.static_clouds,
             static_floors=tracker.foreground.static_floors,
+            from_stream=tracker.foreground.from_stream,
         )
 
     def without_geometry(self) -> SceneModel:
@@ -97,7 +101,12 @@ class SceneModel:
     def tracker(self, rig: Rig, config: ForegroundConfig | None = None) -> SceneTracker:
         """Live background models (a copy: the snapshot stays as it is)."""
         fg = RigForeground.from_states(
-            rig, self.states, config, from_stream=self.initial_background is None
+            rig,
+            self.states,
+            config,
+            from_stream=(
+                self.initial_background is None if self.from_stream is None else self.from_stream
+            ),
         )
         fg.set_static_clouds(self.static_clouds, self.static_floors)
         return SceneTracker(
