@@ -59,3 +59,19 @@ def test_scene_models_learned_from_the_clip_stay_so_without_its_frame_set(tiny):
     plain = dataclasses.replace(scene, initial_background=None)
     assert plain.tracker(ds.rig).foreground.from_stream is False
     assert scene.tracker(ds.rig).foreground.from_stream is False
+
+
+def test_a_re_posed_camera_s_models_are_learned_again_from_the_frames_before(tiny):
+    """``engine.relearned``: the re-posed camera's background model is learned again from
+    the stream's frames before the run goes on (what it sees now); the others stay."""
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.runtime.engine import relearned
+
+    ds, scene = tiny
+    again = relearned(scene, open_dataset(ds.root), [1], 6)
+    assert [a is b for a, b in zip(again.states, scene.states, strict=True)] == [
+        True, False, True, True, True
+    ]  # fmt: skip
+    assert again.states[1].camera == scene.states[1].camera
+    assert not np.allclose(again.states[1].mean, scene.states[1].mean)
+    assert relearned(scene, ds, [], 6) is scene

@@ -40,7 +40,12 @@ from edgerecon.runtime.frontend import (
 from edgerecon.runtime.messages import GoldenReply, TaskPlan, TaskWork
 from edgerecon.scene.background import BackgroundState
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
-from edgerecon.scene.stream import SceneTracker, bootstrap_scene, dataset_scene_at
+from edgerecon.scene.stream import (
+    SceneTracker,
+    bootstrap_indices,
+    bootstrap_scene,
+    dataset_scene_at,
+)
 from edgerecon.types import FrameSet, PointCloud, Points3D
 
 logger = logging.getLogger(__name__)
@@ -141,6 +146,39 @@ def learn_scene_model(
         if clip is not None:
             clip.close()
     return SceneModel.of_tracker(tracker, initial, time.perf_counter() - t0)
+
+
+def relearned(
+    model: SceneModel,
+    dataset: Dataset,
+    cameras: Sequence[int],
+    before: int,
+    config: ForegroundConfig | None = None,
+) -> SceneModel:
+    """``model`` with the background models of ``cameras`` learned again from the stream's
+    frames before time index ``before`` (the median of ``bootstrap_frames`` over the
+    ``bootstrap_span_s`` before it, as a stream's bootstrap): cameras re-posed during a run
+    no longer see the scene as their models learned it (a clip of the empty scene, or the
+    frames before the knock). A recorded dataset only (a live stream keeps no frames
+    behind): else ``model`` as it is."""
+    config = config or ForegroundConfig()
+    if not cameras or dataset.is_live or before < 1:
+        return model
+    offsets = bootstrap_indices(before, dataset.fps, config)
+    start = before - (offsets[-1] + 1)
+    with dataset.open_frames() as source:
+        framesets = [source.read(start + i) for i in offsets]
+    learned = RigForeground.learn_from_framesets(dataset.rig, framesets, config).states()
+    states = list(model.states)
+    for c in cameras:
+        states[c] = learned[c]
+    logger.info(
+        "scene: the background models of %s learned again from time %d..%d",
+        ", ".join(dataset.rig[c].name for c in cameras),
+        start + offsets[0],
+        start + offsets[-1],
+    )
+    return dataclasses.replace(model, states=tuple(states))
 
 
 def foreground_at(

@@ -48,6 +48,7 @@ from edgerecon.runtime.engine import (
     Engine,
     SceneModel,
     learn_scene_model,
+    relearned,
 )
 from edgerecon.runtime.frontend import FixedController
 from edgerecon.runtime.memory import MMAP_THRESHOLD, long_run, start_heap_trimmer, tune_malloc
@@ -362,6 +363,11 @@ def run_online(
             # stream definition of edgerecon.scene.stream: a resumed run continues with the
             # models an uninterrupted run would have).
             scene = learn_scene_model(dataset, config.foreground, first)
+        if folder.recalibration is not None:
+            # The cameras re-posed now: their models show the scene as they saw it before.
+            names = dataset.rig.names
+            moved = [names.index(n) for n in folder.recalibration.cameras if n in names]
+            scene = relearned(scene, dataset, moved, first, config.foreground)
         if scene.initial_background is not None and (
             folder.recalibration is not None or (saved is not None and saved.recalibrations)
         ):
