@@ -538,12 +538,47 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
     assert summary.calibration is None or summary.calibration["fits"] is not False
 
 
+def slow_tasks_until_said(tmp_path, caplog, monkeypatch, wait_at: int) -> None:
+    """Checks at every rebuild (``tmp_path / "cfg.toml"``) and tasks of a second or so, so
+    that rebuilds and checks run beside them; task ``wait_at`` waits for the back-end's
+    (confirmed) verdict that a camera moved."""
+    (tmp_path / "cfg.toml").write_text("[runtime]\ncalib_check_s = 0.001\n")
+    dense = edgerecon.pipeline.reconstruct_foreground
+    calls = []
+
+    def said():
+        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
+
+    def slow(*args, **kwargs):
+        calls.append(1)
+        time.sleep(1.0)
+        if len(calls) == wait_at:
+            assert wait_until(said, timeout=120)
+        return dense(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+
+
+def adopting_run(src: Path, tmp_path: Path, caplog, capsys) -> dict:
+    """``edgerecon run --adopt-repairs --json`` on ``src`` (its 8 timestamps, every task
+    run once) with ``tmp_path / "cfg.toml"``: its JSON."""
+    from edgerecon.cli import main
+
+    caplog.set_level(logging.WARNING)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(src), "--out", str(out), "--deadline", "20"]
+    args += ["--config", str(tmp_path / "cfg.toml"), "--adopt-repairs", "--json"]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in result["tasks"]] == list(range(8))
+    return result
+
+
 def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
     tiny_dataset, tmp_path, caplog, capsys, monkeypatch
 ):
     """``run --adopt-repairs``, everything on: the back-end's confirmed repair is named in
     the dataset and the run goes on with it (as a --resume would), every task once."""
-    from edgerecon.cli import main
     from edgerecon.cli.calib import RECALIBRATED
     from edgerecon.io.calibration import save_rig
     from tests.quality.test_calibration import angle_deg, turned
@@ -552,21 +587,7 @@ def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
     shutil.copytree(tiny_dataset, src)
     calibrated = open_dataset(src).rig
     save_rig(src / "rig.json", turned(calibrated, 1, 2.0, (1.0, 0.0, 0.0)))
-    (tmp_path / "cfg.toml").write_text("[runtime]\ncalib_check_s = 0.001\n")
-    dense = edgerecon.pipeline.reconstruct_foreground
-    calls = []
-
-    def said():
-        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
-
-    def slow(*args, **kwargs):  # tasks of a second or so: rebuilds and checks run beside
-        calls.append(1)
-        time.sleep(1.0)
-        if len(calls) == 4:  # the 4th task waits for the back-end's (confirmed) verdict
-            assert wait_until(said, timeout=120)
-        return dense(*args, **kwargs)
-
-    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    slow_tasks_until_said(tmp_path, caplog, monkeypatch, wait_at=4)
     import edgerecon.runtime.online as online
 
     learned = []
@@ -577,13 +598,7 @@ def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
         return learn(*args, **kwargs)
 
     monkeypatch.setattr(online, "learn_scene_model", counted)
-    caplog.set_level(logging.WARNING)
-    out = tmp_path / "run"
-    args = ["run", "--dataset", str(src), "--out", str(out), "--deadline", "20"]
-    args += ["--config", str(tmp_path / "cfg.toml"), "--adopt-repairs", "--json"]
-    assert main(args) == 0
-    result = json.loads(capsys.readouterr().out)
-    assert [t["time_index"] for t in result["tasks"]] == list(range(8))
+    result = adopting_run(src, tmp_path, caplog, capsys)
     assert all(t["status"] == "ok" for t in result["tasks"])
     (rec,) = result["summary"]["recalibrations"]
     assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)
@@ -599,11 +614,11 @@ def test_run_adopt_repairs_goes_on_with_the_turned_camera_re_aimed(
 def test_a_camera_knocked_during_a_run_is_re_aimed_once_and_stays_so(
     tiny_dataset, tmp_path, caplog, capsys, monkeypatch
 ):
-    """``run --adopt-repairs`` with cam1 knocked by 2 degrees at time 2 (its frames from there
-    seen turned; the empty-scene clip and the first frames as calibrated): the repair is
-    adopted once and kept. The back-end that the adoption starts rebuilt and checked the
-    clip, which shows cam1 as it was: it named cam1 again and the run turned it back."""
-    from edgerecon.cli import main
+    """``run --adopt-repairs`` with cam1 knocked by 2 degrees after the empty-scene clip was
+    recorded (its frames seen turned; the clip as calibrated): the repair is adopted once
+    and kept. The back-end that the adoption starts rebuilt and checked the clip, which
+    shows cam1 as it was: it named cam1 again and the run turned it back (the demo scene,
+    knocked at time 60 of 150: docs/BENCHMARKS.md)."""
     from tests.quality.test_calibration import angle_deg
 
     src = tmp_path / "scene"
@@ -612,27 +627,13 @@ def test_a_camera_knocked_during_a_run_is_re_aimed_once_and_stays_so(
     c = calibrated[1]
     dR = cv2.Rodrigues(np.radians(2.0) * np.array([1.0, 0.0, 0.0]))[0]
     H = c.K @ dR @ np.linalg.inv(c.K)
-    for t in range(2, 8):
+    for t in range(8):
         path = src / "frames" / "cam1" / f"{t:06d}.png"
         image = cv2.imread(str(path))
         h, w = image.shape[:2]
         warped = cv2.warpPerspective(image, H, (w, h), borderMode=cv2.BORDER_REPLICATE)
         cv2.imwrite(str(path), warped)
-    (tmp_path / "cfg.toml").write_text("[runtime]\ncalib_check_s = 0.001\n")
-    dense = edgerecon.pipeline.reconstruct_foreground
-    calls = []
-
-    def said():
-        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
-
-    def slow(*args, **kwargs):  # tasks of a second or so: rebuilds and checks run beside
-        calls.append(1)
-        time.sleep(1.0)
-        if len(calls) == 5:  # the 5th task waits for the back-end's (confirmed) verdict
-            assert wait_until(said, timeout=120)
-        return dense(*args, **kwargs)
-
-    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    slow_tasks_until_said(tmp_path, caplog, monkeypatch, wait_at=5)
     import edgerecon.runtime.engine as engine
 
     seeded = []  # each back-end's first rebuild source (the clip's frames: time -1)
@@ -644,13 +645,7 @@ def test_a_camera_knocked_during_a_run_is_re_aimed_once_and_stays_so(
         return backend_class(*args, **kwargs)
 
     monkeypatch.setattr(engine, "BackEnd", backend)
-    caplog.set_level(logging.WARNING)
-    out = tmp_path / "run"
-    args = ["run", "--dataset", str(src), "--out", str(out), "--deadline", "20"]
-    args += ["--config", str(tmp_path / "cfg.toml"), "--adopt-repairs", "--json"]
-    assert main(args) == 0
-    result = json.loads(capsys.readouterr().out)
-    assert [t["time_index"] for t in result["tasks"]] == list(range(8))
+    result = adopting_run(src, tmp_path, caplog, capsys)
     # The clip seeds the first back-end only: after the adoption it shows cam1 as it was.
     assert seeded == [-1, None]
     (rec,) = result["summary"]["recalibrations"]
