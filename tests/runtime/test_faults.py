@@ -540,8 +540,9 @@ def test_a_camera_turned_during_a_run_is_said_and_recorded_with_everything_on(
 
 def slow_tasks_until_said(tmp_path, caplog, monkeypatch, wait_at: int) -> None:
     """Checks at every rebuild (``tmp_path / "cfg.toml"``) and tasks of a second or so, so
-    that rebuilds and checks run beside them; task ``wait_at`` waits for the back-end's
-    (confirmed) verdict that a camera moved."""
+    that rebuilds and checks run beside them; from task ``wait_at`` on, each task waits up
+    to 40 s for the back-end's (confirmed) verdict that a camera moved (the back-end checks
+    at its rebuilds, which need new frames: a loaded machine may take more than one)."""
     (tmp_path / "cfg.toml").write_text("[runtime]\ncalib_check_s = 0.001\n")
     dense = edgerecon.pipeline.reconstruct_foreground
     calls = []
@@ -552,8 +553,8 @@ def slow_tasks_until_said(tmp_path, caplog, monkeypatch, wait_at: int) -> None:
     def slow(*args, **kwargs):
         calls.append(1)
         time.sleep(1.0)
-        if len(calls) == wait_at:
-            assert wait_until(said, timeout=120)
+        if len(calls) >= wait_at and not said():
+            wait_until(said, timeout=40)
         return dense(*args, **kwargs)
 
     monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
