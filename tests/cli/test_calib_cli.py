@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from edgerecon.cli import main
-from edgerecon.cli.calib import MORE_TIMES, RECALIBRATED, default_times
+from edgerecon.cli.calib import RECALIBRATED, default_times
 from edgerecon.io.calibration import load_rig, save_rig
 from edgerecon.io.dataset import open_dataset
+from edgerecon.quality.calibration import POOLED_FRAME_SETS
 from tests.conftest import shared_data
 from tests.quality.test_calibration import angle_deg, moved, turned
 
@@ -70,7 +71,7 @@ def test_a_camera_that_3_frame_sets_cannot_check_is_checked_on_7(tmp_path, capsy
 
     assert main(["calib", "--dataset", str(root), "--json"]) == 3
     report = json.loads(capsys.readouterr().out)
-    assert report["times"] == default_times(111, MORE_TIMES)
+    assert report["times"] == default_times(111, POOLED_FRAME_SETS)
     assert report["off"] == [1]
     weak = next(p for p in report["pairs"] if (p["a"], p["b"]) == (1, 2))
     assert not weak["checked"] and weak["inliers"] < 1.5 * weak["chance"]

@@ -1,6 +1,6 @@
 """A run's calibration checks (the back-end's, after its background rebuilds): a camera that
 the last rebuilds' frames cannot check is checked on the earlier checks' matches too (up to
-``_CALIB_KEEP`` frame sets), and the checks come at every rebuild while it is not checked;
+``POOLED_FRAME_SETS`` frame sets), and the checks come at every rebuild while it is not checked;
 then every ``calib_check_s``."""
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ import dataclasses
 
 import numpy as np
 
+from edgerecon.quality.calibration import POOLED_FRAME_SETS
 from edgerecon.runtime import backend
 from tests.runtime.conftest import runtime_config
 
@@ -32,7 +33,7 @@ def test_a_camera_not_checked_is_checked_at_every_rebuild_on_up_to_7_frame_sets(
             images = list(fs.images)
             images[3] = np.zeros_like(images[3])
             be._check_calibration(dataclasses.replace(fs, images=tuple(images)))
-    keep = backend._CALIB_KEEP
+    keep = POOLED_FRAME_SETS
     assert keep == 7
     # Checked at each rebuild on all the frame sets pooled so far (the newest three alone
     # leave cam3 unchecked), the newest 7 once there are more.

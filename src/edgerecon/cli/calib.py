@@ -27,6 +27,7 @@ from edgerecon.io.dataset import DESCRIPTOR, Dataset
 from edgerecon.io.ply import atomic_write_text
 from edgerecon.progress import track
 from edgerecon.quality.calibration import (
+    POOLED_FRAME_SETS,
     CalibrationCheck,
     CalibrationCheckConfig,
     PoseEstimate,
@@ -44,10 +45,6 @@ logger = logging.getLogger(__name__)
 
 #: The rig file ``--write`` makes next to ``dataset.json`` (the one before is kept).
 RECALIBRATED = "rig.recalibrated.json"
-
-#: Frame sets pooled in all when a camera shares too few features with the others in the
-#: first 3 (``check_dataset``).
-MORE_TIMES = 7
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -73,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="T1,T2,...",
         help="time indices whose matches are pooled (default: 3 spread over the stream, "
-        f"{MORE_TIMES} when a camera shares too few features with the others in those)",
+        f"{POOLED_FRAME_SETS} when a camera shares too few features with the others in "
+        "those)",
     )
     p.add_argument(
         "--max-error",
@@ -354,7 +352,7 @@ def check_dataset(
     """The calibration against frame sets of a recorded dataset, pooled: ``times``, or 3
     spread over the stream and, when a camera could not be checked on those (it shares too
     few features with the others there: caliscope_charuco's cam_1 while the person sits),
-    those of ``MORE_TIMES`` spread over it (the first 3 are not read again). A frame set
+    those of ``POOLED_FRAME_SETS`` spread over it (the first 3 are not read again). A frame set
     that cannot be read is left out (said); none read is a ``DataError``."""
     auto = times is None
     first = default_times(ds.num_frames) if times is None else times
@@ -364,7 +362,7 @@ def check_dataset(
             raise DataError(f"the calibration check read no frame set (times {first})")
         check = check_calibration(sets, ds.rig, config)
         unchecked = [v.name for v in check.cameras if v.status == "unchecked"]
-        more = [t for t in default_times(ds.num_frames, MORE_TIMES) if t not in first]
+        more = [t for t in default_times(ds.num_frames, POOLED_FRAME_SETS) if t not in first]
         if auto and unchecked and more:
             logger.info(
                 "calibration check: %s not checked on times %s (too few features shared with "

@@ -1170,12 +1170,17 @@ class CheckPool:
         return tuple(sorted(self.observed.times))
 
 
+#: Frame sets a check pools for a camera that 3 cannot check (``edgerecon calib`` reads that
+#: many spread over the stream; a run's checks keep that many of their newest).
+POOLED_FRAME_SETS = 7
+
+
 def pooled_verdict(
     rig: Rig,
     frames: Sequence[FrameSet],
     pool: CheckPool | None = None,
     *,
-    keep: int = 7,
+    keep: int = POOLED_FRAME_SETS,
     config: CalibrationCheckConfig | None = None,
 ) -> tuple[dict[str, Any], CheckPool]:
     """A run's check (:func:`calibration_verdict`'s answer) of ``frames``, its newest frame

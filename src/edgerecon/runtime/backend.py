@@ -20,7 +20,6 @@ The class is plain Python (usable without any cluster); the Ray engine wraps it 
 
 from __future__ import annotations
 
-import functools
 import logging
 import multiprocessing
 import os
@@ -70,10 +69,6 @@ _KEEP_REPLIES = 8
 #: The calibration check's frame sets held at most (pixels over all cameras: 3 sets of 4
 #: cameras at 1920x1080, ~75 MB; one set of a larger rig).
 _CALIB_POOL_PIXELS = 25_000_000
-#: The most frame sets a run's calibration checks pool for a camera that the last three
-#: rebuilds' frame sets cannot check (``edgerecon calib`` reads 7: ``cli.calib.MORE_TIMES``;
-#: the pool keeps the newest).
-_CALIB_KEEP = 7
 
 
 def _pixels(sets: deque[FrameSet]) -> int:
@@ -412,7 +407,7 @@ class BackEnd:
         """The calibration against the frames of this rebuild and the two before (pooled),
         when due (``calib_check_s``); a camera they cannot check (few features shared with
         the others) is checked on the matches of the earlier checks too, up to
-        ``_CALIB_KEEP`` frame sets (``pooled_verdict``), and the checks come at every
+        ``POOLED_FRAME_SETS`` frame sets (``pooled_verdict``), and the checks come at every
         rebuild while a camera is not checked (each reads one frame set more). A
         verdict is said when the check pooled two or more frame sets, or when two checks in a
         row give it (the first, of one frame set, is checked again at the next rebuild): a
@@ -430,7 +425,7 @@ class BackEnd:
         try:
             # The last three rebuilds' frame sets, pooled (as ``edgerecon calib``).
             verdict, self._calib_pool = self._bounded(
-                functools.partial(pooled_verdict, keep=_CALIB_KEEP),
+                pooled_verdict,
                 self.rig,
                 list(self._calib_sets),
                 self._calib_pool,

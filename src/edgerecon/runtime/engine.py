@@ -38,7 +38,7 @@ from edgerecon.runtime.frontend import (
     too_few_cameras,
 )
 from edgerecon.runtime.messages import GoldenReply, TaskPlan, TaskWork
-from edgerecon.scene.background import BackgroundState
+from edgerecon.scene.background import BackgroundModel, BackgroundState
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
 from edgerecon.scene.stream import (
     SceneTracker,
@@ -46,7 +46,7 @@ from edgerecon.scene.stream import (
     bootstrap_scene,
     dataset_scene_at,
 )
-from edgerecon.types import FrameSet, PointCloud, Points3D
+from edgerecon.types import EdgereconError, FrameSet, Image, PointCloud, Points3D
 
 logger = logging.getLogger(__name__)
 
@@ -166,12 +166,24 @@ def relearned(
         return model
     offsets = bootstrap_indices(before, dataset.fps, config)
     start = before - (offsets[-1] + 1)
-    with dataset.open_frames() as source:
-        framesets = [source.read(start + i) for i in offsets]
-    learned = RigForeground.learn_from_framesets(dataset.rig, framesets, config).states()
+    frames: dict[int, list[Image]] = {c: [] for c in cameras}
+    with dataset.open_frames(missing="skip_camera") as source:
+        for t in (start + i for i in offsets):
+            try:
+                fs = source.read(t)
+            except EdgereconError as exc:  # a frame that does not decode: the others serve
+                logger.warning("scene: time %d left out of the models learned again: %s", t, exc)
+                continue
+            for c in cameras:
+                if (image := fs.images[c]) is not None:
+                    frames[c].append(image)
     states = list(model.states)
     for c in cameras:
-        states[c] = learned[c]
+        name = dataset.rig[c].name
+        if not frames[c]:
+            logger.warning("scene: no frame of %s to learn its models again from", name)
+            continue
+        states[c] = BackgroundModel.learn(frames[c], config.background, camera=name).state
     logger.info(
         "scene: the background models of %s learned again from time %d..%d",
         ", ".join(dataset.rig[c].name for c in cameras),
