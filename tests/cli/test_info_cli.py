@@ -175,3 +175,28 @@ def test_info_check_reports_a_frozen_camera(tmp_path, capsys):
     assert "camera cam1: the same frame while the others' changed at times 2-6" in (
         capsys.readouterr().out
     )
+
+
+def test_info_check_reports_a_camera_whose_view_moved(tmp_path, capsys):
+    """cam2 turned 1.5 degrees (tilted) from time 3 of 8: ``moved`` dates it at time 3."""
+    from tests.quality.test_frames import _texture, _turned
+
+    rig = ring_rig(3, width=480, height_px=360, focal_px=400.0)
+    rng = np.random.default_rng(5)
+    cams = {}
+    for cam in rig:
+        room = _texture(rng, 360, 480)
+        for t in range(8):
+            image = _turned(room, 1.5, (1.0, 0.0, 0.0)) if cam.name == "cam2" and t >= 3 else room
+            noisy = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+            path = tmp_path / "frames" / cam.name / f"{t:04d}.png"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(path), noisy)
+        cams[cam.name] = f"frames/{cam.name}/{{index:04d}}.png"
+    write_dataset_descriptor(tmp_path, rig=rig, frames={"kind": "images", "cameras": cams}, fps=2.0)
+    main(["info", "--dataset", str(tmp_path), "--check", "--json"])
+    (move,) = json.loads(capsys.readouterr().out)["check"]["moved"]
+    assert move["camera"] == "cam2" and move["time"] == 3
+    assert move["shift_px"][1] == pytest.approx(-400 * np.tan(np.radians(1.5)), abs=1.0)
+    main(["info", "--dataset", str(tmp_path), "--check"])
+    assert "camera cam2: its whole view moved at time 3" in capsys.readouterr().out

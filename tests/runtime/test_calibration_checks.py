@@ -76,3 +76,43 @@ def test_a_re_posed_camera_s_models_are_learned_again_from_the_frames_before(tin
     assert again.states[1].camera == scene.states[1].camera
     assert not np.allclose(again.states[1].mean, scene.states[1].mean)
     assert relearned(scene, ds, [], 6) is scene
+
+
+def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_after(
+    tiny, monkeypatch
+):
+    """``BackEnd.check_calibration`` (the session's ``MovedCameras`` saw cam1's view move at
+    time 3): the check comes at the next rebuild whatever ``calib_check_s`` says, on the
+    frame sets from the move on (those before show the rig as it was), and one check that
+    names cam1 is confirmed at once (one frame set's verdict otherwise waits for the next)."""
+    from tests.quality.test_calibration import knocked_frames
+
+    ds, _ = tiny
+    be = backend.BackEnd(ds.rig, runtime_config(background_process=False))
+    checks: list[list[int]] = []
+    verdict_of = backend.pooled_verdict
+
+    def counted(*args, **kwargs):
+        verdict, pool = verdict_of(*args, **kwargs)
+        checks.append(verdict["times"])
+        return verdict, pool
+
+    monkeypatch.setattr(backend, "pooled_verdict", counted)
+    with ds.open_frames() as source:
+        sets = [source.read(t) for t in range(5)]
+    for fs in sets[:3]:
+        be._check_calibration(fs)
+    # One frame set, then two agree: not due for calib_check_s (60 s).
+    assert checks == [[0], [0, 1]]
+    knocked = [knocked_frames(fs, ds.rig, 1, 2.0, (1.0, 0.0, 0.0)) for fs in sets[3:]]
+    be.check_calibration(3, ["cam1"])
+    be._check_calibration(sets[2])  # a rebuild of frames before the move: no check yet
+    assert checks == [[0], [0, 1]]
+    be._check_calibration(knocked[0])
+    assert checks == [[0], [0, 1], [3]]
+    verdict = be.stats["calibration"]
+    assert verdict["fits"] is False and verdict["off"] == ["cam1"] and verdict["confirmed"]
+    assert be._calib_pool is not None and be._calib_pool.times == (3,)
+    # Told: the next checks are every calib_check_s again.
+    be._check_calibration(knocked[1])
+    assert checks == [[0], [0, 1], [3]]

@@ -653,3 +653,58 @@ def test_a_camera_knocked_during_a_run_is_re_aimed_once_and_stays_so(
     assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)
     # The rig the run goes on with: cam1 as knocked.
     assert angle_deg(open_dataset(src).rig[1], calibrated[1]) == pytest.approx(2.0, abs=0.3)
+
+
+def test_a_camera_knocked_mid_run_is_said_at_once_and_checked_at_the_next_rebuild(
+    tiny_dataset, tmp_path, caplog, capsys, monkeypatch
+):
+    """cam1 knocked (turned 2 degrees) at time 3 of 8, everything on, the calibration checked
+    at the default ``calib_check_s`` (60 s: not again within this run after its first):
+    the session sees cam1's view move from its frames (``MovedCameras``), says so once,
+    and the back-end checks the frames from time 3 at its next rebuild, which names cam1
+    (confirmed by one check: its view moved) and the run re-aims it (``--adopt-repairs``)."""
+    from edgerecon.cli import main
+
+    src = tmp_path / "scene"
+    shutil.copytree(tiny_dataset, src)
+    c = open_dataset(src).rig[1]
+    dR = cv2.Rodrigues(np.radians(2.0) * np.array([1.0, 0.0, 0.0]))[0]
+    H = c.K @ dR @ np.linalg.inv(c.K)
+    for t in range(3, 8):
+        path = src / "frames" / "cam1" / f"{t:06d}.png"
+        image = cv2.imread(str(path))
+        h, w = image.shape[:2]
+        cv2.imwrite(
+            str(path), cv2.warpPerspective(image, H, (w, h), borderMode=cv2.BORDER_REPLICATE)
+        )
+    (tmp_path / "cfg.toml").write_text("[runtime]\ndeadline_s = 20.0\n")
+    dense = edgerecon.pipeline.reconstruct_foreground
+    calls = []
+
+    def said():
+        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
+
+    def slow(*args, **kwargs):  # the tasks after the move wait for the back-end's verdict
+        calls.append(1)
+        time.sleep(0.5)
+        if len(calls) >= 7 and not said():
+            wait_until(said, timeout=40)
+        return dense(*args, **kwargs)
+
+    monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
+    caplog.set_level(logging.WARNING)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(src), "--out", str(out), "--config", str(tmp_path / "cfg.toml")]
+    assert main([*args, "--adopt-repairs", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert [t["time_index"] for t in result["tasks"]] == list(range(8))
+    moved = [r.getMessage() for r in caplog.records if "view moved" in r.getMessage()]
+    assert len(moved) == 1 and "time 5: cam1's view moved at time 3" in moved[0]
+    (move,) = result["summary"]["camera_moves"]
+    assert move["camera"] == "cam1" and move["time_index"] == 3 and move["seen_at"] == 5
+    assert move["turn_deg"] == pytest.approx(2.0, abs=0.3)
+    moves = [[m["camera"] for m in t["camera_moves"]] for t in result["tasks"]]
+    assert moves == [[]] * 5 + [["cam1"]] + [[]] * 2
+    assert said()
+    (rec,) = result["summary"]["recalibrations"]
+    assert rec["cameras"] == ["cam1"] and rec["turned_deg"][0] == pytest.approx(2.0, abs=0.3)

@@ -19,6 +19,7 @@ from edgerecon.progress import track
 from edgerecon.quality.frames import (
     FrameCheckConfig,
     FrozenCameras,
+    MovedCameras,
     frame_defects,
     without_defective,
 )
@@ -41,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="decode every frame of every camera and report the unusable ones (missing, "
         "zero-byte, truncated, does not decode, wrong size, black, saturated, textureless); "
         "exit code 3 when there are any; also the stretches where a camera sent the same "
-        "frame while the others' changed (frozen), and whether the calibration fits the frames "
+        "frame while the others' changed (frozen), the moments a camera's whole view moved "
+        "(knocked), and whether the calibration fits the frames "
         "(edgerecon calib; exit code 3 when it does not)",
     )
     add_json_flag(p)
@@ -161,18 +163,32 @@ def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[st
     ``run`` would leave out), how many timestamps keep at least 3 usable cameras, and the
     stretches where a camera's frames did not change while the others' did (``frozen``: from
     the time index of the repeated frame to that of its first new one, None when it never
-    came; ``FrameCheckConfig.frozen_after_s`` or longer; ``run`` keeps such a camera)."""
+    came; ``FrameCheckConfig.frozen_after_s`` or longer; ``run`` keeps such a camera), and the
+    moments a camera's whole view moved (``moved``: ``MovedCameras``, a knock; the frames
+    before and after it need not fit one calibration)."""
     names = ds.rig.names
     bad: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     usable_times = 0
     watch = FrozenCameras(config, fps=ds.fps or DEFAULT_FPS)
     frozen: dict[str, list[dict[str, int | None]]] = {}
+    moves = MovedCameras(config)
+    moved: list[dict[str, Any]] = []
     with ds.open_frames(missing="skip_camera") as source:
         counts = source.frame_counts
         for t in track(range(source.num_frames), "checking frames"):
             frames, problems = source.check(t)
             defects = frame_defects(frames, config)
-            froze, thawed = watch.update(without_defective(frames, defects))
+            usable = without_defective(frames, defects)
+            froze, thawed = watch.update(usable)
+            for move in moves.update(usable):
+                moved.append(
+                    {
+                        "camera": names[move.camera],
+                        "time": move.time_index,
+                        "shift_px": list(move.shift_px),
+                        "roll_deg": move.roll_deg,
+                    }
+                )
             for i in froze:
                 frozen.setdefault(names[i], []).append({"from": watch.since(i), "to": None})
             for i in thawed:
@@ -201,6 +217,7 @@ def check_frames(ds: Dataset, config: FrameCheckConfig | None = None) -> dict[st
         "unusable": {n: v for n, v in bad.items() if v},
         "num_unusable": sum(len(v) for v in bad.values()),
         "frozen": frozen,
+        "moved": moved,
     }
 
 
@@ -346,6 +363,14 @@ def _print_check(check: dict[str, Any]) -> None:
         console.print(
             f"camera {name}: the same frame while the others' changed at times {shown} "
             "(a stuck camera? run keeps it)"
+        )
+    for move in check.get("moved", []):
+        dx, dy = move["shift_px"]
+        console.print(
+            f"camera {move['camera']}: its whole view moved at time {move['time']} (the image "
+            f"centre {dx:+.1f}, {dy:+.1f} px, rolled {move['roll_deg']:+.2f} degrees: knocked?); "
+            "the frames before and after it need not fit one calibration (`edgerecon calib "
+            "--times` on each side)"
         )
     console.print(
         f"frame check: {check['num_unusable']} unusable frames; "

@@ -257,7 +257,8 @@ def task_row(m: TaskMetrics) -> list[Any]:
         f"{m.background_version}"
         + (" degraded" if m.degraded else "")
         + (" empty" if m.frame_defects and m.num_cameras < 3 else "")
-        + (f" frozen {','.join(m.frozen_cameras)}" if m.frozen_cameras else ""),
+        + (f" frozen {','.join(m.frozen_cameras)}" if m.frozen_cameras else "")
+        + (f" moved {','.join(c['camera'] for c in m.camera_moves)}" if m.camera_moves else ""),
     ]
 
 
@@ -322,6 +323,16 @@ def print_summary(title: str, s: RunSummary) -> None:
         ),
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
+    if s.camera_moves:
+        rows.append(
+            (
+                "cameras whose view moved",
+                "; ".join(
+                    f"{m['camera']} at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
+                    for m in s.camera_moves
+                ),
+            )
+        )
     if s.recalibrations:
         rows.append(recalibrations_row(s.recalibrations, s.unit))
     if s.calibration is not None:

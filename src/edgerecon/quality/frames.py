@@ -40,6 +40,14 @@ class FrameCheckConfig:
     seconds of the stream while another camera's did is *frozen*: a stuck camera, or a
     stream or decoder repeating its last frame (:class:`FrozenCameras`); 0 = no check.
     Sensor noise changes a working camera's every frame."""
+    moved_min_shift: float = 0.004
+    """A camera whose whole view shifted (its static scene, against its own recent frames)
+    by at least this share of the frame's longer side is *moved* (knocked, its mount
+    slipped): 1 px of a 256-px thumbnail, 5 px of 1280 (about 0.3 degrees of a 1280-wide
+    camera with a 90-degree field of view) (:class:`MovedCameras`); 0 = no check."""
+    moved_after_frames: int = 3
+    """... once that many updates in a row show the same shift (a person or a board that
+    fills the frame moves on; a moved camera's view stays moved)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.black_max_level < self.saturated_min_level <= 255:
@@ -53,6 +61,14 @@ class FrameCheckConfig:
             )
         if self.sample_px < 8:
             raise ValueError(f"FrameCheckConfig.sample_px must be >= 8, got {self.sample_px}")
+        if not 0 <= self.moved_min_shift < 0.25:
+            raise ValueError(
+                f"FrameCheckConfig.moved_min_shift must be in [0, 0.25), got {self.moved_min_shift}"
+            )
+        if self.moved_after_frames < 1:
+            raise ValueError(
+                f"FrameCheckConfig.moved_after_frames must be >= 1, got {self.moved_after_frames}"
+            )
         if not self.frozen_after_s >= 0:
             raise ValueError(
                 f"FrameCheckConfig.frozen_after_s must be >= 0, got {self.frozen_after_s}"
@@ -180,3 +196,167 @@ class FrozenCameras:
         thawed = sorted(self._frozen - now_frozen)
         self._frozen = now_frozen
         return froze, thawed
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraMove:
+    """A camera whose view moved (:class:`MovedCameras`): the image motion of its static
+    scene, at the frame's resolution, as a rotation about the image centre then a shift."""
+
+    camera: int
+    time_index: int
+    """The first update that showed the move."""
+    shift_px: tuple[float, float]
+    """The image centre's motion (x right, y down), pixels of the frame."""
+    roll_deg: float
+    """The turn about the image centre (positive: clockwise in the image)."""
+
+    def magnitude_px(self, size: tuple[int, int]) -> float:
+        """The largest motion of a pixel of a ``size`` (width, height) frame."""
+        return float(self.shift_px[0] ** 2 + self.shift_px[1] ** 2) ** 0.5 + abs(
+            np.radians(self.roll_deg)
+        ) * 0.5 * float(np.hypot(*size))
+
+
+class MovedCameras:
+    """Which cameras' views moved: a camera knocked or whose mount slipped during a run.
+
+    The calibration check (``quality.calibration``) tells a moved camera from its matches
+    with the others, in the back-end's idle time, at most every ``calib_check_s``; this
+    tells that *some* camera's view moved at once, from that camera's frames alone, so that
+    the check comes at the next background rebuild (on frames after the move). Per camera,
+    a thumbnail (256 px along the longer side, grey) is compared with a running average of
+    its earlier thumbnails, tile by tile (3 x 3 tiles, OpenCV's phase correlation): the
+    tiles whose correlation peak is clear give their shift, and a rotation about the centre
+    and a shift (least squares) that moves at least 5 of them (and two thirds of those with
+    a clear peak) to within half a pixel of where they went is the view's motion. A motion
+    of at least ``moved_min_shift`` that stays the same over ``moved_after_frames`` updates
+    is a move: one :class:`CameraMove`, and the camera's new view is its reference from
+    then on. People and objects move a part of the frame, or the whole of it in ways no
+    single turn explains, and not the same way three times in a row; the running average
+    follows light that changes. About 1 ms per camera (1280x720).
+
+    Measured (docs/BENCHMARKS.md): caliscope_charuco's 111 frame sets (a person and a board
+    waved up to the lens) and utrecht4cam's move no camera; a 1-degree turn of any one of
+    caliscope_charuco's cameras about any axis, and the synthetic 2-degree knock, is a move
+    at the first frame after it once ``moved_after_frames`` have shown it.
+    """
+
+    _THUMB_PX = 256
+    _GRID = 3
+    _MIN_RESPONSE = 0.15
+    _MIN_TILES = 5
+    _AVERAGE = 0.1
+
+    def __init__(self, config: FrameCheckConfig | None = None) -> None:
+        self.config = config or FrameCheckConfig()
+        self._ref: dict[int, NDArray[np.float32]] = {}
+        self._window: dict[tuple[int, int], NDArray[np.float32]] = {}
+        self._pending: dict[int, tuple[int, NDArray[np.float64], int]] = {}
+        """Per camera: the first update of a motion not yet reported, its tiles' shifts
+        and how many updates in a row showed it."""
+
+    def _thumbnail(self, image: Image) -> NDArray[np.float32]:
+        """The frame's grey thumbnail: an area average by a whole factor (OpenCV's fast
+        path: 0.9 ms at 1280x720, 1.7 at 1920x1080), at least 256 px along the longer side."""
+        h, w = image.shape[:2]
+        k = max(1, max(h, w) // self._THUMB_PX)
+        size = (w // k, h // k)
+        small = cv2.resize(image[: size[1] * k, : size[0] * k], size, interpolation=cv2.INTER_AREA)
+        grey = cv2.cvtColor(small, cv2.COLOR_BGR2GRAY) if small.ndim == 3 else small
+        return np.asarray(grey, np.float32)
+
+    def _tiles(
+        self, ref: NDArray[np.float32], now: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The tiles' centres and shifts from ``ref`` to ``now`` (NaN: no clear peak)."""
+        h, w = now.shape
+        g = self._GRID
+        th, tw = h // g, w // g
+        win = self._window.get((th, tw))
+        if win is None:
+            win = np.asarray(cv2.createHanningWindow((tw, th), cv2.CV_32F), np.float32)
+            self._window[(th, tw)] = win
+        centres = np.empty((g * g, 2))
+        shifts = np.full((g * g, 2), np.nan)
+        for r in range(g):
+            for c in range(g):
+                k = r * g + c
+                ys, xs = slice(r * th, (r + 1) * th), slice(c * tw, (c + 1) * tw)
+                (dx, dy), response = cv2.phaseCorrelate(ref[ys, xs], now[ys, xs], win)
+                centres[k] = ((c + 0.5) * tw, (r + 0.5) * th)
+                if response >= self._MIN_RESPONSE:
+                    shifts[k] = (dx, dy)
+        return centres, shifts
+
+    def _moved(self, shifts: NDArray[np.float64], least: float) -> NDArray[np.bool_] | None:
+        """The tiles that moved, when they are the view's motion (None: not)."""
+        clear = ~np.isnan(shifts[:, 0])
+        size = np.hypot(shifts[:, 0], shifts[:, 1])
+        moved = clear & (size >= least)
+        still = clear & (size < least / 2)
+        if moved.sum() < self._MIN_TILES or moved.sum() < 3 * still.sum():
+            return None
+        return moved
+
+    def update(self, frames: FrameSet) -> list[CameraMove]:
+        """Take the next frames (in time order); return the cameras whose move they
+        confirm."""
+        config = self.config
+        if config.moved_min_shift <= 0:
+            return []
+        out = []
+        for i, image in enumerate(frames.images):
+            if image is None:
+                continue  # no frame (stalled, unusable): not judged this time
+            now = self._thumbnail(image)
+            ref = self._ref.get(i)
+            if ref is None or ref.shape != now.shape:
+                self._ref[i] = now
+                self._pending.pop(i, None)
+                continue
+            h, w = now.shape
+            centres, shifts = self._tiles(ref, now)
+            moved = self._moved(shifts, config.moved_min_shift * max(h, w))
+            if moved is None:
+                self._pending.pop(i, None)
+                cv2.accumulateWeighted(now, ref, self._AVERAGE)  # follows the light
+                continue
+            first, seen, count = self._pending.get(i, (frames.time_index, shifts, 0))
+            # The same motion: the tiles that moved then moved alike now (a person or a
+            # board moves on; a turned camera's view stays where it went).
+            both = moved & ~np.isnan(seen[:, 0])
+            gap = np.hypot(*(shifts[both] - seen[both]).T)
+            alike = gap <= np.maximum(1.0, 0.25 * np.hypot(*seen[both].T))
+            if count and alike.sum() < self._MIN_TILES:
+                first, seen, count = frames.time_index, shifts, 0
+            count += 1
+            if count < config.moved_after_frames:
+                self._pending[i] = (first, seen, count)
+                continue
+            self._pending.pop(i, None)
+            self._ref[i] = now  # the new view
+            m = _rigid_fit(centres[moved], centres[moved] + shifts[moved])
+            centre = np.array([w / 2, h / 2])
+            shift = centre @ m[:, :2].T + m[:, 2] - centre
+            full = image.shape[1] / w
+            out.append(
+                CameraMove(
+                    camera=i,
+                    time_index=first,
+                    shift_px=(round(float(shift[0] * full), 2), round(float(shift[1] * full), 2)),
+                    roll_deg=round(float(np.degrees(np.arctan2(m[1, 0], m[0, 0]))), 3),
+                )
+            )
+        return out
+
+
+def _rigid_fit(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation and shift (2x3) that take points ``a`` nearest ``b`` (least squares)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    r = (u @ vt).T
+    if np.linalg.det(r) < 0:
+        vt[-1] *= -1
+        r = (u @ vt).T
+    return np.hstack([r, (cb - r @ ca)[:, None]])

@@ -26,7 +26,7 @@ import os
 import threading
 import time
 from collections import OrderedDict, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
@@ -138,6 +138,11 @@ class BackEnd:
         self._calib_due = 0.0
         self._calib_sets: deque[FrameSet] = deque(maxlen=3)
         self._calib_pool: CheckPool | None = None
+        self._calib_since: int | None = None
+        """A camera's view moved at this time index (``check_calibration``): the next check
+        reads frame sets from then on only."""
+        self._calib_moved: tuple[str, ...] = ()
+        """The cameras whose views moved then: a check that names them is confirmed."""
         self._calib_last: tuple[bool | None, tuple[str, ...]] | None = None
         self._calib_said: tuple[bool | None, tuple[str, ...]] | None = None
 
@@ -202,6 +207,18 @@ class BackEnd:
             else:
                 raise ValueError(f"unknown fault {kind!r}: use 'stall' or 'crash'")
             self._lock.notify_all()
+
+    def check_calibration(self, since: int, cameras: Sequence[str]) -> None:
+        """Check the calibration at the next rebuild (whatever ``calib_check_s`` says), on
+        frame sets from time index ``since`` on: ``cameras``' views moved then
+        (``quality.frames.MovedCameras``), and the frame sets before show the rig as it was.
+        A check that names those cameras is confirmed at once (their frames and their
+        matches with the others agree). Nothing when the checks are off
+        (``calib_check_s = 0``)."""
+        with self._lock:
+            self._calib_since = since
+            self._calib_moved = tuple(sorted(set(cameras) | set(self._calib_moved)))
+            self._calib_due = 0.0
 
     def _wait(self, store: OrderedDict[int, Any], key: int, timeout: float) -> Any:
         deadline = time.monotonic() + max(0.0, timeout)
@@ -356,7 +373,14 @@ class BackEnd:
     def _rebuild(self, frames: FrameSet, fg: ForegroundResult | None) -> None:
         """One rebuild: the snapshot of the still foreground (``scene.still``; the tasks use
         it at once), the background, then the calibration check when due
-        (``calib_check_s``; after the background, which the tasks wait for)."""
+        (``calib_check_s``; after the background, which the tasks wait for). After a camera's
+        view moved (``check_calibration``) the check of frames from then on comes first: a
+        background from the moved camera's calibrated pose is not what the tasks wait for,
+        and ``--adopt-repairs`` takes the repair as soon as the check confirms it."""
+        with self._lock:
+            urgent = self._calib_since is not None and frames.time_index >= self._calib_since
+        if urgent:
+            self._check_calibration(frames)
         t0 = time.perf_counter()
         if self.config.still is not None and fg is not None and self._snapshot_due():
             try:
@@ -401,7 +425,8 @@ class BackEnd:
         self._send(
             BackgroundUpdate(version=version, cloud=cloud, seconds=seconds), f"background {version}"
         )
-        self._check_calibration(frames)
+        if not urgent:
+            self._check_calibration(frames)
 
     def _check_calibration(self, frames: FrameSet) -> None:
         """The calibration against the frames of this rebuild and the two before (pooled),
@@ -412,13 +437,35 @@ class BackEnd:
         verdict is said when the check pooled two or more frame sets, or when two checks in a
         row give it (the first, of one frame set, is checked again at the next rebuild): a
         warning when a camera is named or the frames do not fit, a note when it fits again
-        after one."""
+        after one. A camera whose view moved (``check_calibration``) brings the check to
+        the next rebuild, on the frame sets from the move on; a check that names that camera
+        is confirmed at once."""
         every = self.config.calib_check_s
         if every <= 0:
             return
         self._calib_sets.append(frames)
         while len(self._calib_sets) > 1 and _pixels(self._calib_sets) > _CALIB_POOL_PIXELS:
             self._calib_sets.popleft()  # a rig of many large cameras: fewer sets held
+        with self._lock:
+            since, self._calib_since = self._calib_since, None
+            moved = self._calib_moved
+        if since is not None:
+            # A camera's view moved at ``since``: what was seen before shows the rig as it
+            # was, and one check's verdict waits for the next one's again.
+            for _ in range(len(self._calib_sets)):
+                fs = self._calib_sets.popleft()
+                if fs.time_index >= since:
+                    self._calib_sets.append(fs)
+            if self._calib_pool is not None:
+                obs = self._calib_pool.observed
+                after = [k for k, t in enumerate(obs.times) if t >= since]
+                self._calib_pool = CheckPool(obs.subset(after)) if after else None
+            self._calib_last = None
+            if not self._calib_sets:  # this rebuild's frames are from before the move
+                with self._lock:
+                    if self._calib_since is None:
+                        self._calib_since = since
+                return
         if time.monotonic() < self._calib_due:
             return
         self._calib_due = time.monotonic() + every
@@ -441,7 +488,15 @@ class BackEnd:
         key = (verdict["fits"], tuple(verdict["off"]))
         # One frame set's matches vary: its verdict counts when the next check agrees (it
         # comes at the next rebuild); pooled ones count at once.
-        confirmed = key == self._calib_last or len(verdict["times"]) > 1
+        confirmed = (
+            key == self._calib_last
+            or len(verdict["times"]) > 1
+            or bool(moved and verdict["fits"] is False and tuple(sorted(verdict["off"])) == moved)
+        )
+        if verdict["fits"] is not None and not verdict["unchecked"]:
+            with self._lock:  # the moved cameras' frames were checked: told
+                if self._calib_since is None:
+                    self._calib_moved = ()
         verdict["confirmed"] = confirmed
         self._calib_last = key
         if not confirmed and key != self._calib_said and verdict["fits"] is not None:

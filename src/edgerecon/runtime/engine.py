@@ -250,6 +250,12 @@ class Engine(Protocol):
         """Drill: ``hang`` (the next task loops for ever; ``FrontEnd.inject_fault``)."""
         ...
 
+    def check_calibration(self, since: int, cameras: Sequence[str]) -> None:
+        """Ask the back-end to check the calibration at its next background rebuild, on
+        frame sets from time index ``since`` on (``cameras``' views moved then); fire and
+        forget."""
+        ...
+
     def scene_model(self) -> SceneModel | None:
         """The front-end's background models as they are now, between two tasks (None:
         none), with the clip frame set the engine started from: what a run that goes on
@@ -494,6 +500,9 @@ class EmbeddedEngine:
 
     def inject_frontend_fault(self, kind: str) -> None:
         self.frontend.inject_fault(kind)
+
+    def check_calibration(self, since: int, cameras: Sequence[str]) -> None:
+        self.backend.check_calibration(since, cameras)
 
     def scene_model(self) -> SceneModel | None:
         model = self.frontend.scene_model()

@@ -165,6 +165,12 @@ class TaskMetrics:
     """Cameras whose frames had not changed for ``FrameCheckConfig.frozen_after_s`` of the
     stream while the others' did (``quality.frames.FrozenCameras``): kept in the task, with
     their view of the moment they froze."""
+    camera_moves: list[dict[str, Any]] = field(default_factory=list)
+    """Cameras whose views these frames confirmed moved (``quality.frames.MovedCameras``:
+    knocked, a mount that slipped; the back-end checks the calibration at its next
+    rebuild on frames from the move on): ``camera``, ``time_index`` (the first frame that
+    showed it), ``shift_px`` (the image centre's motion), ``roll_deg``, ``turn_deg`` (the
+    camera's turn that moves its image centre so far)."""
     num_sparse: int = 0
     num_sparse_fg: int = 0
     num_fg_points: int = 0

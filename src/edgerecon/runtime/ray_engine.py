@@ -202,6 +202,9 @@ class _BackendActor:
     def inject_fault(self, kind: str, seconds: float = 0.0) -> None:
         self.backend.inject_fault(kind, seconds)
 
+    def check_calibration(self, since: int, cameras: list[str]) -> None:
+        self.backend.check_calibration(since, cameras)
+
 
 class _RemoteBackend:
     """:class:`BackendClient` over the back-end actor for one task (the frames travel as one
@@ -514,6 +517,9 @@ class RayEngine:
 
     def inject_frontend_fault(self, kind: str) -> None:
         _ray().get(self.frontend.inject_fault.remote(kind))
+
+    def check_calibration(self, since: int, cameras: Sequence[str]) -> None:
+        self.backend.check_calibration.remote(since, list(cameras))  # fire and forget
 
     def scene_model(self) -> SceneModel | None:
         limit = self.config.watchdog_s + 2 * _RPC_GRACE_S

@@ -74,6 +74,7 @@ from edgerecon.io.ply import atomic_write_text, ply_frame
 from edgerecon.quality.frames import (
     FrameCheckConfig,
     FrozenCameras,
+    MovedCameras,
     frame_defects,
     without_defective,
 )
@@ -269,6 +270,9 @@ class RunSummary:
     ``repaired_rig_file``: ``rig.repaired.json`` in the run folder, the rig it makes,
     which ``edgerecon calib --adopt`` names in the dataset); None: none made (no background
     rebuild yet, or the check off)."""
+    camera_moves: list[dict[str, Any]] = field(default_factory=list)
+    """Cameras whose views moved during the run (``TaskMetrics.camera_moves`` of every
+    task, each with ``seen_at``: the time index of the task that confirmed it)."""
     recalibrations: list[dict[str, Any]] = field(default_factory=list)
     """The resumes that went on with cameras placed again since the run started
     (``runtime.state.Recalibration``: ``from_task``, ``cameras``, ``moved``, ``turned_deg``,
@@ -369,9 +373,11 @@ class RunTotals:
     rss_first: float | None = None
     rss_last: float | None = None
     rss_max: float = 0.0
+    moves: list[dict[str, Any]] = field(default_factory=list)
 
     def add(self, m: TaskMetrics) -> None:
         self.tasks += 1
+        self.moves += [{**move, "seen_at": m.time_index} for move in m.camera_moves]
         if m.rss_mb is not None:
             self.rss_last = m.rss_mb
             self.rss_max = max(self.rss_max, m.rss_mb)
@@ -452,6 +458,7 @@ class Session:
         self.frames_dropped = 0
         self._defects: dict[str, str] = {}
         self._frozen = FrozenCameras(self.frame_check, fps=dataset.fps or DEFAULT_FPS)
+        self._moved = MovedCameras(self.frame_check)
         # The schedule's lower bound on the next task's time index, as of now (None: no
         # next task, or not known): the background updates before it can be applied
         # between tasks (``_learn_ahead``).
@@ -690,6 +697,7 @@ class Session:
             self.on_task(m)
 
     def _run_one(self, source: FrameSource, t: int, task: int) -> TaskOutput:
+        moved: list[dict[str, Any]] = []
         try:
             # The frames of the background models' scheduled updates due before t, read
             # first (sources stream forwards), unusable cameras left out as in tasks.
@@ -700,18 +708,21 @@ class Session:
             named = {self.dataset.rig[i].name: d for i, d in enumerate(defects) if d is not None}
             self._note_defects(t, named)
             self._note_frozen(t, frames)
+            moved = self._note_moved(t, frames)
             plan = self.engine.plan(t)
             out = self.engine.run_task(frames, plan, task, named, updates)
             out.metrics.sync_spread_s = frames.sync_spread_s
             out.metrics.frozen_cameras = [
                 self.dataset.rig[i].name for i in sorted(self._frozen.frozen)
             ]
+            out.metrics.camera_moves = moved
             return out
         except Exception as exc:  # any stage, any engine: a failed record, never a dead run
             error = describe_exception(exc)
             logger.error("task %d (time %d) failed: %s", task, t, error)
             logger.debug("traceback", exc_info=exc)
             m = TaskMetrics.failed(task=task, time_index=t, error=error, deadline_s=self.deadline_s)
+            m.camera_moves = moved
             return TaskOutput(metrics=m, foreground=None)
 
     def _learn_ahead(self, source: FrameSource, m: TaskMetrics) -> None:
@@ -784,6 +795,50 @@ class Session:
                 ", ".join(names[i] for i in thawed),
             )
 
+    def _note_moved(self, t: int, frames: FrameSet) -> list[dict[str, Any]]:
+        """A warning when a camera's view moved (``quality.frames.MovedCameras``), and the
+        back-end asked to check the calibration on the frames from the move on at its next
+        rebuild (rather than at its next ``calib_check_s``); the moves' records."""
+        records = []
+        for move in self._moved.update(frames):
+            cam = self.dataset.rig[move.camera]
+            image = frames.images[move.camera]
+            assert image is not None
+            # The turn of a pinhole camera that moves its image centre so far.
+            focal = float(cam.K[0, 0]) * image.shape[1] / cam.width
+            dx, dy = move.shift_px
+            turn = math.degrees(math.atan2(math.hypot(dx, dy), focal))
+            records.append(
+                {
+                    "camera": cam.name,
+                    "time_index": move.time_index,
+                    "shift_px": list(move.shift_px),
+                    "roll_deg": move.roll_deg,
+                    "turn_deg": round(turn, 3),
+                }
+            )
+            logger.warning(
+                "time %d: %s's view moved at time %d (its static scene %.1f px %s, %.1f px "
+                "%s, rolled %.2f degrees: about %.2f degrees of the camera); knocked, or its "
+                "mount slipped? The back-end checks the calibration on the frames from time "
+                "%d at its next background rebuild",
+                t,
+                cam.name,
+                move.time_index,
+                abs(dx),
+                "right" if dx >= 0 else "left",
+                abs(dy),
+                "down" if dy >= 0 else "up",
+                move.roll_deg,
+                max(turn, abs(move.roll_deg)),
+                move.time_index,
+            )
+            try:
+                self.engine.check_calibration(move.time_index, [cam.name])
+            except Exception as exc:  # a back-end that does not answer: its own check serves
+                logger.debug("calibration check not requested: %s", describe_exception(exc))
+        return records
+
     def _score(self, m: TaskMetrics, t: int, out: TaskOutput) -> None:
         if self._gt is None or self.options.ground_truth_threshold is None:
             return
@@ -817,6 +872,7 @@ class Session:
             original_node=None if self.original is None else self.original.node,
             engine=getattr(self.engine, "name", ""),
             recalibrations=[r.to_dict() for r in self.recalibrations],
+            camera_moves=list(t.moves),
             stream=dict(self._stream),
             clouds_written=t.clouds_written,
             clouds_kept=len(self.retention.kept),

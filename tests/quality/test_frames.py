@@ -1,0 +1,85 @@
+"""A camera whose view moved (``quality.frames.MovedCameras``)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from edgerecon.quality.frames import FrameCheckConfig, MovedCameras
+from edgerecon.types import FrameSet
+
+H, W = 360, 480
+K = np.array([[400.0, 0.0, W / 2], [0.0, 400.0, H / 2], [0.0, 0.0, 1.0]])
+
+
+def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
+    """A room's worth of texture: blobs and edges at several sizes."""
+    out = np.zeros((h, w), np.float32)
+    for size in (3, 9, 27):
+        out += cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), size) * size
+    out = (out - out.min()) / (out.max() - out.min()) * 200 + 25
+    return cv2.cvtColor(out.astype(np.uint8), cv2.COLOR_GRAY2BGR)
+
+
+def _turned(image: np.ndarray, degrees: float, axis: tuple[float, float, float]) -> np.ndarray:
+    """``image`` as the camera sees it turned by ``degrees`` about its own ``axis``."""
+    dR = cv2.Rodrigues(np.radians(degrees) * np.asarray(axis, float))[0]
+    H_ = K @ dR @ np.linalg.inv(K)
+    return cv2.warpPerspective(image, H_, (W, H), borderMode=cv2.BORDER_REPLICATE)
+
+
+def test_a_turned_camera_is_a_move_people_light_and_a_shake_are_not():
+    rng = np.random.default_rng(3)
+    rooms = [_texture(rng, H, W) for _ in range(5)]
+    person = _texture(rng, 300, 200)
+    watch = MovedCameras()
+    events = []
+    for t in range(30):
+        noise = [rng.normal(0, 2, (H, W, 3)) for _ in range(5)]
+        # cam0: a person 200 px wide (40 % of the frame) walks across it.
+        cam0 = rooms[0].copy()
+        x = 10 * t
+        cam0[40:340, x : x + 200] = person[:, : min(200, W - x)]
+        # cam1: turned 1 degree (tilted) at time 10, and stays so.
+        cam1 = _turned(rooms[1], 1.0, (1.0, 0.0, 0.0)) if t >= 10 else rooms[1]
+        # cam2: the lights dim to half over 20 frames; cam3: shaken at time 5 only.
+        cam2 = (rooms[2] * (1.0 - 0.5 * min(t, 20) / 20)).astype(np.uint8)
+        cam3 = _turned(rooms[3], 1.0, (0.0, 1.0, 0.0)) if t == 5 else rooms[3]
+        # cam4: the left third of its view (a door, a shelf) moved 15 px at time 15.
+        cam4 = rooms[4].copy()
+        if t >= 15:
+            cam4[:, 15:160] = rooms[4][:, :145]
+        images = [
+            np.clip(im + n, 0, 255).astype(np.uint8)
+            for im, n in zip([cam0, cam1, cam2, cam3, cam4], noise, strict=True)
+        ]
+        events.append(watch.update(FrameSet(time_index=t, images=tuple(images))))
+    moves = [(t, m) for t, ms in enumerate(events) for m in ms]
+    assert len(moves) == 1
+    t, move = moves[0]
+    # Seen at its third frame (``moved_after_frames``), dated at its first.
+    assert (t, move.camera, move.time_index) == (12, 1, 10)
+    # Tilted 1 degree: the image centre went f tan(1 degree) = 7.0 px up.
+    assert move.shift_px[0] == pytest.approx(0.0, abs=0.5)
+    assert move.shift_px[1] == pytest.approx(-400 * np.tan(np.radians(1.0)), abs=0.7)
+    assert abs(move.roll_deg) < 0.2
+
+
+def test_a_rolled_camera_is_a_move_and_the_check_can_be_off():
+    rng = np.random.default_rng(4)
+    room = _texture(rng, H, W)
+    frames = [room if t < 4 else _turned(room, 2.0, (0.0, 0.0, 1.0)) for t in range(8)]
+    on, off = MovedCameras(), MovedCameras(FrameCheckConfig(moved_min_shift=0.0))
+    seen, none = [], []
+    for t, image in enumerate(frames):
+        noisy = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+        seen += on.update(FrameSet(time_index=t, images=(noisy,)))
+        none += off.update(FrameSet(time_index=t, images=(noisy,)))
+    (move,) = seen
+    assert move.time_index == 4 and move.roll_deg == pytest.approx(2.0, abs=0.3)
+    assert none == []
+    with pytest.raises(ValueError, match="moved_min_shift"):
+        FrameCheckConfig(moved_min_shift=0.5)
+    with pytest.raises(ValueError, match="moved_after_frames"):
+        FrameCheckConfig(moved_after_frames=0)
