@@ -8,9 +8,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from edgerecon.quality.calibration import POOLED_FRAME_SETS
 from edgerecon.runtime import backend
+from edgerecon.runtime.messages import TaskWork
 from tests.runtime.conftest import runtime_config
 
 
@@ -82,9 +84,10 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
     tiny, monkeypatch
 ):
     """``BackEnd.check_calibration`` (the session's ``MovedCameras`` saw cam1's view move at
-    time 3): the check comes at the next rebuild whatever ``calib_check_s`` says, on the
-    frame sets from the move on (those before show the rig as it was), and one check that
-    names cam1 is confirmed at once (one frame set's verdict otherwise waits for the next)."""
+    time 3): the check starts at once when a task brings frames from after the move,
+    whatever ``calib_check_s`` says, on those frame sets only (those before show the rig as
+    it was, and a rebuild's from before is not pooled later), and one check that names cam1
+    is confirmed at once (one frame set's verdict otherwise waits for the next)."""
     from tests.quality.test_calibration import knocked_frames
 
     ds, _ = tiny
@@ -106,13 +109,55 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
     assert checks == [[0], [0, 1]]
     knocked = [knocked_frames(fs, ds.rig, 1, 2.0, (1.0, 0.0, 0.0)) for fs in sets[3:]]
     be.check_calibration(3, ["cam1"])
-    be._check_calibration(sets[2])  # a rebuild of frames before the move: no check yet
+    be._check_calibration(sets[2])  # a rebuild of frames before the move: no check
     assert checks == [[0], [0, 1]]
-    be._check_calibration(knocked[0])
+    # The task of time 3 brings frames from after the move: checked at once.
+    be._serve(TaskWork(frames=knocked[0], foreground=None, golden=False))  # type: ignore[arg-type]
+    assert be._calib_now is not None
+    be._calib_now.join(60)
     assert checks == [[0], [0, 1], [3]]
     verdict = be.stats["calibration"]
     assert verdict["fits"] is False and verdict["off"] == ["cam1"] and verdict["confirmed"]
     assert be._calib_pool is not None and be._calib_pool.times == (3,)
+    be._check_calibration(sets[2])  # the rebuild that was running, from before the move
+    assert list(be._calib_sets) == [knocked[0]]
     # Told: the next checks are every calib_check_s again.
     be._check_calibration(knocked[1])
     assert checks == [[0], [0, 1], [3]]
+
+
+def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_moving(caplog):
+    """``Session._note_moved``: each move is recorded and brings a check; a camera whose view
+    keeps moving (a mount that sways) is said 3 times, then once that it keeps moving."""
+    import logging
+    from types import SimpleNamespace
+
+    from edgerecon.quality.frames import MovedCameras
+    from edgerecon.runtime.session import Session
+    from edgerecon.types import FrameSet
+    from tests.conftest import ring_rig
+    from tests.quality.test_frames import _texture, _turned
+
+    rng = np.random.default_rng(6)
+    rooms = [_texture(rng, 360, 480) for _ in range(3)]
+    swayed = _turned(rooms[0], 1.5, (0.0, 1.0, 0.0))
+    requests = []
+    session = Session.__new__(Session)
+    session.dataset = SimpleNamespace(rig=ring_rig(3, width=480, height_px=360, focal_px=400.0))
+    session.engine = SimpleNamespace(check_calibration=lambda *a: requests.append(a))
+    session._moved = MovedCameras()
+    session._moves_said = {}
+    caplog.set_level(logging.WARNING)
+    records = []
+    for t in range(48):
+        cam0 = swayed if (t // 6) % 2 else rooms[0]  # swings to and fro every 6 frames
+        images = [cam0, rooms[1], rooms[2]]
+        noisy = [np.clip(im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8) for im in images]
+        records += session._note_moved(t, FrameSet(time_index=t, images=tuple(noisy)))
+    assert [r["time_index"] for r in records] == [6, 12, 18, 24, 30, 36, 42]
+    assert {r["camera"] for r in records} == {"cam0"}
+    assert records[0]["turn_deg"] == pytest.approx(1.5, abs=0.2)
+    assert requests == [(r["time_index"], ["cam0"]) for r in records]
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("view moved at time" in m for m in said) == 3
+    assert sum("keeps moving (4 moves" in m for m in said) == 1 and len(said) == 4

@@ -143,6 +143,12 @@ class BackEnd:
         reads frame sets from then on only."""
         self._calib_moved: tuple[str, ...] = ()
         """The cameras whose views moved then: a check that names them is confirmed."""
+        self._calib_floor: int | None = None
+        """The newest move's time index: frame sets from before it are not checked again."""
+        self._calib_lock = threading.Lock()
+        """Held by a check (a rebuild's, or one started at once after a move)."""
+        self._calib_now: threading.Thread | None = None
+        """The check started when a task brought frames from after a move (``_serve``)."""
         self._calib_last: tuple[bool | None, tuple[str, ...]] | None = None
         self._calib_said: tuple[bool | None, tuple[str, ...]] | None = None
 
@@ -217,8 +223,32 @@ class BackEnd:
         (``calib_check_s = 0``)."""
         with self._lock:
             self._calib_since = since
+            self._calib_floor = max(since, self._calib_floor or since)
             self._calib_moved = tuple(sorted(set(cameras) | set(self._calib_moved)))
             self._calib_due = 0.0
+
+    def _check_now(self, frames: FrameSet) -> None:
+        """The check after a move, started at once on the first frames from after it, in a
+        thread of this process at the rebuilds' priority (the rebuild's process may be
+        busy for many seconds with a background from frames before the move). One at a
+        time; a check that fails is logged."""
+        if self._calib_now is not None and self._calib_now.is_alive():
+            return
+
+        def run() -> None:
+            try:
+                os.setpriority(
+                    os.PRIO_PROCESS, threading.get_native_id(), self.config.background_nice
+                )
+            except (AttributeError, OSError, PermissionError):  # not Linux / not allowed
+                pass
+            try:
+                self._check_calibration(frames, direct=True)
+            except Exception as exc:  # the rebuilds' checks go on
+                logger.warning("back-end: the calibration check failed: %s", exc)
+
+        self._calib_now = threading.Thread(target=run, name="backend-calib-check", daemon=True)
+        self._calib_now.start()
 
     def _wait(self, store: OrderedDict[int, Any], key: int, timeout: float) -> Any:
         deadline = time.monotonic() + max(0.0, timeout)
@@ -289,6 +319,9 @@ class BackEnd:
             with self._lock:
                 self._latest = (frames, fg)
                 self._still_report = work.still_uses
+                since = self._calib_since
+            if since is not None and t >= since and self.config.calib_check_s > 0:
+                self._check_now(frames)
         if work.golden:
             try:
                 self._publish(self._golden, t, self._golden_reference(frames, fg))
@@ -428,7 +461,11 @@ class BackEnd:
         if not urgent:
             self._check_calibration(frames)
 
-    def _check_calibration(self, frames: FrameSet) -> None:
+    def _check_calibration(self, frames: FrameSet, *, direct: bool = False) -> None:
+        with self._calib_lock:
+            self._check_calibration_locked(frames, direct)
+
+    def _check_calibration_locked(self, frames: FrameSet, direct: bool) -> None:
         """The calibration against the frames of this rebuild and the two before (pooled),
         when due (``calib_check_s``); a camera they cannot check (few features shared with
         the others) is checked on the matches of the earlier checks too, up to
@@ -439,10 +476,15 @@ class BackEnd:
         warning when a camera is named or the frames do not fit, a note when it fits again
         after one. A camera whose view moved (``check_calibration``) brings the check to
         the next rebuild, on the frame sets from the move on; a check that names that camera
-        is confirmed at once."""
+        is confirmed at once. ``direct``: in this thread (the check started at once after a
+        move), not in the rebuild's process."""
         every = self.config.calib_check_s
         if every <= 0:
             return
+        with self._lock:
+            floor = self._calib_floor
+        if floor is not None and frames.time_index < floor:
+            return  # frames from before a camera's view moved: the rig as it was
         self._calib_sets.append(frames)
         while len(self._calib_sets) > 1 and _pixels(self._calib_sets) > _CALIB_POOL_PIXELS:
             self._calib_sets.popleft()  # a rig of many large cameras: fewer sets held
@@ -461,21 +503,14 @@ class BackEnd:
                 after = [k for k, t in enumerate(obs.times) if t >= since]
                 self._calib_pool = CheckPool(obs.subset(after)) if after else None
             self._calib_last = None
-            if not self._calib_sets:  # this rebuild's frames are from before the move
-                with self._lock:
-                    if self._calib_since is None:
-                        self._calib_since = since
-                return
         if time.monotonic() < self._calib_due:
             return
         self._calib_due = time.monotonic() + every
         try:
             # The last three rebuilds' frame sets, pooled (as ``edgerecon calib``).
-            verdict, self._calib_pool = self._bounded(
-                pooled_verdict,
-                self.rig,
-                list(self._calib_sets),
-                self._calib_pool,
+            args = (self.rig, list(self._calib_sets), self._calib_pool)
+            verdict, self._calib_pool = (
+                pooled_verdict(*args) if direct else self._bounded(pooled_verdict, *args)
             )
         except RebuildTimeout:
             raise
@@ -493,10 +528,14 @@ class BackEnd:
             or len(verdict["times"]) > 1
             or bool(moved and verdict["fits"] is False and tuple(sorted(verdict["off"])) == moved)
         )
-        if verdict["fits"] is not None and not verdict["unchecked"]:
+        if verdict["fits"] is True or "repaired_rig" in verdict:
             with self._lock:  # the moved cameras' frames were checked: told
                 if self._calib_since is None:
                     self._calib_moved = ()
+        elif moved and verdict["fits"] is False:
+            # A moved camera named without a repair that fits (one frame set's matches may
+            # not place it): the next rebuild checks again, its frame set pooled.
+            self._calib_due = 0.0
         verdict["confirmed"] = confirmed
         self._calib_last = key
         if not confirmed and key != self._calib_said and verdict["fits"] is not None:

@@ -415,6 +415,11 @@ class RunTotals:
             self.stages[k] = self.stages.get(k, 0.0) + float(v)
 
 
+#: Moves of one camera said as warnings (``Session._note_moved``); then once that it keeps
+#: moving.
+_MOVES_SAID = 3
+
+
 class Session:
     """Runs tasks on an engine and keeps the run's files (see module docstring)."""
 
@@ -459,6 +464,7 @@ class Session:
         self._defects: dict[str, str] = {}
         self._frozen = FrozenCameras(self.frame_check, fps=dataset.fps or DEFAULT_FPS)
         self._moved = MovedCameras(self.frame_check)
+        self._moves_said: dict[str, int] = {}
         # The schedule's lower bound on the next task's time index, as of now (None: no
         # next task, or not known): the background updates before it can be applied
         # between tasks (``_learn_ahead``).
@@ -797,11 +803,15 @@ class Session:
 
     def _note_moved(self, t: int, frames: FrameSet) -> list[dict[str, Any]]:
         """A warning when a camera's view moved (``quality.frames.MovedCameras``), and the
-        back-end asked to check the calibration on the frames from the move on at its next
-        rebuild (rather than at its next ``calib_check_s``); the moves' records."""
+        back-end asked to check the calibration on the frames from the move on at once
+        (rather than at its next ``calib_check_s``); the moves' records. A camera that
+        keeps moving (a mount that sways, a camera held by hand) is said
+        ``_MOVES_SAID`` times, then once that it keeps moving; its moves are still
+        recorded."""
         records = []
         for move in self._moved.update(frames):
             cam = self.dataset.rig[move.camera]
+            said = self._moves_said[cam.name] = self._moves_said.get(cam.name, 0) + 1
             image = frames.images[move.camera]
             assert image is not None
             # The turn of a pinhole camera that moves its image centre so far.
@@ -817,11 +827,21 @@ class Session:
                     "turn_deg": round(turn, 3),
                 }
             )
-            logger.warning(
+            if said == _MOVES_SAID + 1:
+                logger.warning(
+                    "time %d: %s's view keeps moving (%d moves; a mount that sways, a camera "
+                    "held by hand? The run expects static cameras): its moves are recorded "
+                    "in the tasks' camera_moves, no longer said",
+                    t,
+                    cam.name,
+                    said,
+                )
+            logger.log(
+                logging.WARNING if said <= _MOVES_SAID else logging.DEBUG,
                 "time %d: %s's view moved at time %d (its static scene %.1f px %s, %.1f px "
                 "%s, rolled %.2f degrees: about %.2f degrees of the camera); knocked, or its "
                 "mount slipped? The back-end checks the calibration on the frames from time "
-                "%d at its next background rebuild",
+                "%d",
                 t,
                 cam.name,
                 move.time_index,
