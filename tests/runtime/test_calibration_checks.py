@@ -16,8 +16,9 @@ from edgerecon.runtime.messages import TaskWork
 from tests.runtime.conftest import runtime_config
 
 
-def test_a_camera_not_checked_is_checked_at_every_rebuild_on_up_to_7_frame_sets(tiny, monkeypatch):
-    ds, _ = tiny
+def counted_backend(ds, monkeypatch) -> tuple[backend.BackEnd, list[list[int]]]:
+    """A back-end of ``ds``'s rig (not started; rebuilds in its own process off) and the
+    frame sets' times of each calibration check it makes, in order."""
     be = backend.BackEnd(ds.rig, runtime_config(background_process=False))
     checks: list[list[int]] = []
     verdict_of = backend.pooled_verdict
@@ -28,6 +29,12 @@ def test_a_camera_not_checked_is_checked_at_every_rebuild_on_up_to_7_frame_sets(
         return verdict, pool
 
     monkeypatch.setattr(backend, "pooled_verdict", counted)
+    return be, checks
+
+
+def test_a_camera_not_checked_is_checked_at_every_rebuild_on_up_to_7_frame_sets(tiny, monkeypatch):
+    ds, _ = tiny
+    be, checks = counted_backend(ds, monkeypatch)
     with ds.open_frames() as source:
         for t in range(8):
             fs = source.read(t)
@@ -91,16 +98,7 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
     from tests.quality.test_calibration import knocked_frames
 
     ds, _ = tiny
-    be = backend.BackEnd(ds.rig, runtime_config(background_process=False))
-    checks: list[list[int]] = []
-    verdict_of = backend.pooled_verdict
-
-    def counted(*args, **kwargs):
-        verdict, pool = verdict_of(*args, **kwargs)
-        checks.append(verdict["times"])
-        return verdict, pool
-
-    monkeypatch.setattr(backend, "pooled_verdict", counted)
+    be, checks = counted_backend(ds, monkeypatch)
     with ds.open_frames() as source:
         sets = [source.read(t) for t in range(5)]
     for fs in sets[:3]:
