@@ -312,6 +312,24 @@ def test_utrecht4cam_a_tilted_camera_is_named_alone():
     assert angle_deg(fix.rig[1], ds.rig[1]) < 0.6
 
 
+def test_utrecht4cam_a_rolled_camera_is_told_from_its_rival_by_the_views_that_moved():
+    """utrecht4cam's cam2 rolled by 3 degrees: cam4's turn makes the pairs fit too, its
+    matches 3.0 times as far from their lines as cam2's (``rival_ratio`` 3): "cam2 or cam4".
+    A run that saw cam2's view move after a check that fit knows cam4 did not (``suspects``):
+    cam2 re-aimed, within 0.6 degrees of its calibration."""
+    ds = open_dataset(shared_data("utrecht4cam"))
+    with ds.open_frames(missing="skip_camera") as source:
+        sets = [source.read(t) for t in (42, 212, 382)]
+    rolled = turned(ds.rig, 1, 3.0, (0.0, 0.0, 1.0))
+    check = recheck(check_calibration(sets, ds.rig), rolled)
+    assert check.off_names == ["cam2"] and check.fits is False
+    plain = repair(check, rolled)
+    assert plain.ambiguous == (1, 3) and not plain.applied
+    fix = repair(check, rolled, suspects={1})
+    assert [e.camera for e in fix.applied] == [1] and fix.check.fits is True
+    assert angle_deg(fix.rig[1], ds.rig[1]) < 0.6
+
+
 def test_caliscope_charuco_wrong_matches_of_two_cameras_that_share_little_name_no_camera():
     """Over the seated person's first five frame sets cam_0 and cam_1 share 53-61 matches, of
     which a fundamental matrix explains 15-16 (and 11-13 of them paired at random): 160-217

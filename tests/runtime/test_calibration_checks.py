@@ -107,6 +107,8 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
     assert checks == [[0], [0, 1]]
     knocked = [knocked_frames(fs, ds.rig, 1, 2.0, (1.0, 0.0, 0.0)) for fs in sets[3:]]
     be.check_calibration(3, ["cam1"])
+    # The check before fit, every camera checked: cam1 is the only camera that can be off.
+    assert be._calib_suspects == ("cam1",)
     be._check_calibration(sets[2])  # a rebuild of frames before the move: no check
     assert checks == [[0], [0, 1]]
     # The task of time 3 brings frames from after the move: checked at once.
@@ -119,6 +121,11 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
     assert be._calib_pool is not None and be._calib_pool.times == (3,)
     be._check_calibration(sets[2])  # the rebuild that was running, from before the move
     assert list(be._calib_sets) == [knocked[0]]
+    # A repair that fits: told (the next moves' suspects only after a check that fits).
+    assert "repaired_rig" in verdict and be._calib_suspects == be._calib_moved == ()
+    unsure, _ = counted_backend(ds, monkeypatch)  # no check yet: any camera may be off
+    unsure.check_calibration(3, ["cam1"])
+    assert unsure._calib_suspects == () and unsure._calib_moved == ("cam1",)
     # Told: the next checks are every calib_check_s again.
     be._check_calibration(knocked[1])
     assert checks == [[0], [0, 1], [3]]

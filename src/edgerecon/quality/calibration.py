@@ -39,7 +39,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field
 from itertools import combinations
 from typing import Any
@@ -750,7 +750,11 @@ def _trial(
 
 
 def repair(
-    check: CalibrationCheck, rig: Rig, config: CalibrationCheckConfig | None = None
+    check: CalibrationCheck,
+    rig: Rig,
+    config: CalibrationCheckConfig | None = None,
+    *,
+    suspects: Collection[int] = (),
 ) -> Repair:
     """Re-aim the cameras that turned, one at a time, against the pairs that fit (none fit:
     nothing is re-aimed). A camera in every pair that does not fit is a candidate (when
@@ -769,7 +773,13 @@ def repair(
     their lines than the other cameras' pairs lie to theirs (the rest the matches cannot
     tell from the calibration's own error). When no turn of any candidate makes every pair
     fit, the candidates are also placed again with their centres free, and one that leaves
-    more inliers fitting than any turn is taken, under the same rules."""
+    more inliers fitting than any turn is taken, under the same rules.
+
+    ``suspects``: the only cameras that can have moved, when known (a run whose check fit,
+    then saw these cameras' views move: ``quality.frames.MovedCameras``): those of them in a
+    pair that misses are the only candidates, so a camera whose view did not move is no
+    rival (utrecht4cam's cam2 rolled 3 degrees, which cam4's turn explains 3.0 times less
+    well: "cam2 or cam4" without them)."""
     config = config or CalibrationCheckConfig()
     applied: list[PoseEstimate] = []
     for _ in range(len(rig)):
@@ -781,6 +791,9 @@ def repair(
         # pair that misses (two moved).
         common = set.intersection(*({p.a, p.b} for p in bad)) if bad else set()
         candidates = sorted(common or {p.a for p in bad} | {p.b for p in bad})
+        seen = ({p.a for p in bad} | {p.b for p in bad}) & set(suspects)
+        if seen:
+            candidates = sorted(seen)
         trials = [t for c in candidates if (t := _trial(check, rig, c, config, False))]
         placements: dict[int, _Trial | None] = {}  # each camera placed once (a jackknife)
         if max((t[0] for t in trials), default=0.0) < 1.0:
@@ -817,7 +830,9 @@ def repair(
             [
                 c
                 for c in check.off
-                if c != est.camera and estimate_pose(check, rig, c, config, move=False) is None
+                if c != est.camera
+                and (not suspects or c in suspects)
+                and estimate_pose(check, rig, c, config, move=False) is None
             ]
             if judged.fits
             else []
@@ -1096,13 +1111,13 @@ def knocked(rig: Rig, camera: int, shift: Sequence[float], degrees: Sequence[flo
     return dataclasses.replace(rig, cameras=tuple(cams))
 
 
-def try_repair(check: CalibrationCheck, rig: Rig) -> Repair | None:
+def try_repair(check: CalibrationCheck, rig: Rig, suspects: Collection[int] = ()) -> Repair | None:
     """:func:`repair` when the calibration does not fit the frames; None when it fits, or
     when the repair raises (said once: the check stands without it)."""
     if check.fits is not False:
         return None
     try:
-        return repair(check, rig)
+        return repair(check, rig, suspects=suspects)
     except Exception as exc:
         logger.warning("calibration: the repair could not be worked out: %s", exc)
         return None
@@ -1140,7 +1155,7 @@ def calibration_verdict(rig: Rig, frames: FrameSet | Sequence[FrameSet]) -> dict
     return _verdict(check_calibration(frames, rig), rig)
 
 
-def _verdict(check: CalibrationCheck, rig: Rig) -> dict[str, Any]:
+def _verdict(check: CalibrationCheck, rig: Rig, suspects: Collection[int] = ()) -> dict[str, Any]:
     verdict = {
         "time": check.time_index,
         "times": list(check.times),
@@ -1150,7 +1165,7 @@ def _verdict(check: CalibrationCheck, rig: Rig) -> dict[str, Any]:
         "short": check.short,
         "message": check.message,
     }
-    fix = try_repair(check, rig)
+    fix = try_repair(check, rig, suspects)
     if fix is not None:
         verdict["repair"] = repair_summary(fix, rig)
         if fix.applied and fix.check.fits:
@@ -1182,6 +1197,7 @@ def pooled_verdict(
     *,
     keep: int = POOLED_FRAME_SETS,
     config: CalibrationCheckConfig | None = None,
+    suspects: Sequence[str] = (),
 ) -> tuple[dict[str, Any], CheckPool]:
     """A run's check (:func:`calibration_verdict`'s answer) of ``frames``, its newest frame
     sets, with the matches of the earlier checks (``pool``; the frame sets it holds are not
@@ -1191,7 +1207,9 @@ def pooled_verdict(
     or check every camera: a camera knocked during the run is told at once, not outvoted by
     the frame sets before the knock. Otherwise (a camera that shares few features with the
     others in these frames: a person's few matches) it is that of the whole pool, as
-    ``edgerecon calib`` reads more frame sets for a camera that 3 cannot check."""
+    ``edgerecon calib`` reads more frame sets for a camera that 3 cannot check.
+    ``suspects``: the only cameras that can have moved, when the run knows them
+    (:func:`repair`)."""
     config = config or CalibrationCheckConfig()
     if not frames:
         raise DataError("calibration check: no frames")
@@ -1211,7 +1229,7 @@ def pooled_verdict(
         check = _judged(obs, rig, config)
     check = dataclasses.replace(check, seconds=time.perf_counter() - t0)
     logger.info("%s", check.message)
-    verdict = _verdict(check, rig)
+    verdict = _verdict(check, rig, [rig.names.index(n) for n in suspects if n in rig.names])
     verdict["seconds"] = round(check.seconds, 2)
     return verdict, CheckPool(obs.subset(range(len(obs.times))))
 

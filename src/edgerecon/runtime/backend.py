@@ -20,6 +20,7 @@ The class is plain Python (usable without any cluster); the Ray engine wraps it 
 
 from __future__ import annotations
 
+import functools
 import logging
 import multiprocessing
 import os
@@ -143,6 +144,9 @@ class BackEnd:
         reads frame sets from then on only."""
         self._calib_moved: tuple[str, ...] = ()
         """The cameras whose views moved then: a check that names them is confirmed."""
+        self._calib_suspects: tuple[str, ...] = ()
+        """Those of them that moved after a check that fit with every camera checked: the
+        only cameras that can be off (``pooled_verdict``'s ``suspects``)."""
         self._calib_floor: int | None = None
         """The newest move's time index: frame sets from before it are not checked again."""
         self._calib_lock = threading.Lock()
@@ -221,10 +225,14 @@ class BackEnd:
         A check that names those cameras is confirmed at once (their frames and their
         matches with the others agree). Nothing when the checks are off
         (``calib_check_s = 0``)."""
+        last = self.stats.get("calibration") or {}
+        fitted = last.get("fits") is True and not last.get("unchecked")
         with self._lock:
             self._calib_since = since
             self._calib_floor = max(since, self._calib_floor or since)
             self._calib_moved = tuple(sorted(set(cameras) | set(self._calib_moved)))
+            if fitted or self._calib_suspects:
+                self._calib_suspects = tuple(sorted(set(cameras) | set(self._calib_suspects)))
             self._calib_due = 0.0
 
     def _check_now(self, frames: FrameSet) -> None:
@@ -490,7 +498,7 @@ class BackEnd:
             self._calib_sets.popleft()  # a rig of many large cameras: fewer sets held
         with self._lock:
             since, self._calib_since = self._calib_since, None
-            moved = self._calib_moved
+            moved, suspects = self._calib_moved, self._calib_suspects
         if since is not None:
             # A camera's view moved at ``since``: what was seen before shows the rig as it
             # was, and one check's verdict waits for the next one's again.
@@ -508,10 +516,9 @@ class BackEnd:
         self._calib_due = time.monotonic() + every
         try:
             # The last three rebuilds' frame sets, pooled (as ``edgerecon calib``).
+            check = functools.partial(pooled_verdict, suspects=suspects)
             args = (self.rig, list(self._calib_sets), self._calib_pool)
-            verdict, self._calib_pool = (
-                pooled_verdict(*args) if direct else self._bounded(pooled_verdict, *args)
-            )
+            verdict, self._calib_pool = check(*args) if direct else self._bounded(check, *args)
         except RebuildTimeout:
             raise
         except Exception as exc:  # a check that fails is not the run's problem
@@ -531,7 +538,7 @@ class BackEnd:
         if verdict["fits"] is True or "repaired_rig" in verdict:
             with self._lock:  # the moved cameras' frames were checked: told
                 if self._calib_since is None:
-                    self._calib_moved = ()
+                    self._calib_moved = self._calib_suspects = ()
         elif moved and verdict["fits"] is False:
             # A moved camera named without a repair that fits (one frame set's matches may
             # not place it): the next rebuild checks again, its frame set pooled.
