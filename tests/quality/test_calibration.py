@@ -97,15 +97,28 @@ def knocked_frames(
     fs: FrameSet, rig: Rig, camera: int, degrees: float, axis: tuple[float, float, float]
 ) -> FrameSet:
     """``fs`` with camera ``camera``'s frame as it sees the scene turned by ``degrees`` about
-    its own ``axis`` (a pinhole camera turned about its centre: the homography K dR K^-1)."""
+    its own ``axis`` (a camera turned about its centre: the homography K dR K^-1 between
+    its undistorted images; a lens's distortion taken off and put back on)."""
     c = rig[camera]
     dR = cv2.Rodrigues(np.radians(degrees) * np.asarray(axis, float))[0]
     images = list(fs.images)
     image = images[camera]
-    assert image is not None and not c.has_distortion
+    assert image is not None
     h, w = image.shape[:2]
-    H = c.K @ dR @ np.linalg.inv(c.K)
-    images[camera] = cv2.warpPerspective(image, H, (w, h), borderMode=cv2.BORDER_REPLICATE)
+    if not c.has_distortion:
+        H = c.K @ dR @ np.linalg.inv(c.K)
+        images[camera] = cv2.warpPerspective(image, H, (w, h), borderMode=cv2.BORDER_REPLICATE)
+        return dataclasses.replace(fs, images=tuple(images))
+    # Each pixel of the turned view: its ray, turned back, seen by the camera as it was.
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    pixels = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
+    rays = cv2.undistortPoints(pixels, c.K, c.dist).reshape(-1, 2)
+    rays = np.hstack([rays, np.ones((len(rays), 1))]) @ dR  # dR^T applied to each ray
+    back, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), c.K, c.dist)
+    maps = back.reshape(h, w, 2).astype(np.float32)
+    images[camera] = cv2.remap(
+        image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
     return dataclasses.replace(fs, images=tuple(images))
 
 

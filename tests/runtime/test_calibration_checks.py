@@ -6,6 +6,7 @@ then every ``calib_check_s``."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -166,3 +167,49 @@ def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_
     said = [r.getMessage() for r in caplog.records]
     assert sum("view moved at time" in m for m in said) == 3
     assert sum("keeps moving (4 moves" in m for m in said) == 1 and len(said) == 4
+
+
+def test_a_moved_camera_without_a_repair_is_checked_again_on_the_next_frames(monkeypatch):
+    """utrecht4cam, cam2 rolled 3 degrees during the run (seen moving after a check that
+    fit): the first frame set after the move names it but no turn makes every pair fit; the
+    back-end checks a task's frames again ``_CHASE_S`` later, pooled, and re-aims cam2 (its
+    view moved, cam4's did not: no "cam2 or cam4")."""
+    from edgerecon.io.dataset import open_dataset
+    from tests.conftest import shared_data
+    from tests.quality.test_calibration import angle_deg, knocked_frames
+
+    ds = open_dataset(shared_data("utrecht4cam"))
+    be, checks = counted_backend(SimpleNamespace(rig=ds.rig), monkeypatch)
+    with ds.open_frames(missing="skip_camera") as source:
+        before = [source.read(t) for t in (42, 184)]
+        after = [
+            knocked_frames(source.read(t), ds.rig, 1, 3.0, (0.0, 0.0, 1.0)) for t in (200, 204, 248)
+        ]
+    for fs in before:
+        be._check_calibration(fs)
+    assert be.stats["calibration"]["fits"] is True
+    be.check_calibration(200, ["cam2"])
+    assert be._calib_suspects == ("cam2",)
+
+    def serve(fs):
+        be._serve(TaskWork(frames=fs, foreground=None, golden=False))  # type: ignore[arg-type]
+        if be._calib_now is not None:
+            be._calib_now.join(120)
+
+    serve(after[0])
+    first = be.stats["calibration"]
+    assert first["times"] == [200] and first["off"] == ["cam2"] and first["confirmed"]
+    assert "repaired_rig" not in first  # one frame set does not place it
+    serve(after[1])  # within _CHASE_S: not checked
+    assert checks[-1] == [200]
+    assert be._calib_chase_at is not None  # the next frames after _CHASE_S
+    be._calib_chase_at -= backend._CHASE_S  # as if that time went by
+    serve(after[2])
+    verdict = be.stats["calibration"]
+    assert verdict["times"] == [200, 248] and "repaired_rig" in verdict, verdict["message"]
+    assert "cam2 re-aimed" in verdict["repair"]
+    assert be._calib_chase_at is None and be._calib_suspects == ()
+    from edgerecon.geometry.camera import Rig
+
+    fixed = Rig.from_dict(verdict["repaired_rig"])
+    assert angle_deg(fixed[1], ds.rig[1]) == pytest.approx(3.0, abs=0.6)

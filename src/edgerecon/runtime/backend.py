@@ -43,7 +43,7 @@ from edgerecon.pipeline import (
     reconstruct_task,
     task_sparse,
 )
-from edgerecon.quality.calibration import CheckPool, pooled_verdict
+from edgerecon.quality.calibration import POOLED_FRAME_SETS, CheckPool, pooled_verdict
 from edgerecon.runtime.config import RuntimeConfig
 from edgerecon.runtime.interrupt import AbandonedThreads, Runner, ThreadAbandoned
 from edgerecon.runtime.messages import (
@@ -59,6 +59,10 @@ from edgerecon.scene.still import StillSnapshot, make_snapshot
 from edgerecon.types import EdgereconError, FrameSet, Mask, PointCloud
 
 logger = logging.getLogger(__name__)
+
+#: Seconds between two checks of tasks' frames after a moved camera was named without a
+#: repair that fits (``BackEnd._check_calibration``).
+_CHASE_S = 2.0
 
 T = TypeVar("T")
 
@@ -153,6 +157,9 @@ class BackEnd:
         """Held by a check (a rebuild's, or one started at once after a move)."""
         self._calib_now: threading.Thread | None = None
         """The check started when a task brought frames from after a move (``_serve``)."""
+        self._calib_chase_at: float | None = None
+        """A moved camera named without a repair that fits: when (``time.monotonic``) the
+        next task's frames are checked at once, pooled with those before."""
         self._calib_last: tuple[bool | None, tuple[str, ...]] | None = None
         self._calib_said: tuple[bool | None, tuple[str, ...]] | None = None
 
@@ -327,8 +334,11 @@ class BackEnd:
             with self._lock:
                 self._latest = (frames, fg)
                 self._still_report = work.still_uses
-                since = self._calib_since
-            if since is not None and t >= since and self.config.calib_check_s > 0:
+                since, chase = self._calib_since, self._calib_chase_at
+            if self.config.calib_check_s > 0 and (
+                (since is not None and t >= since)
+                or (chase is not None and time.monotonic() >= chase)
+            ):
                 self._check_now(frames)
         if work.golden:
             try:
@@ -511,7 +521,7 @@ class BackEnd:
                 after = [k for k, t in enumerate(obs.times) if t >= since]
                 self._calib_pool = CheckPool(obs.subset(after)) if after else None
             self._calib_last = None
-        if time.monotonic() < self._calib_due:
+        if not direct and time.monotonic() < self._calib_due:
             return
         self._calib_due = time.monotonic() + every
         try:
@@ -539,10 +549,15 @@ class BackEnd:
             with self._lock:  # the moved cameras' frames were checked: told
                 if self._calib_since is None:
                     self._calib_moved = self._calib_suspects = ()
+                self._calib_chase_at = None
         elif moved and verdict["fits"] is False:
             # A moved camera named without a repair that fits (one frame set's matches may
-            # not place it): the next rebuild checks again, its frame set pooled.
-            self._calib_due = 0.0
+            # not place it: utrecht4cam's cam2 rolled 3 degrees): a task's frames again
+            # after _CHASE_S (a view that changed a little), pooled, up to the pool's 7.
+            pool = self._calib_pool
+            more = pool is None or len(pool.times) < POOLED_FRAME_SETS
+            with self._lock:
+                self._calib_chase_at = time.monotonic() + _CHASE_S if more else None
         verdict["confirmed"] = confirmed
         self._calib_last = key
         if not confirmed and key != self._calib_said and verdict["fits"] is not None:

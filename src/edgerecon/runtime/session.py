@@ -814,10 +814,10 @@ class Session:
             said = self._moves_said[cam.name] = self._moves_said.get(cam.name, 0) + 1
             image = frames.images[move.camera]
             assert image is not None
-            # The turn of a pinhole camera that moves its image centre so far.
+            # The turn of a pinhole camera that moves its image centre so far, and rolls it.
             focal = float(cam.K[0, 0]) * image.shape[1] / cam.width
             dx, dy = move.shift_px
-            turn = math.degrees(math.atan2(math.hypot(dx, dy), focal))
+            turn = math.hypot(math.degrees(math.atan2(math.hypot(dx, dy), focal)), move.roll_deg)
             records.append(
                 {
                     "camera": cam.name,
@@ -850,7 +850,7 @@ class Session:
                 abs(dy),
                 "down" if dy >= 0 else "up",
                 move.roll_deg,
-                max(turn, abs(move.roll_deg)),
+                turn,
                 move.time_index,
             )
             try:
