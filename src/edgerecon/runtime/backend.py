@@ -226,12 +226,13 @@ class BackEnd:
             self._lock.notify_all()
 
     def check_calibration(self, since: int, cameras: Sequence[str]) -> None:
-        """Check the calibration at the next rebuild (whatever ``calib_check_s`` says), on
-        frame sets from time index ``since`` on: ``cameras``' views moved then
-        (``quality.frames.MovedCameras``), and the frame sets before show the rig as it was.
-        A check that names those cameras is confirmed at once (their frames and their
-        matches with the others agree). Nothing when the checks are off
-        (``calib_check_s = 0``)."""
+        """Check the calibration at once (whatever ``calib_check_s`` says) on the first
+        task's frames from time index ``since`` on (``_check_now``), and on frame sets from
+        then on only: ``cameras``' views moved then (``quality.frames.MovedCameras``), and
+        the frame sets before show the rig as it was. A check that names those cameras is
+        confirmed at once (their frames and their matches with the others agree); when the
+        last check fit with every camera checked, they are the only cameras a repair
+        changes (``suspects``). Nothing when the checks are off (``calib_check_s = 0``)."""
         last = self.stats.get("calibration") or {}
         fitted = last.get("fits") is True and not last.get("unchecked")
         with self._lock:
@@ -246,7 +247,8 @@ class BackEnd:
         """The check after a move, started at once on the first frames from after it, in a
         thread of this process at the rebuilds' priority (the rebuild's process may be
         busy for many seconds with a background from frames before the move). One at a
-        time; a check that fails is logged."""
+        time; a check that fails is logged. (In the embedded engine this is the front-end's
+        process: the check's Python parts share its interpreter lock for a second or two.)"""
         if self._calib_now is not None and self._calib_now.is_alive():
             return
 
@@ -260,7 +262,9 @@ class BackEnd:
             try:
                 self._check_calibration(frames, direct=True)
             except Exception as exc:  # the rebuilds' checks go on
-                logger.warning("back-end: the calibration check failed: %s", exc)
+                logger.warning(
+                    "back-end: the calibration check failed: %s", describe_exception(exc)
+                )
 
         self._calib_now = threading.Thread(target=run, name="backend-calib-check", daemon=True)
         self._calib_now.start()
@@ -492,10 +496,11 @@ class BackEnd:
         verdict is said when the check pooled two or more frame sets, or when two checks in a
         row give it (the first, of one frame set, is checked again at the next rebuild): a
         warning when a camera is named or the frames do not fit, a note when it fits again
-        after one. A camera whose view moved (``check_calibration``) brings the check to
-        the next rebuild, on the frame sets from the move on; a check that names that camera
-        is confirmed at once. ``direct``: in this thread (the check started at once after a
-        move), not in the rebuild's process."""
+        after one. After a camera's view moved (``check_calibration``) only frame sets from
+        the move on are checked and pooled; a check that names that camera is confirmed at
+        once, and one that names it without a repair that fits is followed by another on a
+        task's frames ``_CHASE_S`` later. ``direct``: in this thread (a check started by a
+        move, ``_check_now``), not in the rebuild's process, whenever it is called."""
         every = self.config.calib_check_s
         if every <= 0:
             return

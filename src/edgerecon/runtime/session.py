@@ -272,7 +272,8 @@ class RunSummary:
     rebuild yet, or the check off)."""
     camera_moves: list[dict[str, Any]] = field(default_factory=list)
     """Cameras whose views moved during the run (``TaskMetrics.camera_moves`` of every
-    task, each with ``seen_at``: the time index of the task that confirmed it)."""
+    task, each with ``seen_at``: the time index of the task that confirmed it; the first
+    100: a camera that keeps moving for hours does not grow the summary)."""
     recalibrations: list[dict[str, Any]] = field(default_factory=list)
     """The resumes that went on with cameras placed again since the run started
     (``runtime.state.Recalibration``: ``from_task``, ``cameras``, ``moved``, ``turned_deg``,
@@ -377,7 +378,8 @@ class RunTotals:
 
     def add(self, m: TaskMetrics) -> None:
         self.tasks += 1
-        self.moves += [{**move, "seen_at": m.time_index} for move in m.camera_moves]
+        for move in m.camera_moves[: max(0, 100 - len(self.moves))]:
+            self.moves.append({**move, "seen_at": m.time_index})
         if m.rss_mb is not None:
             self.rss_last = m.rss_mb
             self.rss_max = max(self.rss_max, m.rss_mb)
@@ -806,8 +808,8 @@ class Session:
         back-end asked to check the calibration on the frames from the move on at once
         (rather than at its next ``calib_check_s``); the moves' records. A camera that
         keeps moving (a mount that sways, a camera held by hand) is said
-        ``_MOVES_SAID`` times, then once that it keeps moving; its moves are still
-        recorded."""
+        ``_MOVES_SAID`` times, then once that it keeps moving; its moves are still recorded
+        (no more checks asked for: the back-end's every ``calib_check_s`` go on)."""
         records = []
         for move in self._moved.update(frames):
             cam = self.dataset.rig[move.camera]
@@ -853,6 +855,8 @@ class Session:
                 turn,
                 move.time_index,
             )
+            if said > _MOVES_SAID:
+                continue
             try:
                 self.engine.check_calibration(move.time_index, [cam.name])
             except Exception as exc:  # a back-end that does not answer: its own check serves
