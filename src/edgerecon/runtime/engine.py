@@ -251,9 +251,9 @@ class Engine(Protocol):
         ...
 
     def check_calibration(self, since: int, cameras: Sequence[str]) -> None:
-        """Ask the back-end to check the calibration at its next background rebuild, on
-        frame sets from time index ``since`` on (``cameras``' views moved then); fire and
-        forget."""
+        """Ask the back-end to check the calibration at once, on the first task's frames
+        from time index ``since`` on and only on frame sets from then on (``cameras``' views
+        moved then: ``BackEnd.check_calibration``); fire and forget."""
         ...
 
     def scene_model(self) -> SceneModel | None:
