@@ -83,3 +83,38 @@ def test_a_rolled_camera_is_a_move_and_the_check_can_be_off():
         FrameCheckConfig(moved_min_shift=0.5)
     with pytest.raises(ValueError, match="moved_after_frames"):
         FrameCheckConfig(moved_after_frames=0)
+
+
+def test_a_camera_turned_while_the_run_was_stopped_is_a_move_against_its_saved_view():
+    """The references go over a stop (``references`` / ``restore``): a camera turned
+    between the last frame before it and the first after is a move dated at that first
+    frame (``across_stop``); the other camera, unmoved, is none. A detector that starts from
+    the frames after the stop sees nothing (its first frame is its reference)."""
+    rng = np.random.default_rng(5)
+    rooms = [_texture(rng, H, W) for _ in range(2)]
+
+    def noisy(image: np.ndarray) -> np.ndarray:
+        return np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+
+    before = MovedCameras()
+    for t in range(6):
+        assert before.update(FrameSet(time_index=t, images=tuple(noisy(r) for r in rooms))) == []
+    saved = before.references()
+    assert sorted(saved) == [0, 1] and all(v.dtype == np.uint8 for v in saved.values())
+    resumed, fresh = MovedCameras(), MovedCameras()
+    resumed.restore(saved)
+    turned = _turned(rooms[1], 1.0, (0.0, 1.0, 0.0))  # panned 1 degree while stopped
+    seen, none = [], []
+    for t in range(9, 14):
+        frames = FrameSet(time_index=t, images=(noisy(rooms[0]), noisy(turned)))
+        seen += resumed.update(frames)
+        none += fresh.update(frames)
+    (move,) = seen
+    assert (move.camera, move.time_index, move.across_stop) == (1, 9, True)
+    assert move.shift_px[0] == pytest.approx(400 * np.tan(np.radians(1.0)), rel=0.15)
+    assert none == []
+    # A move during the run is not one across the stop.
+    for t in range(14, 18):
+        frames = FrameSet(time_index=t, images=(noisy(rooms[0]), noisy(rooms[1])))
+        seen += resumed.update(frames)
+    assert [(m.camera, m.time_index, m.across_stop) for m in seen[1:]] == [(1, 14, False)]

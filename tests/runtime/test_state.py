@@ -22,6 +22,7 @@ from edgerecon.runtime.frontend import FixedController, FrontEnd
 from edgerecon.runtime.messages import BackgroundUpdate, BgVersion
 from edgerecon.runtime.online import make_controller
 from edgerecon.runtime.state import (
+    VIEWS_FILE,
     DatasetIdentity,
     OutputFolder,
     RunState,
@@ -623,3 +624,19 @@ def test_a_run_saved_with_the_fingerprint_before_resumes(tiny, tmp_path):
     assert state is not None and state.recalibrations == ()
     assert RunState.load(tmp_path).dataset == DatasetIdentity.of(ds)
     assert not (tmp_path / "rig.0.json").exists()
+
+
+def test_the_cameras_views_round_trip_and_a_torn_file_is_said_not_fatal(tmp_path, caplog):
+    folder = OutputFolder(tmp_path)
+    assert folder.read_views() is None
+    views = {
+        "cam0": np.arange(12, dtype=np.uint8).reshape(3, 4),
+        "cam 1": np.full((2, 2), 7, np.uint8),
+    }
+    folder.write_views(views, 41)
+    time_index, back = folder.read_views()
+    assert time_index == 41 and list(back) == ["cam0", "cam 1"]
+    assert all(np.array_equal(back[k], v) for k, v in views.items())
+    (tmp_path / VIEWS_FILE).write_bytes((tmp_path / VIEWS_FILE).read_bytes()[:50])
+    assert folder.read_views() is None
+    assert "a camera moved while the run was stopped is not seen" in caplog.text

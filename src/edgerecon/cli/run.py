@@ -328,7 +328,9 @@ def print_summary(title: str, s: RunSummary) -> None:
             (
                 "cameras whose view moved",
                 "; ".join(
-                    f"{m['camera']} at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
+                    f"{m['camera']} "
+                    + ("across a stop, " if m.get("across_stop") else "")
+                    + f"at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
                     for m in s.camera_moves
                 ),
             )

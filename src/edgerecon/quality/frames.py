@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -210,6 +210,9 @@ class CameraMove:
     """The image centre's motion (x right, y down), pixels of the frame."""
     roll_deg: float
     """The turn about the image centre (positive: clockwise in the image)."""
+    across_stop: bool = False
+    """The move lies between a reference restored from before a stop (``restore``) and the
+    first frame after it: the camera moved while the run was stopped (or at that frame)."""
 
     def magnitude_px(self, size: tuple[int, int]) -> float:
         """The largest motion of a pixel of a ``size`` (width, height) frame."""
@@ -224,7 +227,7 @@ class MovedCameras:
     The calibration check (``quality.calibration``) tells a moved camera from its matches
     with the others, in the back-end's idle time, at most every ``calib_check_s``; this
     tells that *some* camera's view moved at once, from that camera's frames alone, so that
-    the check comes at the next background rebuild (on frames after the move). Per camera,
+    the check comes at once (on frames after the move). Per camera,
     a thumbnail (256 px along the longer side, grey) is compared with a running average of
     its earlier thumbnails, tile by tile (3 x 3 tiles, OpenCV's phase correlation): the
     tiles whose correlation peak is clear give their shift, and a rotation about the centre
@@ -234,7 +237,9 @@ class MovedCameras:
     is a move: one :class:`CameraMove`, and the camera's new view is its reference from
     then on. People and objects move a part of the frame, or the whole of it in ways no
     single turn explains, and not the same way three times in a row; the running average
-    follows light that changes. About 1 ms per camera (1280x720).
+    follows light that changes. About 1 ms per camera (1280x720). A run keeps the
+    references over a stop (:meth:`references`, :meth:`restore`): a camera turned while the
+    run was stopped is a move at the first frames after ``--resume``.
 
     Measured (docs/BENCHMARKS.md): caliscope_charuco's 111 frame sets (a person and a board
     waved up to the lens) and utrecht4cam's move no camera; a 1-degree turn of any one of
@@ -255,6 +260,26 @@ class MovedCameras:
         self._pending: dict[int, tuple[int, NDArray[np.float64], int]] = {}
         """Per camera: the first update of a motion not yet reported, its tiles' shifts
         and how many updates in a row showed it."""
+        self._restored: set[int] = set()
+        """Cameras whose reference was restored and who have had no update since."""
+        self._resumed_at: dict[int, int] = {}
+        """Per restored camera: the time index of its first update after the restore."""
+
+    def references(self) -> dict[int, NDArray[np.uint8]]:
+        """Each camera's reference view now (grey thumbnail, rounded to whole grey levels):
+        what a run keeps over a stop (``runtime.state.OutputFolder.write_views``) so that a
+        camera moved while it was stopped is seen when it goes on (``restore``)."""
+        return {i: np.asarray(np.clip(np.rint(r), 0, 255), np.uint8) for i, r in self._ref.items()}
+
+    def restore(self, references: Mapping[int, NDArray[np.generic]]) -> None:
+        """Start from ``references`` (those of :meth:`references`, from before a stop):
+        a camera whose first frames after it show its view moved from them is a move
+        (``CameraMove.across_stop``). A camera whose frames have another size starts afresh
+        (its reference is replaced at its first frame)."""
+        for i, ref in references.items():
+            self._ref[int(i)] = np.asarray(ref, np.float32).copy()
+            self._pending.pop(int(i), None)
+            self._restored.add(int(i))
 
     def _thumbnail(self, image: Image) -> NDArray[np.float32]:
         """The frame's grey thumbnail: an area average by a whole factor (OpenCV's fast
@@ -310,6 +335,9 @@ class MovedCameras:
             if image is None:
                 continue  # no frame (stalled, unusable): not judged this time
             now = self._thumbnail(image)
+            if i in self._restored:
+                self._restored.discard(i)
+                self._resumed_at[i] = frames.time_index
             ref = self._ref.get(i)
             if ref is None or ref.shape != now.shape:
                 self._ref[i] = now
@@ -346,6 +374,7 @@ class MovedCameras:
                     time_index=first,
                     shift_px=(round(float(shift[0] * full), 2), round(float(shift[1] * full), 2)),
                     roll_deg=round(float(np.degrees(np.arctan2(m[1, 0], m[0, 0]))), 3),
+                    across_stop=self._resumed_at.get(i) == first,
                 )
             )
         return out

@@ -167,10 +167,11 @@ class TaskMetrics:
     their view of the moment they froze."""
     camera_moves: list[dict[str, Any]] = field(default_factory=list)
     """Cameras whose views these frames confirmed moved (``quality.frames.MovedCameras``:
-    knocked, a mount that slipped; the back-end checks the calibration at its next
-    rebuild on frames from the move on): ``camera``, ``time_index`` (the first frame that
-    showed it), ``shift_px`` (the image centre's motion), ``roll_deg``, ``turn_deg`` (the
-    camera's turn that moves its image centre so far)."""
+    knocked, a mount that slipped; the back-end checks the calibration at once on frames
+    from the move on): ``camera``, ``time_index`` (the first frame that showed it),
+    ``shift_px`` (the image centre's motion), ``roll_deg``, ``turn_deg`` (the camera's turn
+    that moves its image centre so far), ``across_stop`` (it moved while the run was
+    stopped: seen against its view from before a ``--resume``)."""
     num_sparse: int = 0
     num_sparse_fg: int = 0
     num_fg_points: int = 0

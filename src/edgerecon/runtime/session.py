@@ -33,6 +33,10 @@ Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn 
   found a camera moved and a re-aim or placement that makes the calibration fit (``edgerecon
   calib --adopt`` names it in the dataset; ``run --adopt-repairs`` does so during the run,
   :class:`RepairDue`);
+* ``views.npz``: each camera's reference view of the move detector
+  (``quality.frames.MovedCameras``), saved every ``_VIEWS_EVERY_S`` and at the end:
+  ``--resume`` compares the first frames after a stop with them (a camera knocked while the
+  run was stopped);
 * ``state.json``: the run state (:class:`~edgerecon.runtime.state.RunState`), written last for
   each task: the commit point of ``--resume``;
 * ``summary.json``: the run's summary (the paper's Table III), also after Ctrl-C;
@@ -420,6 +424,9 @@ class RunTotals:
 #: Moves of one camera said as warnings (``Session._note_moved``); then once that it keeps
 #: moving.
 _MOVES_SAID = 3
+#: Wall seconds between two saves of the move detector's reference views (``views.npz``;
+#: also saved when the run ends or stops).
+_VIEWS_EVERY_S = 10.0
 
 
 class Session:
@@ -467,6 +474,11 @@ class Session:
         self._frozen = FrozenCameras(self.frame_check, fps=dataset.fps or DEFAULT_FPS)
         self._moved = MovedCameras(self.frame_check)
         self._moves_said: dict[str, int] = {}
+        self._views_from: int | None = None
+        """The time index of the reference views restored from before a stop."""
+        self._views_saved = time.monotonic()
+        if options.resume:
+            self._restore_views()
         # The schedule's lower bound on the next task's time index, as of now (None: no
         # next task, or not known): the background updates before it can be applied
         # between tasks (``_learn_ahead``).
@@ -567,6 +579,7 @@ class Session:
         return self._finish(wall0, interrupted=False)
 
     def _finish(self, wall0: float, *, interrupted: bool) -> RunSummary:
+        self._save_views()
         summary = self.summarise()
         summary.interrupted = interrupted
         summary.wall_s = round(time.perf_counter() - wall0, 3)
@@ -696,6 +709,8 @@ class Session:
             ).save(self.out)
             if m.status == "ok":  # after the commit point: older clouds beyond --keep-clouds
                 self.retention.committed((m.bg_epoch, m.bg_version))
+            if time.monotonic() - self._views_saved >= _VIEWS_EVERY_S:
+                self._save_views()
         except OSError as exc:  # disk full, folder removed: stop with what is committed
             raise EdgereconError(
                 f"cannot write the outputs of task {task} to {self.out} ({exc}); the run "
@@ -803,6 +818,39 @@ class Session:
                 ", ".join(names[i] for i in thawed),
             )
 
+    def _save_views(self) -> None:
+        """The move detector's reference views in ``views.npz`` (as of the last task); a
+        failed write is said, not fatal (the views only serve a later ``--resume``)."""
+        self._views_saved = time.monotonic()
+        if not self.metrics:
+            return
+        names = self.dataset.rig.names
+        views = {names[i]: v for i, v in sorted(self._moved.references().items())}
+        if not views:
+            return
+        try:
+            self.folder.write_views(views, self.metrics[-1].time_index)
+        except OSError as exc:
+            logger.warning("the cameras' reference views were not saved: %s", exc)
+
+    def _restore_views(self) -> None:
+        """A resumed run's move detector starts from the views saved before the stop (the
+        cameras placed again at this resume start afresh: their new pose is their view)."""
+        saved = self.folder.read_views()
+        if saved is None:
+            return
+        time_index, views = saved
+        again = (
+            set() if self.folder.recalibration is None else set(self.folder.recalibration.cameras)
+        )
+        names = self.dataset.rig.names
+        refs = {names.index(n): v for n, v in views.items() if n in names and n not in again}
+        self._moved.restore(refs)
+        self._views_from = time_index
+        logger.debug(
+            "the cameras' views as of time %d restored (%d cameras)", time_index, len(refs)
+        )
+
     def _note_moved(self, t: int, frames: FrameSet) -> list[dict[str, Any]]:
         """A warning when a camera's view moved (``quality.frames.MovedCameras``), and the
         back-end asked to check the calibration on the frames from the move on at once
@@ -827,6 +875,7 @@ class Session:
                     "shift_px": list(move.shift_px),
                     "roll_deg": move.roll_deg,
                     "turn_deg": round(turn, 3),
+                    "across_stop": move.across_stop,
                 }
             )
             if said == _MOVES_SAID + 1:
@@ -838,15 +887,21 @@ class Session:
                     cam.name,
                     said,
                 )
+            when = (
+                f"while the run was stopped (between time {self._views_from} and time "
+                f"{move.time_index}, where it went on)"
+                if move.across_stop
+                else f"at time {move.time_index}"
+            )
             logger.log(
                 logging.WARNING if said <= _MOVES_SAID else logging.DEBUG,
-                "time %d: %s's view moved at time %d (its static scene %.1f px %s, %.1f px "
+                "time %d: %s's view moved %s (its static scene %.1f px %s, %.1f px "
                 "%s, rolled %.2f degrees: about %.2f degrees of the camera); knocked, or its "
                 "mount slipped? The back-end checks the calibration on the frames from time "
                 "%d",
                 t,
                 cam.name,
-                move.time_index,
+                when,
                 abs(dx),
                 "right" if dx >= 0 else "left",
                 abs(dy),

@@ -35,6 +35,7 @@ import os
 import shutil
 import socket
 import time
+import zipfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,7 +68,11 @@ RUN_FILES = (
     "rig.json",
     "rig.repaired.json",
     "report",
+    "views.npz",
 )
+#: The move detector's reference view of each camera (``quality.frames.MovedCameras``):
+#: ``--resume`` compares the first frames after a stop with them.
+VIEWS_FILE = "views.npz"
 LOCK_NAME = ".lock"
 #: Every background version a task merged with, once: ``backgrounds/v<epoch>.<counter>.ply``.
 BACKGROUNDS = "backgrounds"
@@ -642,6 +647,41 @@ class OutputFolder:
         written before ``BACKGROUNDS`` existed (or an interrupted write) left it out."""
         if cloud is not None and not (self.path / BACKGROUNDS / background_file(version)).exists():
             self.write_background(cloud, version, **ply)
+
+    def write_views(self, views: Mapping[str, NDArray[np.uint8]], time_index: int) -> None:
+        """The cameras' reference views (grey thumbnails by camera name) as of the task at
+        ``time_index``, in ``VIEWS_FILE`` (written atomically)."""
+        names = list(views)
+        arrays: dict[str, Any] = {
+            f"view{k}": np.asarray(views[n], np.uint8) for k, n in enumerate(names)
+        }
+        arrays.update(names=np.array(names, dtype=str), time_index=np.int64(time_index))
+
+        def write(f: IO[bytes]) -> None:
+            np.savez(f, **arrays)
+
+        atomic_write_bytes(self.path / VIEWS_FILE, write)
+
+    def read_views(self) -> tuple[int, dict[str, NDArray[np.uint8]]] | None:
+        """What :meth:`write_views` wrote: (its time index, the views by camera name); None
+        when there is none or it cannot be read (said: the moves across the stop then go
+        unseen, the run does not stop for it)."""
+        path = self.path / VIEWS_FILE
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                names = [str(n) for n in z["names"]]
+                views = {n: np.asarray(z[f"view{k}"], np.uint8) for k, n in enumerate(names)}
+                return int(z["time_index"]), views
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            logger.warning(
+                "%s cannot be read (%s): a camera moved while the run was stopped is not seen "
+                "from its frames (the calibration checks still find it)",
+                path,
+                exc,
+            )
+            return None
 
     def write_task_cloud(
         self,
