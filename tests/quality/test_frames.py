@@ -118,3 +118,38 @@ def test_a_camera_turned_while_the_run_was_stopped_is_a_move_against_its_saved_v
         frames = FrameSet(time_index=t, images=(noisy(rooms[0]), noisy(rooms[1])))
         seen += resumed.update(frames)
     assert [(m.camera, m.time_index, m.across_stop) for m in seen[1:]] == [(1, 14, False)]
+
+
+def test_a_swaying_camera_is_turned_back_onto_its_view():
+    """``Stabiliser``: tilts, pans, rolls and a mix of them are taken off the frame (the
+    warped frame matches the reference to the noise), the turn measured within 0.1 degree;
+    a still frame is left alone; a frame half covered by someone close still gives the
+    turn of the rest (the tiles they cover do not follow it)."""
+    from edgerecon.quality.frames import Stabiliser, thumbnail
+
+    rng = np.random.default_rng(1)
+    room = _texture(rng, H, W)
+    steady = Stabiliser()
+    steady.start(0, thumbnail(room), K)
+    assert steady.cameras == {0}
+    inner = (slice(30, H - 30), slice(30, W - 30))
+    for axis, degrees, person in [
+        ((1, 0, 0), 1.0, False),
+        ((0, 1, 0), 0.7, False),
+        ((0, 0, 1), 0.6, False),
+        ((1, 1, 0.3), 1.5, False),
+        ((1, 0.4, 0), 1.0, True),
+        ((1, 0, 0), 0.0, False),
+    ]:
+        turned = _turned(room, degrees, tuple(np.asarray(axis) / np.linalg.norm(axis)))
+        if person:  # someone close covers the left 40 % of the frame
+            turned[:, : int(0.4 * W)] = _texture(rng, H, int(0.4 * W))
+        image = np.clip(turned + rng.normal(0, 2, turned.shape), 0, 255).astype(np.uint8)
+        out, taken = steady.apply(FrameSet(time_index=0, images=(image, None)))
+        assert taken[0] == pytest.approx(degrees, abs=0.1)
+        back = np.abs(out.images[0][inner].astype(float) - room[inner])
+        if person:
+            back = back[:, int(0.45 * W) :]
+        assert back.mean() < 2.0, (axis, degrees)
+    # Only the cameras started are touched.
+    assert steady.apply(FrameSet(time_index=0, images=(None, room)))[1] == {}

@@ -730,6 +730,38 @@ def test_a_camera_knocked_while_the_run_was_stopped_is_said_after_resume(
     assert placed["summary"]["camera_moves"] == []
 
 
+def test_a_swaying_camera_is_said_then_its_frames_are_turned_back(
+    tiny_dataset, tmp_path, caplog, capsys
+):
+    """cam1 sways (tilted +-1.5 degrees, turn about from time 1; every frame a move with
+    ``moved_after_frames`` 1): its first three moves are said, the fourth says it keeps
+    moving, and from then on each of its frames is turned back onto its view before its
+    first move: the tasks record the turn taken off (1.5 degrees), the summary the
+    tasks."""
+    from edgerecon.cli import main
+
+    src = tmp_path / "scene"
+    shutil.copytree(tiny_dataset, src)
+    for t in range(1, 8):
+        _knock(src, 1, range(t, t + 1), 1.5 if t % 2 else -1.5)
+    (tmp_path / "cfg.toml").write_text(
+        "[runtime]\ndeadline_s = 20.0\n[runtime.frame_check]\nmoved_after_frames = 1\n"
+    )
+    caplog.set_level(logging.WARNING)
+    args = ["run", "--dataset", str(src), "--out", str(tmp_path / "run")]
+    assert main([*args, "--config", str(tmp_path / "cfg.toml"), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    said = [r.getMessage() for r in caplog.records if "cam1's view" in r.getMessage()]
+    assert len(said) == 4 and "keeps moving" in said[3] and "turned back" in said[3]
+    taken = [t["stabilised"] for t in result["tasks"]]
+    assert taken[:4] == [{}] * 4
+    assert all(list(k) == ["cam1"] for k in taken[4:])
+    assert all(k["cam1"] == pytest.approx(1.5, abs=0.15) for k in taken[4:])
+    summary = result["summary"]["stabilised"]["cam1"]
+    assert summary["tasks"] == 4 and summary["unmeasured"] == 0
+    assert summary["max_deg"] == pytest.approx(1.5, abs=0.15)
+
+
 def test_a_camera_knocked_mid_run_is_said_at_once_and_checked_at_once(
     tiny_dataset, tmp_path, caplog, capsys, monkeypatch
 ):

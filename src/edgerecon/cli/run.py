@@ -258,7 +258,8 @@ def task_row(m: TaskMetrics) -> list[Any]:
         + (" degraded" if m.degraded else "")
         + (" empty" if m.frame_defects and m.num_cameras < 3 else "")
         + (f" frozen {','.join(m.frozen_cameras)}" if m.frozen_cameras else "")
-        + (f" moved {','.join(c['camera'] for c in m.camera_moves)}" if m.camera_moves else ""),
+        + (f" moved {','.join(c['camera'] for c in m.camera_moves)}" if m.camera_moves else "")
+        + (f" steadied {','.join(m.stabilised)}" if m.stabilised else ""),
     ]
 
 
@@ -332,6 +333,18 @@ def print_summary(title: str, s: RunSummary) -> None:
                     + ("across a stop, " if m.get("across_stop") else "")
                     + f"at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
                     for m in s.camera_moves
+                ),
+            )
+        )
+    if s.stabilised:
+        rows.append(
+            (
+                "cameras turned back onto their view (swaying)",
+                "; ".join(
+                    f"{name}: {st['tasks']} tasks, {st['mean_deg']:.2f} degrees on average, "
+                    f"{st['max_deg']:.2f} at most"
+                    + (f" ({st['unmeasured']} kept as they were)" if st["unmeasured"] else "")
+                    for name, st in s.stabilised.items()
                 ),
             )
         )

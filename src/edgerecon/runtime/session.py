@@ -79,6 +79,7 @@ from edgerecon.quality.frames import (
     FrameCheckConfig,
     FrozenCameras,
     MovedCameras,
+    Stabiliser,
     frame_defects,
     without_defective,
 )
@@ -278,6 +279,10 @@ class RunSummary:
     """Cameras whose views moved during the run (``TaskMetrics.camera_moves`` of every
     task, each with ``seen_at``: the time index of the task that confirmed it; the first
     100: a camera that keeps moving for hours does not grow the summary)."""
+    stabilised: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Cameras whose frames were turned back onto their view (``TaskMetrics.stabilised``):
+    per camera ``tasks``, ``unmeasured`` (tasks whose frame gave no turn: kept as it was),
+    ``mean_deg`` and ``max_deg`` of the turns taken off."""
     recalibrations: list[dict[str, Any]] = field(default_factory=list)
     """The resumes that went on with cameras placed again since the run started
     (``runtime.state.Recalibration``: ``from_task``, ``cameras``, ``moved``, ``turned_deg``,
@@ -379,9 +384,21 @@ class RunTotals:
     rss_last: float | None = None
     rss_max: float = 0.0
     moves: list[dict[str, Any]] = field(default_factory=list)
+    stabilised: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def add(self, m: TaskMetrics) -> None:
         self.tasks += 1
+        for name, deg in m.stabilised.items():
+            st = self.stabilised.setdefault(
+                name, {"tasks": 0, "unmeasured": 0, "mean_deg": 0.0, "max_deg": 0.0}
+            )
+            st["tasks"] += 1
+            if deg is None:
+                st["unmeasured"] += 1
+                continue
+            measured = st["tasks"] - st["unmeasured"]
+            st["mean_deg"] = round(st["mean_deg"] + (deg - st["mean_deg"]) / measured, 3)
+            st["max_deg"] = max(st["max_deg"], deg)
         for move in m.camera_moves[: max(0, 100 - len(self.moves))]:
             self.moves.append({**move, "seen_at": m.time_index})
         if m.rss_mb is not None:
@@ -473,6 +490,7 @@ class Session:
         self._defects: dict[str, str] = {}
         self._frozen = FrozenCameras(self.frame_check, fps=dataset.fps or DEFAULT_FPS)
         self._moved = MovedCameras(self.frame_check)
+        self._stabiliser = Stabiliser()
         self._moves_said: dict[str, int] = {}
         self._views_from: int | None = None
         """The time index of the reference views restored from before a stop."""
@@ -732,6 +750,7 @@ class Session:
             self._note_defects(t, named)
             self._note_frozen(t, frames)
             moved = self._note_moved(t, frames)
+            frames, turned = self._stabiliser.apply(frames)
             plan = self.engine.plan(t)
             out = self.engine.run_task(frames, plan, task, named, updates)
             out.metrics.sync_spread_s = frames.sync_spread_s
@@ -739,6 +758,7 @@ class Session:
                 self.dataset.rig[i].name for i in sorted(self._frozen.frozen)
             ]
             out.metrics.camera_moves = moved
+            out.metrics.stabilised = {self.dataset.rig[i].name: d for i, d in turned.items()}
             return out
         except Exception as exc:  # any stage, any engine: a failed record, never a dead run
             error = describe_exception(exc)
@@ -776,7 +796,8 @@ class Session:
             except EdgereconError as exc:
                 logger.debug("background update at time %d skipped: %s", s, exc)
                 continue
-            out.append(without_defective(frames, frame_defects(frames, self.frame_check)))
+            frames = without_defective(frames, frame_defects(frames, self.frame_check))
+            out.append(self._stabiliser.apply(frames)[0])
         return out
 
     def _note_defects(self, t: int, defects: dict[str, str]) -> None:
@@ -879,13 +900,24 @@ class Session:
                 }
             )
             if said == _MOVES_SAID + 1:
+                reference = self._moved.first_reference(move.camera)
+                steady = self.frame_check.stabilise and reference is not None
+                if steady:
+                    assert reference is not None
+                    k = image.shape[1] / cam.width
+                    K = np.diag([k, k, 1.0]) @ cam.K
+                    self._stabiliser.start(move.camera, reference, K)
                 logger.warning(
                     "time %d: %s's view keeps moving (%d moves; a mount that sways, a camera "
                     "held by hand? The run expects static cameras): its moves are recorded "
-                    "in the tasks' camera_moves, no longer said",
+                    "in the tasks' camera_moves, no longer said%s",
                     t,
                     cam.name,
                     said,
+                    "; from now on each of its frames is turned back onto its view before its "
+                    "first move (the turn taken off in the tasks' stabilised)"
+                    if steady
+                    else "",
                 )
             when = (
                 f"while the run was stopped (between time {self._views_from} and time "
@@ -952,6 +984,7 @@ class Session:
             engine=getattr(self.engine, "name", ""),
             recalibrations=[r.to_dict() for r in self.recalibrations],
             camera_moves=list(t.moves),
+            stabilised={k: dict(v) for k, v in t.stabilised.items()},
             stream=dict(self._stream),
             clouds_written=t.clouds_written,
             clouds_kept=len(self.retention.kept),
