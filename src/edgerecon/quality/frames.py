@@ -434,14 +434,17 @@ class Stabiliser:
     """Frames of the cameras whose views keep moving (a mount that sways, a camera on a
     pole in the wind), turned back onto a reference view: per frame, the shifts of 4 x 4
     tiles of its grey thumbnail against the reference (phase correlation), the camera turn
-    that best explains them (:func:`rotation_between`, then again on the tiles within
-    ``_MAX_RESIDUAL`` of it; at least ``_MIN_TILES`` of them), and the frame warped by the
-    inverse turn's homography (``K R^-1 K^-1``, in one OpenCV warp; the border it uncovers
-    repeats the edge). A turn about the centre of projection moves every pixel by the same
-    homography whatever its depth, so the calibration fits the warped frame again; a
-    camera that also shifts (a sway's lever arm) keeps that part. A frame whose tiles give
-    no turn is kept as it is (said in the result). About 3-10 ms per camera (thumbnail,
-    16 correlations, the warp at the frame's size)."""
+    that best explains them (:func:`rotation_between` of every tile; where some do not
+    follow it, a person or a board across them, of the pair of tiles that most others
+    follow; then again of those within ``_MAX_RESIDUAL``, at least ``_MIN_TILES`` of
+    them), and the frame warped back by the turn's homography (``K R K^-1``, in one OpenCV
+    warp; the border it uncovers repeats the edge). A turn about the centre of projection
+    moves every pixel by the same homography whatever its depth, so the calibration fits
+    the warped frame again; a camera that also shifts (a sway's lever arm) keeps that
+    part, and a lens's distortion is not taken off first (a strongly distorted lens keeps
+    part of the turn at its edges). A frame whose tiles give no turn is kept as it is
+    (said in the result). About 3-10 ms per camera (thumbnail, 16 correlations, the warp
+    at the frame's size)."""
 
     _THUMB_PX = 256
     _GRID = 4
