@@ -153,3 +153,33 @@ def test_a_swaying_camera_is_turned_back_onto_its_view():
         assert back.mean() < 2.0, (axis, degrees)
     # Only the cameras started are touched.
     assert steady.apply(FrameSet(time_index=0, images=(None, room)))[1] == {}
+
+
+def test_a_real_camera_with_lens_distortion_swaying_is_turned_back():
+    """caliscope_charuco's cam_1 (a webcam with lens distortion, people and a board moving
+    before it) swaying 1 degree (its distortion taken off, the view turned, put back on):
+    every 16th frame's turn measured within 0.15 degree, and the frame turned back to
+    within a few grey levels of the frame as it came."""
+    from edgerecon.io.dataset import open_dataset
+    from edgerecon.quality.frames import Stabiliser, thumbnail
+    from tests.conftest import shared_data
+    from tests.quality.test_calibration import knocked_frames
+
+    ds = open_dataset(shared_data("caliscope_charuco"))
+    cam = ds.rig[1]
+    steady = Stabiliser()
+    before, after = [], []
+    with ds.open_frames() as source:
+        steady.start(1, thumbnail(source.read(0).images[1]), cam.K, cam.dist)
+        for t in range(3, source.num_frames, 16):
+            frames = source.read(t)
+            degrees = float(np.sin(2 * np.pi * t / 12 + 0.5))
+            swayed = knocked_frames(frames, ds.rig, 1, degrees, (0.92, 0.39, 0.0))
+            out, taken = steady.apply(swayed)
+            assert taken[1] == pytest.approx(abs(degrees), abs=0.15), t
+            h, w = cam.height, cam.width
+            middle = (slice(h // 6, 5 * h // 6), slice(w // 6, 5 * w // 6))
+            truth = frames.images[1][middle].astype(float)
+            before.append(np.abs(swayed.images[1][middle] - truth).mean())
+            after.append(np.abs(out.images[1][middle] - truth).mean())
+    assert np.mean(before) > 5.0 and np.mean(after) < 0.3 * np.mean(before), (before, after)

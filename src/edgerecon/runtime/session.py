@@ -906,7 +906,7 @@ class Session:
                     assert reference is not None
                     k = image.shape[1] / cam.width
                     K = np.diag([k, k, 1.0]) @ cam.K
-                    self._stabiliser.start(move.camera, reference, K)
+                    self._stabiliser.start(move.camera, reference, K, cam.dist)
                 logger.warning(
                     "time %d: %s's view keeps moving (%d moves; a mount that sways, a camera "
                     "held by hand? The run expects static cameras): its moves are recorded "
