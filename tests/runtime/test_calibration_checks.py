@@ -135,11 +135,12 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
 def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_moving(caplog):
     """``Session._note_moved``: each move is recorded; a camera whose view keeps moving (a
     mount that sways) is said and brings a check 3 times, then is said once to keep
-    moving."""
+    moving, and its frames are turned back onto its view before its first move from
+    then on."""
     import logging
     from types import SimpleNamespace
 
-    from edgerecon.quality.frames import MovedCameras
+    from edgerecon.quality.frames import FrameCheckConfig, MovedCameras, Stabiliser
     from edgerecon.runtime.session import Session
     from edgerecon.types import FrameSet
     from tests.conftest import ring_rig
@@ -154,6 +155,9 @@ def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_
     session.engine = SimpleNamespace(check_calibration=lambda *a: requests.append(a))
     session._moved = MovedCameras()
     session._moves_said = {}
+    session.frame_check = FrameCheckConfig()
+    session._stabiliser = Stabiliser()
+    session._views_from = None
     caplog.set_level(logging.WARNING)
     records = []
     for t in range(48):
@@ -168,6 +172,10 @@ def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_
     said = [r.getMessage() for r in caplog.records]
     assert sum("view moved at time" in m for m in said) == 3
     assert sum("keeps moving (4 moves" in m for m in said) == 1 and len(said) == 4
+    # From the fourth move on its frames are turned back onto its first view.
+    assert session._stabiliser.cameras == {0}
+    _, taken = session._stabiliser.apply(FrameSet(time_index=48, images=(swayed, None, None)))
+    assert taken[0] == pytest.approx(1.5, abs=0.1)
 
 
 def test_a_moved_camera_without_a_repair_is_checked_again_on_the_next_frames(monkeypatch):
