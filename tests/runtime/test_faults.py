@@ -737,7 +737,7 @@ def test_a_swaying_camera_is_said_then_its_frames_are_turned_back(
     ``moved_after_frames`` 1): its first three moves are said, the fourth says it keeps
     moving, and from then on each of its frames is turned back onto its view before its
     first move: the tasks record the turn taken off (1.5 degrees), the summary the
-    tasks."""
+    tasks; a stop and ``--resume`` goes on turning them back without saying it all again."""
     from edgerecon.cli import main
 
     src = tmp_path / "scene"
@@ -749,10 +749,18 @@ def test_a_swaying_camera_is_said_then_its_frames_are_turned_back(
     )
     caplog.set_level(logging.WARNING)
     args = ["run", "--dataset", str(src), "--out", str(tmp_path / "run")]
-    assert main([*args, "--config", str(tmp_path / "cfg.toml"), "--json"]) == 0
-    result = json.loads(capsys.readouterr().out)
+    args += ["--config", str(tmp_path / "cfg.toml"), "--json"]
+    assert main([*args, "--frames", "0:6"]) == 0  # stopped after time 5 ...
+    capsys.readouterr()
     said = [r.getMessage() for r in caplog.records if "cam1's view" in r.getMessage()]
+    caplog.clear()
+    assert main([*args, "--frames", "0:8", "--resume"]) == 0  # ... and resumed
+    result = json.loads(capsys.readouterr().out)
     assert len(said) == 4 and "keeps moving" in said[3] and "turned back" in said[3]
+    # After the stop it goes on being turned back, its moves not said again.
+    resumed = [r.getMessage() for r in caplog.records]
+    assert not any("cam1's view" in m for m in resumed)
+    assert sum("cam1 kept moving before the stop" in m for m in resumed) == 1
     taken = [t["stabilised"] for t in result["tasks"]]
     assert taken[:4] == [{}] * 4
     assert all(list(k) == ["cam1"] for k in taken[4:])

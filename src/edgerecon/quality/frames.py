@@ -532,6 +532,14 @@ class Stabiliser:
         """The cameras being stabilised."""
         return frozenset(self._ref)
 
+    def references(self) -> dict[int, NDArray[np.uint8]]:
+        """Each stabilised camera's reference view (rounded to whole grey levels): what a
+        run keeps over a stop (``start`` again with it after ``--resume``)."""
+        return {
+            i: np.asarray(np.clip(np.rint(ref), 0, 255), np.uint8)
+            for i, (ref, _, _) in self._ref.items()
+        }
+
     def start(
         self,
         camera: int,

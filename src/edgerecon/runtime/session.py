@@ -34,9 +34,10 @@ Outputs in ``out_dir`` (each written atomically, so a crash never leaves a torn 
   calib --adopt`` names it in the dataset; ``run --adopt-repairs`` does so during the run,
   :class:`RepairDue`);
 * ``views.npz``: each camera's reference view of the move detector
-  (``quality.frames.MovedCameras``), saved every ``_VIEWS_EVERY_S`` and at the end:
+  (``quality.frames.MovedCameras``) and of the cameras whose frames are turned back
+  (``quality.frames.Stabiliser``), saved every ``_VIEWS_EVERY_S`` and at the end:
   ``--resume`` compares the first frames after a stop with them (a camera knocked while the
-  run was stopped);
+  run was stopped) and goes on turning back the swaying ones;
 * ``state.json``: the run state (:class:`~edgerecon.runtime.state.RunState`), written last for
   each task: the commit point of ``--resume``;
 * ``summary.json``: the run's summary (the paper's Table III), also after Ctrl-C;
@@ -847,20 +848,23 @@ class Session:
             return
         names = self.dataset.rig.names
         views = {names[i]: v for i, v in sorted(self._moved.references().items())}
+        steady = {names[i]: v for i, v in sorted(self._stabiliser.references().items())}
         if not views:
             return
         try:
-            self.folder.write_views(views, self.metrics[-1].time_index)
+            self.folder.write_views(views, self.metrics[-1].time_index, steady)
         except OSError as exc:
             logger.warning("the cameras' reference views were not saved: %s", exc)
 
     def _restore_views(self) -> None:
-        """A resumed run's move detector starts from the views saved before the stop (the
-        cameras placed again at this resume start afresh: their new pose is their view)."""
+        """A resumed run's move detector starts from the views saved before the stop, and
+        the cameras whose frames were turned back go on being so, without their moves said
+        again (the cameras placed again at this resume start afresh: their new pose is
+        their view)."""
         saved = self.folder.read_views()
         if saved is None:
             return
-        time_index, views = saved
+        time_index, views, steady = saved
         again = (
             set() if self.folder.recalibration is None else set(self.folder.recalibration.cameras)
         )
@@ -868,6 +872,17 @@ class Session:
         refs = {names.index(n): v for n, v in views.items() if n in names and n not in again}
         self._moved.restore(refs)
         self._views_from = time_index
+        for name, ref in steady.items():
+            if name not in names or name in again or not self.frame_check.stabilise:
+                continue
+            cam = self.dataset.rig[names.index(name)]
+            self._stabiliser.start(names.index(name), ref.astype(np.float32), cam.K, cam.dist)
+            self._moves_said[name] = _MOVES_SAID + 1
+            logger.warning(
+                "%s kept moving before the stop: its frames are turned back onto its view "
+                "as before (its moves recorded, not said)",
+                name,
+            )
         logger.debug(
             "the cameras' views as of time %d restored (%d cameras)", time_index, len(refs)
         )

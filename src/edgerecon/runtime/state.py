@@ -648,24 +648,43 @@ class OutputFolder:
         if cloud is not None and not (self.path / BACKGROUNDS / background_file(version)).exists():
             self.write_background(cloud, version, **ply)
 
-    def write_views(self, views: Mapping[str, NDArray[np.uint8]], time_index: int) -> None:
+    def write_views(
+        self,
+        views: Mapping[str, NDArray[np.uint8]],
+        time_index: int,
+        steady: Mapping[str, NDArray[np.uint8]] | None = None,
+    ) -> None:
         """The cameras' reference views (grey thumbnails by camera name) as of the task at
-        ``time_index``, in ``VIEWS_FILE`` (written atomically)."""
-        names = list(views)
+        ``time_index``, and ``steady``: those of the cameras whose frames are turned back
+        onto a view (``quality.frames.Stabiliser``), in ``VIEWS_FILE`` (written
+        atomically)."""
+        names, steady_names = list(views), list(steady or {})
         arrays: dict[str, Any] = {
             f"view{k}": np.asarray(views[n], np.uint8) for k, n in enumerate(names)
         }
-        arrays.update(names=np.array(names, dtype=str), time_index=np.int64(time_index))
+        arrays.update(
+            {
+                f"steady{k}": np.asarray((steady or {})[n], np.uint8)
+                for k, n in enumerate(steady_names)
+            }
+        )
+        arrays.update(
+            names=np.array(names, dtype=str),
+            steady_names=np.array(steady_names, dtype=str),
+            time_index=np.int64(time_index),
+        )
 
         def write(f: IO[bytes]) -> None:
             np.savez(f, **arrays)
 
         atomic_write_bytes(self.path / VIEWS_FILE, write)
 
-    def read_views(self) -> tuple[int, dict[str, NDArray[np.uint8]]] | None:
-        """What :meth:`write_views` wrote: (its time index, the views by camera name); None
-        when there is none or it cannot be read (said: the moves across the stop then go
-        unseen, the run does not stop for it)."""
+    def read_views(
+        self,
+    ) -> tuple[int, dict[str, NDArray[np.uint8]], dict[str, NDArray[np.uint8]]] | None:
+        """What :meth:`write_views` wrote: (its time index, the views by camera name, the
+        steadied cameras' views); None when there is none or it cannot be read (said: the
+        moves across the stop then go unseen, the run does not stop for it)."""
         path = self.path / VIEWS_FILE
         if not path.exists():
             return None
@@ -673,7 +692,11 @@ class OutputFolder:
             with np.load(path, allow_pickle=False) as z:
                 names = [str(n) for n in z["names"]]
                 views = {n: np.asarray(z[f"view{k}"], np.uint8) for k, n in enumerate(names)}
-                return int(z["time_index"]), views
+                steady_names = [str(n) for n in z["steady_names"]] if "steady_names" in z else []
+                steady = {
+                    n: np.asarray(z[f"steady{k}"], np.uint8) for k, n in enumerate(steady_names)
+                }
+                return int(z["time_index"]), views, steady
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
             logger.warning(
                 "%s cannot be read (%s): a camera moved while the run was stopped is not seen "
