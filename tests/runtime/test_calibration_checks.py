@@ -6,6 +6,7 @@ then every ``calib_check_s``."""
 from __future__ import annotations
 
 import dataclasses
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -222,3 +223,25 @@ def test_a_moved_camera_without_a_repair_is_checked_again_on_the_next_frames(mon
 
     fixed = Rig.from_dict(verdict["repaired_rig"])
     assert angle_deg(fixed[1], ds.rig[1]) == pytest.approx(3.0, abs=0.6)
+
+
+def test_a_chase_whose_check_fails_is_not_started_again_at_every_task(tiny, monkeypatch):
+    """A check due ``_CHASE_S`` after a moved camera was named runs once: when it raises
+    (or cannot judge), the tasks after it start none (only a verdict that names the
+    camera without a repair sets the next one)."""
+    ds, _ = tiny
+    be = backend.BackEnd(ds.rig, runtime_config(background_process=False))
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("no matches")
+
+    monkeypatch.setattr(backend, "pooled_verdict", broken)
+    be._calib_chase_at = time.monotonic() - 1.0
+    with ds.open_frames() as source:
+        for t in range(3):
+            be._serve(TaskWork(frames=source.read(t), foreground=None, golden=False))  # type: ignore[arg-type]
+            if be._calib_now is not None:
+                be._calib_now.join(60)
+    assert calls == [1] and be._calib_chase_at is None

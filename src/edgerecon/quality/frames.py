@@ -278,7 +278,7 @@ class MovedCameras:
         """Each camera's reference view now (grey thumbnail, rounded to whole grey levels):
         what a run keeps over a stop (``runtime.state.OutputFolder.write_views``) so that a
         camera moved while it was stopped is seen when it goes on (``restore``)."""
-        return {i: np.asarray(np.clip(np.rint(r), 0, 255), np.uint8) for i, r in self._ref.items()}
+        return {i: _grey_bytes(r) for i, r in self._ref.items()}
 
     def restore(self, references: Mapping[int, NDArray[np.generic]]) -> None:
         """Start from ``references`` (those of :meth:`references`, from before a stop):
@@ -369,6 +369,11 @@ class MovedCameras:
                 )
             )
         return out
+
+
+def _grey_bytes(grey: NDArray[np.float32]) -> NDArray[np.uint8]:
+    """A grey thumbnail rounded to whole grey levels (what a run keeps over a stop)."""
+    return np.asarray(np.clip(np.rint(grey), 0, 255), np.uint8)
 
 
 def thumbnail(image: Image, longer_px: int = 256) -> NDArray[np.float32]:
@@ -535,10 +540,7 @@ class Stabiliser:
     def references(self) -> dict[int, NDArray[np.uint8]]:
         """Each stabilised camera's reference view (rounded to whole grey levels): what a
         run keeps over a stop (``start`` again with it after ``--resume``)."""
-        return {
-            i: np.asarray(np.clip(np.rint(ref), 0, 255), np.uint8)
-            for i, (ref, _, _) in self._ref.items()
-        }
+        return {i: _grey_bytes(ref) for i, (ref, _, _) in self._ref.items()}
 
     def start(
         self,

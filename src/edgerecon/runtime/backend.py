@@ -514,6 +514,10 @@ class BackEnd:
         with self._lock:
             since, self._calib_since = self._calib_since, None
             moved, suspects = self._calib_moved, self._calib_suspects
+            if direct:
+                # A chase is this check: the verdict sets the next one when one is due (a
+                # check that fails or cannot judge must not start one at every task).
+                self._calib_chase_at = None
         if since is not None:
             # A camera's view moved at ``since``: what was seen before shows the rig as it
             # was, and one check's verdict waits for the next one's again.
