@@ -296,6 +296,30 @@ def num_tasks(args: argparse.Namespace, dataset: Any) -> int | None:
     return len(frames.indices(dataset.num_frames)) or None
 
 
+def moves_text(moves: list[dict[str, Any]]) -> str:
+    """The summary table's cameras whose view moved: each move of a camera that moved up
+    to 3 times; one line for one that kept moving (a swaying mount: hundreds of moves)."""
+    by_camera: dict[str, list[dict[str, Any]]] = {}
+    for m in moves:
+        by_camera.setdefault(m["camera"], []).append(m)
+    parts = []
+    for name, ms in by_camera.items():
+        if len(ms) > 3:
+            turns = [m["turn_deg"] for m in ms]
+            parts.append(
+                f"{name} kept moving: {len(ms)} moves recorded, time {ms[0]['time_index']} to "
+                f"{ms[-1]['time_index']} ({min(turns):.2f}-{max(turns):.2f} degrees)"
+            )
+            continue
+        parts += [
+            f"{name} "
+            + ("across a stop, " if m.get("across_stop") else "")
+            + f"at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
+            for m in ms
+        ]
+    return "; ".join(parts)
+
+
 def print_summary(title: str, s: RunSummary) -> None:
     def f(x: float | None, fmt: str = ".3f") -> str:
         return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
@@ -325,17 +349,7 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
     if s.camera_moves:
-        rows.append(
-            (
-                "cameras whose view moved",
-                "; ".join(
-                    f"{m['camera']} "
-                    + ("across a stop, " if m.get("across_stop") else "")
-                    + f"at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
-                    for m in s.camera_moves
-                ),
-            )
-        )
+        rows.append(("cameras whose view moved", moves_text(s.camera_moves)))
     if s.stabilised:
         rows.append(
             (
