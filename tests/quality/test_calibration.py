@@ -399,3 +399,44 @@ def test_utrecht4cam_a_turn_that_fits_better_than_the_rig_is_not_made_a_move():
     assert [(e.camera, e.moved) for e in fix.applied] == [(1, 0.0)]
     assert fix.check.fits is True
     assert angle_deg(fix.rig[1], ds.rig[1]) < 0.4
+
+
+def test_caliscope_charuco_one_weak_pair_that_misses_names_no_camera():
+    """A run's checks at times 68, 77 and 96 (one frame set more each time, pooled): cam_1's
+    only pair with enough inliers, with cam_2, held 15 of 41 matches (10 by chance), 337 px
+    off a calibration that fits: it named cam_1 moved, "calibrate again", in a run where no
+    view moved (``edgerecon calib`` on the same frame sets, matched in one go: "fits", cam_1
+    not checked). One weak pair alone names no camera now."""
+    ds = open_dataset(shared_data("caliscope_charuco"))
+    with ds.open_frames() as source:
+        sets = [source.read(t) for t in (68, 77, 96)]
+    pool = None
+    for k in range(1, 4):
+        verdict, pool = pooled_verdict(ds.rig, sets[:k], pool)
+    assert verdict["off"] == [] and verdict["fits"] is True, verdict["message"]
+    assert verdict["times"] == [68, 77, 96]
+    assert "cam_1 not checked" in verdict["message"]
+
+
+def test_a_camera_is_named_on_one_strong_pair_or_two_weak_ones_not_one_weak_one():
+    """``_verdicts`` on pairs as a check finds them: cam3 off in its only pair (a weak one
+    of 20 inliers) is not named; with 40 inliers it is; with two weak pairs off it is, and
+    with one when its view was seen moving."""
+    rig = ring_rig(4)
+
+    def pair(a: int, b: int, inliers: int, px: float) -> calibration.PairCheck:
+        return calibration.PairCheck(
+            a=a, b=b, matches=2 * inliers, inliers=inliers, median_px=px, p90_px=px,
+            limit_px=8.0,
+        )  # fmt: skip
+
+    good = [pair(0, 1, 200, 1.0), pair(0, 2, 150, 2.0), pair(1, 2, 120, 1.5)]
+    cams, fits = calibration._verdicts(rig, [*good, pair(2, 3, 20, 300.0)])
+    assert [v.status for v in cams] == ["ok", "ok", "ok", "unchecked"] and fits is True
+    cams, fits = calibration._verdicts(rig, [*good, pair(2, 3, 40, 300.0)])
+    assert [v.status for v in cams][3] == "off" and fits is False
+    cams, fits = calibration._verdicts(rig, [*good, pair(1, 3, 20, 60.0), pair(2, 3, 20, 300.0)])
+    assert [v.status for v in cams][3] == "off" and fits is False
+    # A camera whose view was seen moving is named on its one weak pair.
+    cams, fits = calibration._verdicts(rig, [*good, pair(2, 3, 20, 300.0)], suspects={3})
+    assert [v.status for v in cams][3] == "off" and fits is False
