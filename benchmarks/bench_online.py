@@ -6,6 +6,7 @@ done-when numbers of the online system on real rigs (issue 11).
     python benchmarks/bench_online.py --datasets caliscope_charuco --fractions 0.3 0.4 0.6
     python benchmarks/bench_online.py --datasets /data/hd4 --tasks 40 --json online.json
     python benchmarks/bench_online.py --datasets /data/hd4 --split fg_noise_adaptive_ncc=false  # A/B
+    python benchmarks/bench_online.py --datasets /data/hd4 --set foreground.person_model=off  # A/B
     python benchmarks/bench_online.py --datasets caliscope_charuco --fractions 0.4 --engines embedded ray
 
 Per dataset (a name under ../shared/data, a synthetic preset name, or a dataset folder):
@@ -43,6 +44,7 @@ import dataclasses
 import math
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +64,7 @@ from edgerecon.quality.metrics import evaluate_against
 from edgerecon.quality.online import online_offline_correlation
 from edgerecon.runtime import FrameRange, RuntimeConfig, SessionOptions, run_online
 from edgerecon.runtime.config import median_camera_distance
+from edgerecon.scene import ForegroundConfig
 from edgerecon.scene.stream import bootstrap_scene
 from edgerecon.types import PointCloud
 from edgerecon.viewer.rundir import RunFolder
@@ -102,7 +105,10 @@ def golden_baseline(root: Path, times: list[int]) -> dict[str, Any]:
 
 
 def golden_foregrounds(
-    root: Path, times: list[int], split: SplitPipelineConfig | None = None
+    root: Path,
+    times: list[int],
+    split: SplitPipelineConfig | None = None,
+    foreground: ForegroundConfig | None = None,
 ) -> tuple[dict[int, PointCloud], float]:
     """The golden configuration's foreground (the foreground pipeline at r = 1 with all
     cameras, masks as the online system computes them) of every timestamp, and the mean
@@ -114,7 +120,7 @@ def golden_foregrounds(
     clip = ds.open_background()
     with ds.open_frames() as source:
         # One pass over the stream: the models at each time index, as the online system's.
-        tracker = bootstrap_scene(ds.rig, source, ds.fps, clip=clip)
+        tracker = bootstrap_scene(ds.rig, source, ds.fps, foreground, clip=clip)
         for t in sorted(times):
             tracker.catch_up(source, t)
             frames = source.read(t)
@@ -140,12 +146,14 @@ def run_deadline(
     split: SplitPipelineConfig | None = None,
     engine: str = "embedded",
     still: bool = True,
+    settings: Sequence[str] = (),
 ) -> dict[str, Any]:
     ds = open_dataset(root)
     dist = median_camera_distance(ds.rig)
     config = RuntimeConfig(
         deadline_s=deadline, sparse_scope=sparse_scope, split=split or SplitPipelineConfig()
     )
+    config = with_settings(config, settings, "runtime")
     if not still:
         config = dataclasses.replace(config, still=None)
     options = SessionOptions(frames=frames, overwrite=True)
@@ -310,9 +318,19 @@ def main() -> None:
         help="still foreground (RuntimeConfig.still; off: every task densifies its whole "
         "foreground), each at every deadline",
     )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a RuntimeConfig setting for the online runs, dotted for nested ones (read as "
+        "the [runtime] table of a --config file: foreground.person_model=off); its "
+        "foreground settings also make the golden foreground's masks",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     split = with_settings(SplitPipelineConfig(), args.split, "runtime.split")
+    fg_config = with_settings(RuntimeConfig(), args.set, "runtime").foreground
     work = Path(args.work)
     report: dict[str, Any] = {**report_header(), "datasets": {}}
     for name in args.datasets:
@@ -333,7 +351,7 @@ def main() -> None:
             f"{name}: golden pipeline {base['mean_total_s']:.2f} s per task "
             f"({time.perf_counter() - t0:.0f} s for the baseline, load {os.getloadavg()[0]:.1f})"
         )
-        golden_fg, golden_task_s = golden_foregrounds(root, times, split)
+        golden_fg, golden_task_s = golden_foregrounds(root, times, split, fg_config)
         print(f"  the online system's golden task (r = 1, all cameras): {golden_task_s:.2f} s")
         reference_s = base["mean_total_s"] if args.relative_to == "original" else golden_task_s
         runs = []
@@ -354,6 +372,7 @@ def main() -> None:
                         split,
                         engine,
                         still == "on",
+                        args.set,
                     )
                     row["fraction"] = frac
                     runs.append(row)
