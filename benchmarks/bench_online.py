@@ -330,7 +330,7 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     split = with_settings(SplitPipelineConfig(), args.split, "runtime.split")
-    fg_config = with_settings(RuntimeConfig(), args.set, "runtime").foreground
+    fg_config = with_settings(RuntimeConfig(deadline_s=1.0), args.set, "runtime").foreground
     work = Path(args.work)
     report: dict[str, Any] = {**report_header(), "datasets": {}}
     for name in args.datasets:

@@ -32,8 +32,10 @@ stream, after the critical path of the task whose frames it uses (or, when that 
 a task, of the next task).
 
 What it cannot do: an actor who never moves during the bootstrap span and never moves away
-stays background (no learned person detector is available here); a slowly moving actor whose
-old and new silhouettes overlap leaves a ghost fused to the actor until they separate.
+stays background to the models (the person model, ``scene.people``, adds a person back where
+several cameras agree: real people, rendered actors only in parts; nothing brings back a still
+object that is not a person); a slowly moving actor whose old and new silhouettes overlap
+leaves a ghost fused to the actor until they separate.
 """
 
 from __future__ import annotations
