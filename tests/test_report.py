@@ -112,6 +112,17 @@ def test_summary_gives_the_calibration_verdict(tmp_path):
     assert rows["calibration against the frames (time 65)"] == (
         "off: cam_2; calib --write: cam_2 re-aimed by 2.01 degrees: the calibration then fits"
     )
+    # A run's: the rig is in its folder.
+    verdict |= {"fits": True, "short": "fits", "repaired_rig_file": "rig.repaired.json"}
+    verdict["repair"] = (
+        "cam_2 re-aimed by 1.98 degrees (the turn taken off its frames since it moved)"
+    )
+    (run / "summary.json").write_text(json.dumps({"tasks": 2, "calibration": verdict}))
+    rows = dict(summary_rows(load_runs([run])[0]))
+    assert rows["calibration against the frames (time 65)"] == (
+        "fits; rig.repaired.json: cam_2 re-aimed by 1.98 degrees (the turn taken off its frames "
+        "since it moved)"
+    )
     assert not any(k.startswith("cameras placed again") for k in rows)
     # A resume that went on with cam_2 placed again (``runtime.state.Recalibration``).
     placed = {

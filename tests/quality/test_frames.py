@@ -183,3 +183,31 @@ def test_a_real_camera_with_lens_distortion_swaying_is_turned_back():
             before.append(np.abs(swayed.images[1][middle] - truth).mean())
             after.append(np.abs(out.images[1][middle] - truth).mean())
     assert np.mean(before) > 5.0 and np.mean(after) < 0.3 * np.mean(before), (before, after)
+
+
+def test_the_turn_of_a_camera_that_holds_still_is_its_new_aim_not_a_sway_s():
+    """``Stabiliser.steady_turn``: a camera turned 1.2 degrees and left so (a knock) gives
+    that turn, as a rotation (its frames' rays ``R r``), once 3 frames are measured; one
+    that sways gives none; ``forget`` starts the count again."""
+    from edgerecon.quality.frames import Stabiliser, thumbnail
+
+    rng = np.random.default_rng(4)
+    room = _texture(rng, H, W)
+    axis = np.array([0.8, 0.6, 0.0])
+    dR = cv2.Rodrigues(np.radians(1.2) * axis)[0]
+    steady = Stabiliser()
+    steady.start(0, thumbnail(room), K)
+    knocked = _turned(room, 1.2, tuple(axis))
+    for k in range(4):
+        assert (steady.steady_turn(0) is None) == (k < 3)
+        image = np.clip(knocked + rng.normal(0, 2, knocked.shape), 0, 255).astype(np.uint8)
+        steady.apply(FrameSet(time_index=k, images=(image,)))
+    R = steady.steady_turn(0)
+    assert R is not None and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
+    angle = np.degrees(np.arccos(np.clip((np.trace(R @ dR.T) - 1) / 2, -1, 1)))
+    assert angle < 0.08
+    steady.forget(0)
+    for k, degrees in enumerate([1.0, -1.0, 1.0, -1.0]):
+        image = _turned(room, degrees, (1.0, 0.0, 0.0))
+        steady.apply(FrameSet(time_index=k, images=(image,)))
+    assert steady.steady_turn(0) is None

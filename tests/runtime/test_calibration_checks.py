@@ -133,11 +133,15 @@ def test_a_camera_whose_view_moved_is_checked_at_the_next_rebuild_on_frames_afte
     assert checks == [[0], [0, 1], [3]]
 
 
-def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_moving(caplog):
+@pytest.mark.parametrize("adopt", [False, True])
+def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_moving(
+    caplog, adopt
+):
     """``Session._note_moved``: each move is recorded; a camera whose view keeps moving (a
     mount that sways) is said and brings a check 3 times, then is said once to keep
-    moving, and its frames are turned back onto its view before its first move from
-    then on."""
+    moving; its frames are turned back onto its view before its first move from its first
+    move on (as a knocked camera's), from its fourth with ``adopt_repairs`` (whose checks
+    re-pose a knocked camera from its frames as they come)."""
     import logging
     from types import SimpleNamespace
 
@@ -157,15 +161,20 @@ def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_
     session._moved = MovedCameras()
     session._moves_said = {}
     session.frame_check = FrameCheckConfig()
+    session.options = SimpleNamespace(adopt_repairs=adopt)
     session._stabiliser = Stabiliser()
     session._views_from = None
     caplog.set_level(logging.WARNING)
     records = []
+    steady_from = None
     for t in range(48):
         cam0 = swayed if (t // 6) % 2 else rooms[0]  # swings to and fro every 6 frames
         images = [cam0, rooms[1], rooms[2]]
         noisy = [np.clip(im + rng.normal(0, 2, im.shape), 0, 255).astype(np.uint8) for im in images]
         records += session._note_moved(t, FrameSet(time_index=t, images=tuple(noisy)))
+        if steady_from is None and session._stabiliser.cameras:
+            steady_from = t
+    assert steady_from == (26 if adopt else 8)  # the moves at 6 and 24, seen 2 frames on
     assert [r["time_index"] for r in records] == [6, 12, 18, 24, 30, 36, 42]
     assert {r["camera"] for r in records} == {"cam0"}
     assert records[0]["turn_deg"] == pytest.approx(1.5, abs=0.2)
@@ -173,6 +182,8 @@ def test_a_camera_that_keeps_moving_is_said_three_times_then_once_that_it_keeps_
     said = [r.getMessage() for r in caplog.records]
     assert sum("view moved at time" in m for m in said) == 3
     assert sum("keeps moving (4 moves" in m for m in said) == 1 and len(said) == 4
+    assert ("From now on its frames are turned back" in said[0]) is not adopt
+    assert ("go on being turned back" in said[3]) is not adopt
     # From the fourth move on its frames are turned back onto its first view.
     assert session._stabiliser.cameras == {0}
     _, taken = session._stabiliser.apply(FrameSet(time_index=48, images=(swayed, None, None)))

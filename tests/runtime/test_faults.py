@@ -4,6 +4,7 @@ updates on."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -734,10 +735,11 @@ def test_a_swaying_camera_is_said_then_its_frames_are_turned_back(
     tiny_dataset, tmp_path, caplog, capsys
 ):
     """cam1 sways (tilted +-1.5 degrees, turn about from time 1; every frame a move with
-    ``moved_after_frames`` 1): its first three moves are said, the fourth says it keeps
-    moving, and from then on each of its frames is turned back onto its view before its
-    first move: the tasks record the turn taken off (1.5 degrees), the summary the
-    tasks; a stop and ``--resume`` goes on turning them back without saying it all again."""
+    ``moved_after_frames`` 1): from its first move on each of its frames is turned back
+    onto its view before that move (as a knocked camera's); its first three moves are
+    said, the fourth says it keeps moving: the tasks record the turn taken off (1.5
+    degrees), the summary the tasks; a stop and ``--resume`` goes on turning them back
+    without saying it all again, and no re-aimed rig is made of a sway."""
     from edgerecon.cli import main
 
     src = tmp_path / "scene"
@@ -760,25 +762,34 @@ def test_a_swaying_camera_is_said_then_its_frames_are_turned_back(
     # After the stop it goes on being turned back, its moves not said again.
     resumed = [r.getMessage() for r in caplog.records]
     assert not any("cam1's view" in m for m in resumed)
-    assert sum("cam1 kept moving before the stop" in m for m in resumed) == 1
+    assert (
+        sum("cam1's frames were turned back onto its view before the stop" in m for m in resumed)
+        == 1
+    )
+    # Turned back from its first move on (a knock's as a sway's).
     taken = [t["stabilised"] for t in result["tasks"]]
-    assert taken[:4] == [{}] * 4
-    assert all(list(k) == ["cam1"] for k in taken[4:])
-    assert all(k["cam1"] == pytest.approx(1.5, abs=0.15) for k in taken[4:])
+    assert taken[:1] == [{}]
+    assert all(list(k) == ["cam1"] for k in taken[1:])
+    assert all(k["cam1"] == pytest.approx(1.5, abs=0.15) for k in taken[1:])
     summary = result["summary"]["stabilised"]["cam1"]
-    assert summary["tasks"] == 4 and summary["unmeasured"] == 0
+    assert summary["tasks"] == 7 and summary["unmeasured"] == 0
+    assert not (tmp_path / "run" / "rig.repaired.json").exists()
     assert summary["max_deg"] == pytest.approx(1.5, abs=0.15)
 
 
-def test_a_camera_knocked_mid_run_is_said_at_once_and_checked_at_once(
+def test_a_camera_knocked_mid_run_is_said_turned_back_and_re_aimed_at_the_end(
     tiny_dataset, tmp_path, caplog, capsys, monkeypatch
 ):
     """cam1 knocked (turned 2 degrees) at time 3 of 8, everything on, the calibration checked
     at the default ``calib_check_s`` (60 s: not again within this run after its first):
-    the session sees cam1's view move from its frames (``MovedCameras``), says so once,
-    and the back-end checks the frames from time 3 on at once, which names cam1 (confirmed
-    by one check: its view moved)."""
+    the session sees cam1's view move from its frames (``MovedCameras``), says so once, and
+    from then on turns its frames back onto its view before the move (the tasks record 2
+    degrees taken off); the back-end checks the frames from time 3 on at once, and they
+    fit (turned back); the run ends with the rig whose cam1 is re-aimed by the turn taken
+    off in ``rig.repaired.json`` (within 0.2 degrees of the knock)."""
     from edgerecon.cli import main
+    from edgerecon.io.calibration import load_rig
+    from tests.quality.test_calibration import angle_deg
 
     src = tmp_path / "scene"
     shutil.copytree(tiny_dataset, src)
@@ -787,18 +798,22 @@ def test_a_camera_knocked_mid_run_is_said_at_once_and_checked_at_once(
     dense = edgerecon.pipeline.reconstruct_foreground
     calls = []
 
-    def said():
-        return any("moved since it was calibrated" in r.getMessage() for r in caplog.records)
+    def checked():  # the back-end's check of the frames after the move
+        return any(
+            r.getMessage().startswith("calibration") and re.search(r"times? [5-7]", r.getMessage())
+            for r in caplog.records
+        )
 
     def slow(*args, **kwargs):  # the tasks after the move wait for the back-end's verdict
         calls.append(1)
         time.sleep(0.5)
-        if len(calls) >= 7 and not said():
-            wait_until(said, timeout=40)
+        if len(calls) >= 7 and not checked():
+            wait_until(checked, timeout=40)
         return dense(*args, **kwargs)
 
     monkeypatch.setattr(edgerecon.pipeline, "reconstruct_foreground", slow)
     caplog.set_level(logging.WARNING)
+    caplog.set_level(logging.INFO, logger="edgerecon.quality.calibration")
     out = tmp_path / "run"
     args = ["run", "--dataset", str(src), "--out", str(out), "--config", str(tmp_path / "cfg.toml")]
     assert main([*args, "--json"]) == 0
@@ -806,12 +821,25 @@ def test_a_camera_knocked_mid_run_is_said_at_once_and_checked_at_once(
     assert [t["time_index"] for t in result["tasks"]] == list(range(8))
     moved = [r.getMessage() for r in caplog.records if "view moved" in r.getMessage()]
     assert len(moved) == 1 and "time 5: cam1's view moved at time 3" in moved[0]
+    assert "From now on its frames are turned back onto its view before the move" in moved[0]
     (move,) = result["summary"]["camera_moves"]
     assert move["camera"] == "cam1" and move["time_index"] == 3 and move["seen_at"] == 5
     assert move["turn_deg"] == pytest.approx(2.0, abs=0.3)
     moves = [[m["camera"] for m in t["camera_moves"]] for t in result["tasks"]]
     assert moves == [[]] * 5 + [["cam1"]] + [[]] * 2
-    assert said()
+    taken = [t["stabilised"] for t in result["tasks"]]
+    assert taken[:5] == [{}] * 5
+    assert all(k["cam1"] == pytest.approx(2.0, abs=0.15) for k in taken[5:])
+    assert checked()
     verdict = result["summary"]["calibration"]
-    assert verdict["fits"] is False and verdict["off"] == ["cam1"] and verdict["confirmed"]
-    assert min(verdict["times"]) >= 3  # frames from after the move only
+    assert verdict["fits"] is True and min(verdict["times"]) >= 3  # after the move only
+    assert verdict["repaired_rig_file"] == "rig.repaired.json"
+    turn = re.match(r"cam1 re-aimed by ([0-9.]+) degrees \(the turn taken off", verdict["repair"])
+    assert turn is not None and float(turn[1]) == pytest.approx(2.0, abs=0.15)
+    repaired = load_rig(out / "rig.repaired.json")
+    rig = open_dataset(src).rig
+    dR = cv2.Rodrigues(np.radians(2.0) * np.array([1.0, 0.0, 0.0]))[0]
+    expected = dataclasses.replace(rig[1], R=dR @ rig[1].R, t=dR @ rig[1].t)
+    assert angle_deg(repaired[1], expected) < 0.2
+    assert np.allclose(repaired[1].center, rig[1].center, atol=1e-6)
+    assert all(angle_deg(repaired[i], rig[i]) < 1e-6 for i in (0, 2, 3, 4))

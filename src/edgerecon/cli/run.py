@@ -580,8 +580,13 @@ def say_repaired_rig(args: argparse.Namespace, summary: RunSummary) -> None:
         return
     path = Path(args.out) / str(name)
     adopt = shlex.join(["edgerecon", "calib", "--dataset", str(args.dataset), "--adopt", str(path)])
+    why = (
+        "a camera moved and its frames were turned back"  # the turned-back frames fit
+        if cal.get("fits") is not False
+        else "the calibration does not fit the frames"
+    )
     error_console.print(
-        f"[yellow]the calibration does not fit the frames[/]: {path} holds the rig that "
+        f"[yellow]{why}[/]: {path} holds the rig that "
         f"fits ({cal.get('repair')}); take it with:\n  {adopt}\nthen go on "
         f"with:\n  {resume_command(args)}",
         highlight=False,

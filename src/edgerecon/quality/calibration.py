@@ -1253,5 +1253,9 @@ def verdict_row(verdict: dict[str, Any]) -> tuple[str, str]:
     """A summary table's row of a :func:`calibration_verdict` (a run's, a report's)."""
     value = str(verdict.get("short"))
     if verdict.get("repair"):
-        value += f"; calib --write: {verdict['repair']}"
-    return (f"calibration against the frames (time {verdict.get('time')})", value)
+        # A run's repair is in its folder; a report's verdict says what calib would write.
+        where = verdict.get("repaired_rig_file")
+        value += f"; {where}: " if where else "; calib --write: "
+        value += str(verdict["repair"])
+    t = verdict.get("time")
+    return ("calibration" if t is None else f"calibration against the frames (time {t})", value)

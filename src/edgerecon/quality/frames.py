@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import itertools
+from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -18,7 +19,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from edgerecon.geometry.camera import rotation_angle_deg
 from edgerecon.types import FrameSet, Image
+
+_EYE = np.eye(3)
 
 #: Values of :func:`frame_defect`.
 DEFECTS = ("black", "saturated", "textureless")
@@ -51,10 +55,11 @@ class FrameCheckConfig:
     """... once that many updates in a row show the same shift (a person or a board that
     fills the frame moves on; a moved camera's view stays moved)."""
     stabilise: bool = True
-    """A camera whose view keeps moving (a mount that sways: more moves than the run says)
-    has each frame turned back onto its view before its first move (:class:`Stabiliser`:
-    the turn that best moves its tiles back, as a rotation about its centre of projection,
-    which needs no depth): the calibration fits its frames again."""
+    """A camera whose view moved (knocked: from that move on, unless the run re-poses moved
+    cameras, ``--adopt-repairs``; a mount that sways: from the move after which it keeps
+    moving in every run) has each frame turned back onto its view before its first move
+    (:class:`Stabiliser`: the turn that best moves its tiles back, as a rotation about its
+    centre of projection, which needs no depth): the calibration fits its frames again."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.black_max_level < self.saturated_min_level <= 255:
@@ -498,7 +503,7 @@ def rotation_between(ra: NDArray[np.float64], rb: NDArray[np.float64]) -> NDArra
 
 
 class Stabiliser:
-    """Frames of the cameras whose views keep moving (a mount that sways, a camera on a
+    """Frames of the cameras whose views moved (a knock; a mount that sways, a camera on a
     pole in the wind), turned back onto a reference view: per frame, the shifts of 4 x 4
     tiles of its grey thumbnail against the reference (phase correlation), the camera turn
     that best explains them (:func:`rotation_between` of every tile; where some do not
@@ -519,6 +524,8 @@ class Stabiliser:
     _MIN_TILES = 6
     _MAX_RESIDUAL = 0.75
     """Thumbnail pixels."""
+    _KEEP_TURNS = 1000
+    """Turns kept per camera (``steady_turn``)."""
     _MAP_STEP = 16
     """A distorted lens's warp of a frame is computed on a grid of this step (pixels) and
     interpolated (8 for the thumbnail)."""
@@ -531,6 +538,8 @@ class Stabiliser:
         self._grid: dict[Any, tuple[tuple[int, int], NDArray[np.float64]]] = {}
         """Per distorted camera and image kind: the coarse grid's pixels' rays
         (``turned_back``)."""
+        self._turns: dict[int, deque[NDArray[np.float64]]] = {}
+        """Per camera: the turns taken off its frames since ``start`` or ``forget``."""
 
     @property
     def cameras(self) -> frozenset[int]:
@@ -556,6 +565,27 @@ class Stabiliser:
         self._ref[camera] = (np.asarray(reference, np.float32), np.asarray(K, np.float64), lens)
         for kind in ("thumb", "frame"):
             self._grid.pop((camera, kind), None)
+        self.forget(camera)
+
+    def forget(self, camera: int) -> None:
+        """Forget the turns taken off ``camera``'s frames so far (its view moved again)."""
+        self._turns[camera] = deque(maxlen=self._KEEP_TURNS)
+
+    def steady_turn(
+        self, camera: int, *, min_frames: int = 3, max_spread_deg: float = 0.2
+    ) -> NDArray[np.float64] | None:
+        """The turn taken off ``camera``'s frames since ``start`` / ``forget`` when it held
+        still (at least ``min_frames`` measured, none more than ``max_spread_deg`` from
+        their mean: a camera knocked once, not one that sways), as a rotation (the mean of
+        the turns, projected onto the rotations); else None. The camera's rays in its
+        frames are ``R r``: the camera re-aimed so is ``R R_cw``, ``R t``."""
+        turns = list(self._turns.get(camera, ()))
+        if len(turns) < min_frames:
+            return None
+        u, _, vt = np.linalg.svd(np.sum(turns, axis=0))
+        mean = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        spread = max(rotation_angle_deg(T, mean) for T in turns)
+        return mean if spread <= max_spread_deg else None
 
     def turn(self, camera: int, image: Image) -> NDArray[np.float64] | None:
         """The turn R of ``camera`` from its reference to ``image`` (its rays ``R r``;
@@ -635,8 +665,8 @@ class Stabiliser:
             if R is None:
                 turned[i] = None
                 continue
-            angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-            turned[i] = round(angle, 3)
+            turned[i] = round(rotation_angle_deg(R, _EYE), 3)
+            self._turns.setdefault(i, deque(maxlen=self._KEEP_TURNS)).append(R)
             K, dist = self._ref[i][1:]
             images[i] = turned_back(image, R, K, dist, self._MAP_STEP, self._grid, (i, "frame"))
         return dataclasses.replace(frames, images=tuple(images)), turned

@@ -59,6 +59,7 @@ background (see :mod:`edgerecon.runtime.online`).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -71,7 +72,7 @@ from typing import Any
 import numpy as np
 
 from edgerecon.config import MIN_CAMERAS
-from edgerecon.geometry.camera import Rig
+from edgerecon.geometry.camera import Rig, rotation_angle_deg
 from edgerecon.io.calibration import save_rig
 from edgerecon.io.dataset import Dataset
 from edgerecon.io.frames import FrameSource
@@ -100,7 +101,7 @@ from edgerecon.runtime.state import (
 )
 from edgerecon.scene.merge import foreground_part
 from edgerecon.scene.stream import DEFAULT_FPS
-from edgerecon.types import EdgereconError, FrameSet
+from edgerecon.types import EdgereconError, FrameSet, Image
 
 logger = logging.getLogger(__name__)
 
@@ -610,7 +611,9 @@ class Session:
             summary.backend_restarts = int(status.get("backend_restarts", 0))
             summary.abandoned_threads = [str(w) for w in status.get("abandoned_threads", [])]
             backend = status.get("backend") or {}
-            summary.calibration = self._repaired_rig(backend.get("calibration"))
+            summary.calibration = self._repaired_rig(
+                self._with_turned_back(backend.get("calibration"))
+            )
             if summary.abandoned_threads:
                 logger.warning(
                     "%d abandoned thread(s) still running at the end: %s",
@@ -646,6 +649,42 @@ class Session:
             logger.warning("the background models could not be handed on: %s", exc)
             return None
         return None if model is None else model.without_geometry()
+
+    def _with_turned_back(self, verdict: dict[str, Any] | None) -> dict[str, Any] | None:
+        """The back-end's last calibration verdict, with the rig whose cameras that were
+        knocked (not those that kept moving) are re-aimed by the turn taken off their frames
+        since (``Stabiliser.steady_turn``) as its repair, when it has none of its own (its
+        checks saw the frames turned back: they fit), and one warning that says so."""
+        rig = self.dataset.rig
+        turns = {}
+        for i in sorted(self._stabiliser.cameras):
+            if self._moves_said.get(rig[i].name, 0) > _MOVES_SAID:
+                continue  # a camera that sways: no pose of its own
+            R = self._stabiliser.steady_turn(i)
+            if R is not None:
+                turns[i] = R
+        if not turns or (verdict is not None and "repaired_rig" in verdict):
+            return verdict
+        cams = list(rig)
+        for i, R in turns.items():
+            cams[i] = dataclasses.replace(cams[i], R=R @ cams[i].R, t=R @ cams[i].t)
+        repair = "; ".join(
+            f"{rig[i].name} re-aimed by {rotation_angle_deg(R, np.eye(3)):.2f} degrees (the turn taken off its "
+            "frames since it moved)"
+            for i, R in turns.items()
+        )
+        logger.warning(
+            "%s: the rig so re-aimed is written to %s in the run's folder (`edgerecon calib "
+            "--dataset DIR --adopt OUT/%s` names it in the dataset; `--resume` then goes on "
+            "with it, its frames no longer turned back)",
+            repair,
+            REPAIRED_RIG_FILE,
+            REPAIRED_RIG_FILE,
+        )
+        out: dict[str, Any] = dict(verdict or {"time": None, "short": "not checked"})
+        out["repair"] = repair
+        out["repaired_rig"] = dataclasses.replace(rig, cameras=tuple(cams)).in_world().to_dict()
+        return out
 
     def _repaired_rig(self, verdict: dict[str, Any] | None) -> dict[str, Any] | None:
         """The back-end's last calibration verdict for the summary: a rig its repair made
@@ -879,18 +918,39 @@ class Session:
             self._stabiliser.start(names.index(name), ref.astype(np.float32), cam.K, cam.dist)
             self._moves_said[name] = _MOVES_SAID + 1
             logger.warning(
-                "%s kept moving before the stop: its frames are turned back onto its view "
-                "as before (its moves recorded, not said)",
+                "%s's frames were turned back onto its view before the stop (knocked or "
+                "swaying): they are turned back as before (its moves recorded, not said)",
                 name,
             )
         logger.debug(
             "the cameras' views as of time %d restored (%d cameras)", time_index, len(refs)
         )
 
+    def _steady_from(self, camera: int, image: Image, said: int) -> bool:
+        """Whether ``camera``'s frames are turned back onto its view before its first move
+        from now on, after a move said ``said`` times: at its first move (a knock) unless
+        the run re-poses moved cameras (``adopt_repairs``: the back-end's check finds the
+        new pose on its frames as they come), at the move after which it keeps moving in
+        every run; a camera already turned back forgets the turns measured before this move
+        (``rig_turned_back``)."""
+        if camera in self._stabiliser.cameras:
+            self._stabiliser.forget(camera)
+            return True
+        due = said == _MOVES_SAID + 1 or (said == 1 and not self.options.adopt_repairs)
+        reference = self._moved.first_reference(camera)
+        if not (due and self.frame_check.stabilise and reference is not None):
+            return False
+        assert reference is not None
+        cam = self.dataset.rig[camera]
+        k = image.shape[1] / cam.width
+        self._stabiliser.start(camera, reference, np.diag([k, k, 1.0]) @ cam.K, cam.dist)
+        return True
+
     def _note_moved(self, t: int, frames: FrameSet) -> list[dict[str, Any]]:
         """A warning when a camera's view moved (``quality.frames.MovedCameras``), and the
         back-end asked to check the calibration on the frames from the move on at once
-        (rather than at its next ``calib_check_s``); the moves' records. A camera that
+        (rather than at its next ``calib_check_s``), its frames turned back onto its view
+        before the move from then on (``_steady_from``); the moves' records. A camera that
         keeps moving (a mount that sways, a camera held by hand) is said
         ``_MOVES_SAID`` times, then once that it keeps moving; its moves are still recorded
         (no more checks asked for: the back-end's every ``calib_check_s`` go on)."""
@@ -914,14 +974,11 @@ class Session:
                     "across_stop": move.across_stop,
                 }
             )
+            # A knocked camera (without --adopt-repairs, which re-poses it instead) and one
+            # that keeps moving: its frames turned back onto its view before its first move.
+            was = move.camera in self._stabiliser.cameras
+            steady = self._steady_from(move.camera, image, said)
             if said == _MOVES_SAID + 1:
-                reference = self._moved.first_reference(move.camera)
-                steady = self.frame_check.stabilise and reference is not None
-                if steady:
-                    assert reference is not None
-                    k = image.shape[1] / cam.width
-                    K = np.diag([k, k, 1.0]) @ cam.K
-                    self._stabiliser.start(move.camera, reference, K, cam.dist)
                 logger.warning(
                     "time %d: %s's view keeps moving (%d moves; a mount that sways, a camera "
                     "held by hand? The run expects static cameras): its moves are recorded "
@@ -929,8 +986,12 @@ class Session:
                     t,
                     cam.name,
                     said,
-                    "; from now on each of its frames is turned back onto its view before its "
-                    "first move (the turn taken off in the tasks' stabilised)"
+                    (
+                        "; its frames go on being turned back onto its view before its first move"
+                        if was
+                        else "; from now on each of its frames is turned back onto its view "
+                        "before its first move (the turn taken off in the tasks' stabilised)"
+                    )
                     if steady
                     else "",
                 )
@@ -944,7 +1005,7 @@ class Session:
                 logging.WARNING if said <= _MOVES_SAID else logging.DEBUG,
                 "time %d: %s's view moved %s (its static scene %.1f px %s, %.1f px "
                 "%s, rolled %.2f degrees: about %.2f degrees of the camera); knocked, or its "
-                "mount slipped? The back-end checks the calibration on the frames from time "
+                "mount slipped? %sThe back-end checks the calibration on the frames from time "
                 "%d",
                 t,
                 cam.name,
@@ -955,6 +1016,11 @@ class Session:
                 "down" if dy >= 0 else "up",
                 move.roll_deg,
                 turn,
+                "From now on its frames are turned back onto its view before the move (a "
+                "turn on its mount: the calibration fits them again; the turn taken off in "
+                "the tasks' stabilised). "
+                if steady and not was and said <= _MOVES_SAID
+                else "",
                 move.time_index,
             )
             if said > _MOVES_SAID:
