@@ -353,7 +353,7 @@ def print_summary(title: str, s: RunSummary) -> None:
     if s.stabilised:
         rows.append(
             (
-                "cameras turned back onto their view (swaying)",
+                "cameras turned back onto their view (knocked, swaying)",
                 "; ".join(
                     f"{name}: {st['tasks']} tasks, {st['mean_deg']:.2f} degrees on average, "
                     f"{st['max_deg']:.2f} at most"

@@ -173,8 +173,8 @@ class TaskMetrics:
     that moves its image centre so far), ``across_stop`` (it moved while the run was
     stopped: seen against its view from before a ``--resume``)."""
     stabilised: dict[str, float | None] = field(default_factory=dict)
-    """Cameras whose view keeps moving, their frame turned back onto their view before
-    their first move (``quality.frames.Stabiliser``): the turn taken off, degrees (None:
+    """Cameras whose view moved (knocked, or that keep moving), their frame turned back
+    onto their view before their first move (``quality.frames.Stabiliser``): the turn taken off, degrees (None:
     the frame gave no turn and was kept as it was)."""
     num_sparse: int = 0
     num_sparse_fg: int = 0

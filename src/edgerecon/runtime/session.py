@@ -669,8 +669,8 @@ class Session:
         for i, R in turns.items():
             cams[i] = dataclasses.replace(cams[i], R=R @ cams[i].R, t=R @ cams[i].t)
         repair = "; ".join(
-            f"{rig[i].name} re-aimed by {rotation_angle_deg(R, np.eye(3)):.2f} degrees (the turn taken off its "
-            "frames since it moved)"
+            f"{rig[i].name} re-aimed by {rotation_angle_deg(R, np.eye(3)):.2f} degrees "
+            "(the turn taken off its frames since it moved)"
             for i, R in turns.items()
         )
         logger.warning(
@@ -932,7 +932,7 @@ class Session:
         the run re-poses moved cameras (``adopt_repairs``: the back-end's check finds the
         new pose on its frames as they come), at the move after which it keeps moving in
         every run; a camera already turned back forgets the turns measured before this move
-        (``rig_turned_back``)."""
+        (``_with_turned_back``)."""
         if camera in self._stabiliser.cameras:
             self._stabiliser.forget(camera)
             return True
