@@ -762,10 +762,7 @@ def test_a_swaying_camera_is_said_then_its_frames_are_turned_back(
     # After the stop it goes on being turned back, its moves not said again.
     resumed = [r.getMessage() for r in caplog.records]
     assert not any("cam1's view" in m for m in resumed)
-    assert (
-        sum("cam1's frames were turned back onto its view before the stop" in m for m in resumed)
-        == 1
-    )
+    assert sum("cam1 kept moving before the stop" in m for m in resumed) == 1
     # Turned back from its first move on (a knock's as a sway's).
     taken = [t["stabilised"] for t in result["tasks"]]
     assert taken[:1] == [{}]
@@ -843,3 +840,45 @@ def test_a_camera_knocked_mid_run_is_said_turned_back_and_re_aimed_at_the_end(
     assert angle_deg(repaired[1], expected) < 0.2
     assert np.allclose(repaired[1].center, rig[1].center, atol=1e-6)
     assert all(angle_deg(repaired[i], rig[i]) < 1e-6 for i in (0, 2, 3, 4))
+
+
+def test_a_knocked_camera_turned_back_goes_on_so_after_resume_and_is_re_aimed_at_the_end(
+    tiny_dataset, tmp_path, caplog, capsys
+):
+    """cam1 knocked (2 degrees) at time 3, seen there (``moved_after_frames`` 1) and turned
+    back from then on; the run stopped after time 4 and resumed: its frames go on being
+    turned back from the first resumed task (``views.npz`` keeps its view and that it was
+    knocked once, not swaying), and the resumed run ends with cam1 re-aimed by the turn in
+    ``rig.repaired.json``."""
+    from edgerecon.cli import main
+    from edgerecon.io.calibration import load_rig
+    from tests.quality.test_calibration import angle_deg
+
+    src = tmp_path / "scene"
+    shutil.copytree(tiny_dataset, src)
+    _knock(src, 1, range(3, 8))
+    (tmp_path / "cfg.toml").write_text(
+        "[runtime]\ndeadline_s = 20.0\n[runtime.frame_check]\nmoved_after_frames = 1\n"
+    )
+    caplog.set_level(logging.WARNING)
+    out = tmp_path / "run"
+    args = ["run", "--dataset", str(src), "--out", str(out)]
+    args += ["--config", str(tmp_path / "cfg.toml"), "--json"]
+    assert main([*args, "--frames", "0:5"]) == 0  # stopped after time 4 ...
+    first = json.loads(capsys.readouterr().out)
+    assert [t["stabilised"] for t in first["tasks"]][3:] == [
+        {"cam1": pytest.approx(2.0, abs=0.15)}
+    ] * 2
+    caplog.clear()
+    assert main([*args, "--frames", "0:8", "--resume"]) == 0  # ... and resumed
+    result = json.loads(capsys.readouterr().out)
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("cam1 was knocked before the stop" in m for m in said) == 1
+    assert not any("cam1's view" in m for m in said)
+    taken = [t["stabilised"] for t in result["tasks"]]
+    assert all(k["cam1"] == pytest.approx(2.0, abs=0.15) for k in taken[3:])
+    assert result["summary"]["calibration"]["repaired_rig_file"] == "rig.repaired.json"
+    rig = open_dataset(src).rig
+    dR = cv2.Rodrigues(np.radians(2.0) * np.array([1.0, 0.0, 0.0]))[0]
+    expected = dataclasses.replace(rig[1], R=dR @ rig[1].R, t=dR @ rig[1].t)
+    assert angle_deg(load_rig(out / "rig.repaired.json")[1], expected) < 0.2

@@ -633,11 +633,12 @@ def test_the_cameras_views_round_trip_and_a_torn_file_is_said_not_fatal(tmp_path
         "cam0": np.arange(12, dtype=np.uint8).reshape(3, 4),
         "cam 1": np.full((2, 2), 7, np.uint8),
     }
-    folder.write_views(views, 41, {"cam 1": views["cam0"]})
-    time_index, back, steady = folder.read_views()
+    folder.write_views(views, 41, {"cam 1": views["cam0"]}, {"cam 1": 2})
+    time_index, back, steady, moves = folder.read_views()
     assert time_index == 41 and list(back) == ["cam0", "cam 1"]
     assert all(np.array_equal(back[k], v) for k, v in views.items())
     assert list(steady) == ["cam 1"] and np.array_equal(steady["cam 1"], views["cam0"])
+    assert moves == {"cam 1": 2}
     (tmp_path / VIEWS_FILE).write_bytes((tmp_path / VIEWS_FILE).read_bytes()[:50])
     assert folder.read_views() is None
     assert "a camera moved while the run was stopped is not seen" in caplog.text

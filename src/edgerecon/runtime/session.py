@@ -888,10 +888,11 @@ class Session:
         names = self.dataset.rig.names
         views = {names[i]: v for i, v in sorted(self._moved.references().items())}
         steady = {names[i]: v for i, v in sorted(self._stabiliser.references().items())}
+        moves = {n: self._moves_said.get(n, 0) for n in steady}
         if not views:
             return
         try:
-            self.folder.write_views(views, self.metrics[-1].time_index, steady)
+            self.folder.write_views(views, self.metrics[-1].time_index, steady, moves)
         except OSError as exc:
             logger.warning("the cameras' reference views were not saved: %s", exc)
 
@@ -903,7 +904,7 @@ class Session:
         saved = self.folder.read_views()
         if saved is None:
             return
-        time_index, views, steady = saved
+        time_index, views, steady, moves = saved
         again = (
             set() if self.folder.recalibration is None else set(self.folder.recalibration.cameras)
         )
@@ -916,11 +917,13 @@ class Session:
                 continue
             cam = self.dataset.rig[names.index(name)]
             self._stabiliser.start(names.index(name), ref.astype(np.float32), cam.K, cam.dist)
-            self._moves_said[name] = _MOVES_SAID + 1
+            # A file from before the counts were kept: as a camera that kept moving.
+            said = self._moves_said[name] = moves.get(name, _MOVES_SAID + 1)
             logger.warning(
-                "%s's frames were turned back onto its view before the stop (knocked or "
-                "swaying): they are turned back as before (its moves recorded, not said)",
+                "%s %s before the stop: its frames are turned back onto its view as before%s",
                 name,
+                "kept moving" if said > _MOVES_SAID else "was knocked",
+                " (its moves recorded, not said)" if said > _MOVES_SAID else "",
             )
         logger.debug(
             "the cameras' views as of time %d restored (%d cameras)", time_index, len(refs)

@@ -653,10 +653,12 @@ class OutputFolder:
         views: Mapping[str, NDArray[np.uint8]],
         time_index: int,
         steady: Mapping[str, NDArray[np.uint8]] | None = None,
+        moves: Mapping[str, int] | None = None,
     ) -> None:
         """The cameras' reference views (grey thumbnails by camera name) as of the task at
         ``time_index``, and ``steady``: those of the cameras whose frames are turned back
-        onto a view (``quality.frames.Stabiliser``), in ``VIEWS_FILE`` (written
+        onto a view (``quality.frames.Stabiliser``), with ``moves``: how many moves of
+        each the run said (a knock's 1, a sway's more), in ``VIEWS_FILE`` (written
         atomically)."""
         names, steady_names = list(views), list(steady or {})
         arrays: dict[str, Any] = {
@@ -671,6 +673,7 @@ class OutputFolder:
         arrays.update(
             names=np.array(names, dtype=str),
             steady_names=np.array(steady_names, dtype=str),
+            steady_moves=np.array([(moves or {}).get(n, 0) for n in steady_names], np.int64),
             time_index=np.int64(time_index),
         )
 
@@ -681,9 +684,13 @@ class OutputFolder:
 
     def read_views(
         self,
-    ) -> tuple[int, dict[str, NDArray[np.uint8]], dict[str, NDArray[np.uint8]]] | None:
+    ) -> (
+        tuple[int, dict[str, NDArray[np.uint8]], dict[str, NDArray[np.uint8]], dict[str, int]]
+        | None
+    ):
         """What :meth:`write_views` wrote: (its time index, the views by camera name, the
-        steadied cameras' views); None when there is none or it cannot be read (said: the
+        steadied cameras' views, their moves said: none in a file from before they were
+        kept); None when there is none or it cannot be read (said: the
         moves across the stop then go unseen, the run does not stop for it)."""
         path = self.path / VIEWS_FILE
         if not path.exists():
@@ -696,7 +703,9 @@ class OutputFolder:
                 steady = {
                     n: np.asarray(z[f"steady{k}"], np.uint8) for k, n in enumerate(steady_names)
                 }
-                return int(z["time_index"]), views, steady
+                counts = z["steady_moves"] if "steady_moves" in z else []
+                moves = {n: int(c) for n, c in zip(steady_names, counts, strict=False)}
+                return int(z["time_index"]), views, steady, moves
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
             logger.warning(
                 "%s cannot be read (%s): a camera moved while the run was stopped is not seen "
