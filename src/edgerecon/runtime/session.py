@@ -981,6 +981,9 @@ class Session:
             # that keeps moving: its frames turned back onto its view before its first move.
             was = move.camera in self._stabiliser.cameras
             steady = self._steady_from(move.camera, image, said)
+            # The frames the back-end checks: from the move on, or from this task's on when
+            # they are turned back (those between the move and now went in as they came).
+            since = t if steady else move.time_index
             if said == _MOVES_SAID + 1:
                 logger.warning(
                     "time %d: %s's view keeps moving (%d moves; a mount that sways, a camera "
@@ -1024,12 +1027,12 @@ class Session:
                 "the tasks' stabilised). "
                 if steady and not was and said <= _MOVES_SAID
                 else "",
-                move.time_index,
+                since,
             )
             if said > _MOVES_SAID:
                 continue
             try:
-                self.engine.check_calibration(move.time_index, [cam.name])
+                self.engine.check_calibration(since, [cam.name])
             except Exception as exc:  # a back-end that does not answer: its own check serves
                 logger.debug("calibration check not requested: %s", describe_exception(exc))
         return records
