@@ -211,3 +211,17 @@ def test_the_turn_of_a_camera_that_holds_still_is_its_new_aim_not_a_sway_s():
         image = _turned(room, degrees, (1.0, 0.0, 0.0))
         steady.apply(FrameSet(time_index=k, images=(image,)))
     assert steady.steady_turn(0) is None
+
+
+def test_the_stabiliser_scales_the_calibration_s_intrinsics_to_the_frames():
+    """Intrinsics given at the calibration's width (twice the frames'): the turn of the
+    frames is measured as with intrinsics at their own size."""
+    from edgerecon.quality.frames import Stabiliser, thumbnail
+
+    rng = np.random.default_rng(5)
+    room = _texture(rng, H, W)
+    steady = Stabiliser()
+    steady.start(0, thumbnail(room), np.diag([2.0, 2.0, 1.0]) @ K, width=2 * W)
+    image = _turned(room, 1.0, (0.0, 1.0, 0.0))
+    _, taken = steady.apply(FrameSet(time_index=0, images=(image,)))
+    assert taken[0] == pytest.approx(1.0, abs=0.1)

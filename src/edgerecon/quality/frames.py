@@ -532,8 +532,10 @@ class Stabiliser:
 
     def __init__(self) -> None:
         self._ref: dict[
-            int, tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64] | None]
+            int,
+            tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64] | None, int | None],
         ] = {}
+        """Per camera: its reference thumbnail, intrinsics, distortion, the width they are at."""
         self._window: dict[tuple[int, int], NDArray[np.float32]] = {}
         self._grid: dict[Any, tuple[tuple[int, int], NDArray[np.float64]]] = {}
         """Per distorted camera and image kind: the coarse grid's pixels' rays
@@ -549,7 +551,7 @@ class Stabiliser:
     def references(self) -> dict[int, NDArray[np.uint8]]:
         """Each stabilised camera's reference view (rounded to whole grey levels): what a
         run keeps over a stop (``start`` again with it after ``--resume``)."""
-        return {i: _grey_bytes(ref) for i, (ref, _, _) in self._ref.items()}
+        return {i: _grey_bytes(ref) for i, (ref, *_) in self._ref.items()}
 
     def start(
         self,
@@ -557,15 +559,29 @@ class Stabiliser:
         reference: NDArray[np.float32],
         K: NDArray[np.float64],
         dist: NDArray[np.float64] | None = None,
+        *,
+        width: int | None = None,
     ) -> None:
         """Stabilise ``camera`` from now on onto ``reference`` (a grey thumbnail as
-        :func:`thumbnail` makes them), ``K`` its intrinsics at its frames' size, ``dist``
+        :func:`thumbnail` makes them), ``K`` its intrinsics at ``width`` pixels wide (its
+        calibration's; scaled to each frame's width; None: at its frames' size), ``dist``
         its lens's distortion (OpenCV's coefficients; None: none)."""
         lens = None if dist is None or not np.any(dist) else np.asarray(dist, np.float64)
-        self._ref[camera] = (np.asarray(reference, np.float32), np.asarray(K, np.float64), lens)
+        self._ref[camera] = (
+            np.asarray(reference, np.float32),
+            np.asarray(K, np.float64),
+            lens,
+            width,
+        )
         for kind in ("thumb", "frame"):
             self._grid.pop((camera, kind), None)
         self.forget(camera)
+
+    def _intrinsics(self, camera: int, image: Image) -> NDArray[np.float64]:
+        """``camera``'s intrinsics at ``image``'s size."""
+        _, K, _, width = self._ref[camera]
+        k = 1.0 if width is None else image.shape[1] / width
+        return K if k == 1.0 else np.diag([k, k, 1.0]) @ K
 
     def forget(self, camera: int) -> None:
         """Forget the turns taken off ``camera``'s frames so far (its view moved again)."""
@@ -592,7 +608,8 @@ class Stabiliser:
         None: not measured). Twice: the thumbnail turned back by the first turn gives what
         is left of it (phase correlation's sub-pixel peak leans to whole pixels: a 1-degree
         turn of a real 720p camera measured 0.88 degrees in one pass)."""
-        ref, K, dist = self._ref[camera]
+        ref, _, dist, _ = self._ref[camera]
+        K = self._intrinsics(camera, image)
         now = thumbnail(image, self._THUMB_PX)
         if now.shape != ref.shape:
             return None
@@ -667,7 +684,7 @@ class Stabiliser:
                 continue
             turned[i] = round(rotation_angle_deg(R, _EYE), 3)
             self._turns.setdefault(i, deque(maxlen=self._KEEP_TURNS)).append(R)
-            K, dist = self._ref[i][1:]
+            K, dist = self._intrinsics(i, image), self._ref[i][2]
             images[i] = turned_back(image, R, K, dist, self._MAP_STEP, self._grid, (i, "frame"))
         return dataclasses.replace(frames, images=tuple(images)), turned
 

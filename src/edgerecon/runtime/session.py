@@ -101,7 +101,7 @@ from edgerecon.runtime.state import (
 )
 from edgerecon.scene.merge import foreground_part
 from edgerecon.scene.stream import DEFAULT_FPS
-from edgerecon.types import EdgereconError, FrameSet, Image
+from edgerecon.types import EdgereconError, FrameSet
 
 logger = logging.getLogger(__name__)
 
@@ -916,7 +916,9 @@ class Session:
             if name not in names or name in again or not self.frame_check.stabilise:
                 continue
             cam = self.dataset.rig[names.index(name)]
-            self._stabiliser.start(names.index(name), ref.astype(np.float32), cam.K, cam.dist)
+            self._stabiliser.start(
+                names.index(name), ref.astype(np.float32), cam.K, cam.dist, width=cam.width
+            )
             # A file from before the counts were kept: as a camera that kept moving.
             said = self._moves_said[name] = moves.get(name, _MOVES_SAID + 1)
             logger.warning(
@@ -929,7 +931,7 @@ class Session:
             "the cameras' views as of time %d restored (%d cameras)", time_index, len(refs)
         )
 
-    def _steady_from(self, camera: int, image: Image, said: int) -> bool:
+    def _steady_from(self, camera: int, said: int) -> bool:
         """Whether ``camera``'s frames are turned back onto its view before its first move
         from now on, after a move said ``said`` times: at its first move (a knock) unless
         the run re-poses moved cameras (``adopt_repairs``: the back-end's check finds the
@@ -945,8 +947,7 @@ class Session:
             return False
         assert reference is not None
         cam = self.dataset.rig[camera]
-        k = image.shape[1] / cam.width
-        self._stabiliser.start(camera, reference, np.diag([k, k, 1.0]) @ cam.K, cam.dist)
+        self._stabiliser.start(camera, reference, cam.K, cam.dist, width=cam.width)
         return True
 
     def _note_moved(self, t: int, frames: FrameSet) -> list[dict[str, Any]]:
@@ -980,7 +981,7 @@ class Session:
             # A knocked camera (without --adopt-repairs, which re-poses it instead) and one
             # that keeps moving: its frames turned back onto its view before its first move.
             was = move.camera in self._stabiliser.cameras
-            steady = self._steady_from(move.camera, image, said)
+            steady = self._steady_from(move.camera, said)
             # The frames the back-end checks: from the move on, or from this task's on when
             # they are turned back (those between the move and now went in as they came).
             since = t if steady else move.time_index
