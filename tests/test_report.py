@@ -180,3 +180,62 @@ def test_the_memory_figure_follows_each_tasks_resident_memory(tmp_path):
     assert np.allclose(line.get_ydata(), [500.0, 620.5, 610.0, 640.0])
     rows = dict(summary_rows(runs[0]))
     assert rows["memory: first / last / largest task (MB)"] == "500 / 640 / 640"
+
+
+def test_the_summary_page_says_moved_and_turned_back_cameras_with_long_rows_wrapped(tmp_path):
+    """The page has the run table's rows of cameras whose view moved and were turned back,
+    each long text wrapped in its cell and the whole table within its part of the page (a
+    calibration verdict with a repair was cut at the page's edge); the quality plot marks
+    the task that saw a move."""
+    import json
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from edgerecon.report import camera_moves_at
+
+    run = write_run(tmp_path / "run", num_tasks=4)
+    move = {"camera": "cam2", "time_index": 4, "turn_deg": 2.07, "across_stop": False}
+    append_task(run, task_metrics(4, camera_moves=[move], stabilised={"cam2": 1.98}), None)
+    verdict = {
+        "time": 116,
+        "fits": True,
+        "short": "fits",
+        "repaired_rig_file": "rig.repaired.json",
+        "repair": "cam2 re-aimed by 1.98 degrees (the turn taken off its frames since it moved)",
+    }
+    summary = {
+        "tasks": 5,
+        "calibration": verdict,
+        "camera_moves": [move],
+        "stabilised": {"cam2": {"tasks": 88, "unmeasured": 0, "mean_deg": 1.99, "max_deg": 2.01}},
+    }
+    (run / "summary.json").write_text(json.dumps(summary))
+    runs = load_runs([run])
+    rows = dict(summary_rows(runs[0]))
+    assert rows["cameras whose view moved"] == "cam2 at time 4 (about 2.07 degrees)"
+    assert rows["cameras turned back onto their view (knocked, swaying)"] == (
+        "cam2: 88 tasks, 1.99 degrees on average, 2.01 at most"
+    )
+    assert camera_moves_at(runs[0]) == [(4, ["cam2"])]
+    quality = figure("quality", runs).axes[0]
+    assert any(t.get_text().strip() == "cam2 moved" for t in quality.texts)
+    for several in ([run], [run, run]):
+        page = figure("summary", load_runs(several))
+        renderer = FigureCanvasAgg(page).get_renderer()
+        page.draw(renderer)
+        table_axes = [ax for ax in page.axes if ax.tables]
+        assert len(table_axes) == len(several)
+        for ax in table_axes:
+            box = ax.get_window_extent()
+            (table,) = ax.tables
+            texts = [c.get_text().get_text() for c in table.get_celld().values()]
+            calib = next(t for t in texts if t.startswith("fits;"))
+            assert "\n" in calib  # wrapped
+            assert " ".join(calib.split()) == " ".join(
+                rows[next(k for k in rows if k.startswith("calibration"))].split()
+            )
+            for cell in table.get_celld().values():
+                cb = cell.get_window_extent(renderer)
+                assert box.y0 - 1 <= cb.y0 and cb.y1 <= box.y1 + 1  # within the table's part
+                text = cell.get_text().get_window_extent(renderer)
+                assert text.x1 <= cb.x1 + 1 and text.x0 >= cb.x0 - 1  # not cut at its edge

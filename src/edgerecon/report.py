@@ -27,6 +27,7 @@ import dataclasses
 import io
 import math
 import os
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +38,7 @@ import numpy as np
 from edgerecon.io.ply import atomic_write_bytes
 from edgerecon.quality.calibration import verdict_row
 from edgerecon.runtime.messages import AFTER_CRITICAL_PATH, TaskMetrics
-from edgerecon.runtime.session import offline_fscore_label
+from edgerecon.runtime.session import camera_moves_row, offline_fscore_label, stabilised_row
 from edgerecon.runtime.state import recalibrations_row
 from edgerecon.types import EdgereconError
 from edgerecon.viewer.rundir import read_run
@@ -218,11 +219,38 @@ def plot_quality(ax: Axes, runs: Sequence[RunData]) -> None:
         if off:
             ax.plot(*zip(*off, strict=True), ":s", color=color, ms=3, label=f"{run.label}: offline")
     ax.set_ylim(0, 1.02)
+    moved = False
+    for run, color in zip(runs, _COLORS, strict=False):
+        for task, names in camera_moves_at(run):
+            moved = True
+            ax.axvline(task, color=color, ls="-.", lw=0.9)
+            ax.text(task, 0.03, " " + ", ".join(names) + " moved", color=color, fontsize=7)
     ax.set_xlabel("task")
     ax.set_ylabel("F-score (foreground)")
-    ax.set_title("quality per task (online: the estimate; offline: vs ground truth)")
+    ax.set_title(
+        "quality per task (online: the estimate; offline: vs ground truth"
+        + ("; dash-dot: a camera's view moved)" if moved else ")")
+    )
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
+
+
+def camera_moves_at(run: RunData) -> list[tuple[int, list[str]]]:
+    """The tasks that saw a camera's view move (``TaskMetrics.camera_moves``), with the
+    cameras: each camera's first 3 moves (one that keeps moving, a swaying mount, is marked
+    where it started)."""
+    seen: dict[str, int] = {}
+    marks = []
+    for m in run.tasks:
+        names = []
+        for move in m.camera_moves:
+            name = move["camera"]
+            seen[name] = seen.get(name, 0) + 1
+            if seen[name] <= 3 and name not in names:
+                names.append(name)
+        if names:
+            marks.append((m.task, names))
+    return marks
 
 
 def plot_background(ax: Axes, runs: Sequence[RunData]) -> None:
@@ -392,6 +420,8 @@ def summary_rows(run: RunData) -> list[tuple[str, str]]:
         ("frames dropped", str(s.get("frames_dropped", "-"))),
         ("wall time (s)", fmt(s.get("wall_s"), ".1f")),
         *memory,
+        *([camera_moves_row(mv)] if (mv := s.get("camera_moves")) else []),
+        *([stabilised_row(st)] if (st := s.get("stabilised")) else []),
         *([recalibrations_row(rc, s.get("unit"))] if (rc := s.get("recalibrations")) else []),
         *([verdict_row(cal)] if isinstance(cal := s.get("calibration"), dict) else []),
     ]
@@ -425,11 +455,45 @@ def figure(name: str, runs: Sequence[RunData]) -> Figure:
     return fig
 
 
+_TABLE_COLUMNS = (0.55, 0.45)
+"""The summary page's table: the two columns' shares of its width."""
+
+
+def _wrapped(row: tuple[str, str], width_pt: float, font_pt: float) -> tuple[str, str]:
+    """A summary row's two texts wrapped to the page table's columns (a table ``width_pt``
+    wide, about 0.6 of the font size per character, a cell's padding left free)."""
+    per_char = 0.6 * font_pt
+    return tuple(  # type: ignore[return-value]
+        "\n".join(textwrap.wrap(text, max(12, int(width_pt * share / per_char) - 3)) or [""])
+        for text, share in zip(row, _TABLE_COLUMNS, strict=True)
+    )
+
+
+def _num_lines(row: tuple[str, str]) -> int:
+    return max(text.count("\n") for text in row) + 1
+
+
 def _summary_page(runs: Sequence[RunData]) -> Figure:
     """One A4 page: a summary table per run, then latency, configuration, quality and
     background plots."""
+    from matplotlib.transforms import Bbox
+
     fig = _new_figure(8.27, 11.69)
-    grid = fig.add_gridspec(6, 2, height_ratios=[0.15, 1.15, 1, 1, 0.55, 0.55])
+    # Each run's table in two columns of text wrapped to the column (a calibration verdict,
+    # the cameras that moved: a line of text can be longer than the page is wide); the
+    # tables take the height their lines need from the plots below them.
+    font = 8.0 if len(runs) < 2 else 7.0
+    width_pt = 8.27 * 72 * (0.85 if len(runs) < 2 else 0.42)
+    tables = [[_wrapped(row, width_pt, font) for row in summary_rows(run)[1:]] for run in runs[:2]]
+    heads = [_wrapped((run.label, ""), width_pt, font) for run in runs[:2]]
+    lines = [sum(_num_lines(row) for row in [h, *t]) for h, t in zip(heads, tables, strict=True)]
+    table_in = max(lines) * font / 72 * 1.5  # inches: a line and its cell's padding
+    plots = 3.25  # the height ratios of the plots below (1, 1, 0.55, 0.55)
+    grid = fig.add_gridspec(
+        6,
+        2,
+        height_ratios=[0.15, plots * table_in / max(9.0 - table_in, 3.0), 1, 1, 0.55, 0.55],
+    )
     head = fig.add_subplot(grid[0, :])
     head.axis("off")
     head.text(
@@ -440,20 +504,23 @@ def _summary_page(runs: Sequence[RunData]) -> Figure:
         weight="bold",
         va="center",
     )
-    for i, run in enumerate(runs[:2]):
+    for i, (rows, head_row, n) in enumerate(zip(tables, heads, lines, strict=True)):
         ax = fig.add_subplot(grid[1, i] if len(runs) > 1 else grid[1, :])
         ax.axis("off")
-        rows = summary_rows(run)[1:]
+        share = n / max(lines)  # a shorter table keeps the line height of the longer one
         table = ax.table(
             cellText=[[k, v] for k, v in rows],
-            colLabels=[run.label, ""],
-            loc="upper center",
+            colLabels=list(head_row),
             cellLoc="left",
-            colWidths=[0.62, 0.38],
+            colWidths=list(_TABLE_COLUMNS),
+            bbox=Bbox.from_bounds(0.0, 1.0 - share, 1.0, share),
         )
         table.auto_set_font_size(False)
-        table.set_fontsize(8)
-        table.scale(1, 1.25)
+        table.set_fontsize(font)
+        for (r, _), cell in table.get_celld().items():
+            # A row's share of the table: its lines (a wrapped row is as many lines high as
+            # its longer cell; the table scales the rows to its box).
+            cell.set_height(_num_lines(head_row if r == 0 else rows[r - 1]) / n)
     plot_latency(fig.add_subplot(grid[2, :]), runs)
     plot_quality(fig.add_subplot(grid[3, :]), runs)
     ax_r = fig.add_subplot(grid[4, 0])

@@ -389,13 +389,14 @@ def test_a_run_that_wrote_a_repaired_rig_says_how_to_take_it(
 
 
 def test_the_summary_says_each_move_and_one_line_for_a_camera_that_kept_moving():
-    from edgerecon.cli.run import moves_text
+    from edgerecon.runtime.session import camera_moves_row
 
     def move(camera, t, turn, across=False):
         return {"camera": camera, "time_index": t, "turn_deg": turn, "across_stop": across}
 
     sway = [move("cam2", t, 0.4 + 0.1 * k) for k, t in enumerate(range(25, 150, 25))]
-    text = moves_text([move("cam1", 50, 2.95, True), *sway, move("cam0", 80, 1.0)])
+    name, text = camera_moves_row([move("cam1", 50, 2.95, True), *sway, move("cam0", 80, 1.0)])
+    assert name == "cameras whose view moved"
     assert text == (
         "cam1 across a stop, at time 50 (about 2.95 degrees); "
         "cam2 kept moving: 5 moves recorded, time 25 to 125 (0.40-0.80 degrees); "

@@ -41,7 +41,9 @@ from edgerecon.runtime.session import (
     FAULT_KINDS,
     RepairDue,
     RunInterrupted,
+    camera_moves_row,
     offline_fscore_label,
+    stabilised_row,
 )
 from edgerecon.runtime.state import describe_changes, recalibrations_row
 from edgerecon.types import DataError
@@ -296,30 +298,6 @@ def num_tasks(args: argparse.Namespace, dataset: Any) -> int | None:
     return len(frames.indices(dataset.num_frames)) or None
 
 
-def moves_text(moves: list[dict[str, Any]]) -> str:
-    """The summary table's cameras whose view moved: each move of a camera that moved up
-    to 3 times; one line for one that kept moving (a swaying mount: hundreds of moves)."""
-    by_camera: dict[str, list[dict[str, Any]]] = {}
-    for m in moves:
-        by_camera.setdefault(m["camera"], []).append(m)
-    parts = []
-    for name, ms in by_camera.items():
-        if len(ms) > 3:
-            turns = [m["turn_deg"] for m in ms]
-            parts.append(
-                f"{name} kept moving: {len(ms)} moves recorded, time {ms[0]['time_index']} to "
-                f"{ms[-1]['time_index']} ({min(turns):.2f}-{max(turns):.2f} degrees)"
-            )
-            continue
-        parts += [
-            f"{name} "
-            + ("across a stop, " if m.get("across_stop") else "")
-            + f"at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
-            for m in ms
-        ]
-    return "; ".join(parts)
-
-
 def print_summary(title: str, s: RunSummary) -> None:
     def f(x: float | None, fmt: str = ".3f") -> str:
         return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
@@ -349,19 +327,9 @@ def print_summary(title: str, s: RunSummary) -> None:
         ("wall time (s)", f(s.wall_s, ".1f")),
     ]
     if s.camera_moves:
-        rows.append(("cameras whose view moved", moves_text(s.camera_moves)))
+        rows.append(camera_moves_row(s.camera_moves))
     if s.stabilised:
-        rows.append(
-            (
-                "cameras turned back onto their view (knocked, swaying)",
-                "; ".join(
-                    f"{name}: {st['tasks']} tasks, {st['mean_deg']:.2f} degrees on average, "
-                    f"{st['max_deg']:.2f} at most"
-                    + (f" ({st['unmeasured']} kept as they were)" if st["unmeasured"] else "")
-                    for name, st in s.stabilised.items()
-                ),
-            )
-        )
+        rows.append(stabilised_row(s.stabilised))
     if s.recalibrations:
         rows.append(recalibrations_row(s.recalibrations, s.unit))
     if s.calibration is not None:

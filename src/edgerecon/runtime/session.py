@@ -204,6 +204,46 @@ def offline_fscore_label(threshold: float | None, unit: str = "") -> str:
     return f"avg. F-score of FG (vs ground truth{at})"
 
 
+def camera_moves_row(moves: list[dict[str, Any]]) -> tuple[str, str]:
+    """The summary table's row of the cameras whose view moved (``RunSummary.camera_moves``),
+    for ``run`` and ``report``: each move of a camera that moved up to 3 times; one line for
+    one that kept moving (a swaying mount: hundreds of moves)."""
+    by_camera: dict[str, list[dict[str, Any]]] = {}
+    for m in moves:
+        by_camera.setdefault(m["camera"], []).append(m)
+    parts = []
+    for name, ms in by_camera.items():
+        if len(ms) > 3:
+            turns = [m["turn_deg"] for m in ms]
+            parts.append(
+                f"{name} kept moving: {len(ms)} moves recorded, time {ms[0]['time_index']} to "
+                f"{ms[-1]['time_index']} ({min(turns):.2f}-{max(turns):.2f} degrees)"
+            )
+            continue
+        parts += [
+            f"{name} "
+            + ("across a stop, " if m.get("across_stop") else "")
+            + f"at time {m['time_index']} (about {m['turn_deg']:.2f} degrees)"
+            for m in ms
+        ]
+    return ("cameras whose view moved", "; ".join(parts) or "-")
+
+
+def stabilised_row(stabilised: dict[str, dict[str, Any]]) -> tuple[str, str]:
+    """The summary table's row of the cameras whose frames were turned back onto their view
+    (``RunSummary.stabilised``), for ``run`` and ``report``."""
+    return (
+        "cameras turned back onto their view (knocked, swaying)",
+        "; ".join(
+            f"{name}: {st['tasks']} tasks, {st['mean_deg']:.2f} degrees on average, "
+            f"{st['max_deg']:.2f} at most"
+            + (f" ({st['unmeasured']} kept as they were)" if st.get("unmeasured") else "")
+            for name, st in stabilised.items()
+        )
+        or "-",
+    )
+
+
 @dataclass
 class RunSummary:
     """The run's aggregate (the shape of the paper's Table III, plus robustness counts)."""
