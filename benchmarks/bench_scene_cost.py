@@ -91,7 +91,11 @@ def measure(
     rig, num_frames, fps, frameset = source
     fg_config = fg_config or ForegroundConfig()
     boot = bootstrap_indices(num_frames, fps, fg_config)
-    fg = RigForeground.learn_from_framesets(rig, [frameset(t)[0] for t in boot], fg_config)
+    # As the online system without an empty-scene clip: from the stream, the person model
+    # where ``person_model`` uses it.
+    fg = RigForeground.learn_from_framesets(
+        rig, [frameset(t)[0] for t in boot], fg_config, from_stream=True
+    )
     wall = dict.fromkeys((*STAGES, "other", "update"), 0.0)
     cpu = {"segment": 0.0, "update": 0.0}
     ious = []

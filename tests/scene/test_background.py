@@ -254,3 +254,62 @@ def test_unsettled_marks_where_something_moved_while_learning(background: np.nda
     assert model.unsettled is model.unsettled
     again = BackgroundModel.from_state(model.state)
     assert np.array_equal(again.unsettled, model.unsettled)
+
+
+def test_learning_from_stream_leaves_out_the_frames_a_person_covers(background: np.ndarray) -> None:
+    """An actor who walks along a camera's line of sight covers the same pixels in most of
+    the learning frames: the plain median learns the actor there; with the person model's
+    masks the median is over the frames that show the pixel free of people, where at least
+    ``min_free_frames`` do (elsewhere, over all of them)."""
+    rng = np.random.default_rng(8)
+    frames, people = [], []
+    for t in range(8):
+        # Covered in 6 of 8 frames (t = 0..5), then gone.
+        truth = square_mask(H, W, 60 + t, 40, 30) if t < 6 else np.zeros((H, W), bool)
+        frames.append(noisy(paint(background, truth, (0, 255, 0)), 3.0, rng))
+        people.append(truth)
+    core = square_mask(H, W, 66, 44, 20)  # covered in every one of the six
+    plain = BackgroundModel.learn(frames, camera="stream")
+    err = np.abs(plain.background_image().astype(int) - background.astype(int)).max(axis=2)
+    assert np.median(err[core]) > 100  # the actor's green
+    model = BackgroundModel.learn(frames, camera="stream", people=people)
+    err = np.abs(model.background_image().astype(int) - background.astype(int)).max(axis=2)
+    assert np.percentile(err[core], 99) < 15
+    assert np.percentile(err[~core], 99) < 15
+    # A person over a pixel in all but one frame: too few free frames, the plain median.
+    seated = [square_mask(H, W, 60, 40, 30) if t < 7 else np.zeros((H, W), bool) for t in range(8)]
+    frames = [noisy(paint(background, m, (0, 255, 0)), 3.0, rng) for m in seated]
+    model = BackgroundModel.learn(frames, camera="stream", people=seated)
+    err = np.abs(model.background_image().astype(int) - background.astype(int)).max(axis=2)
+    assert np.median(err[square_mask(H, W, 66, 44, 20)]) > 100
+    with pytest.raises(ValueError, match="person masks"):
+        BackgroundModel.learn(frames, camera="stream", people=seated[:3])
+
+
+def test_a_person_back_where_they_stood_while_the_model_learned_is_no_ghost(
+    background: np.ndarray,
+) -> None:
+    """The ghost test learns at once a still foreground pixel whose colour the learning
+    frames showed: with the person model's masks, the frames that showed a person there do
+    not count (they showed no background), so a person who comes back to where they stood
+    then stays foreground."""
+    import dataclasses
+
+    rng = np.random.default_rng(9)
+    place = square_mask(H, W, 60, 40, 30)
+    people = [place if t < 5 else np.zeros((H, W), bool) for t in range(8)]
+    learning = [noisy(paint(background, m, (0, 255, 0)), 3.0, rng) for m in people]
+    back = paint(background, place, (0, 255, 0))
+
+    def after_standing(model: BackgroundModel) -> float:
+        for _ in range(3):  # a still person: foreground at the last update too
+            model.update(noisy(back, 3.0, rng))
+        fg = model.segment(noisy(back, 3.0, rng)).foreground
+        return float(at_resolution(fg, (H, W))[place].mean())
+
+    model = BackgroundModel.learn(learning, camera="stream", people=people)
+    assert model.state.seen_people is not None
+    assert after_standing(model) > 0.9
+    # The same model without the people's masks in its learning frames: learned as a ghost.
+    blind = BackgroundModel.from_state(dataclasses.replace(model.state, seen_people=None))
+    assert after_standing(blind) < 0.1

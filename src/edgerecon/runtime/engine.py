@@ -38,8 +38,13 @@ from edgerecon.runtime.frontend import (
     too_few_cameras,
 )
 from edgerecon.runtime.messages import GoldenReply, TaskPlan, TaskWork
-from edgerecon.scene.background import BackgroundModel, BackgroundState
-from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
+from edgerecon.scene.background import BackgroundState
+from edgerecon.scene.foreground import (
+    ForegroundConfig,
+    ForegroundResult,
+    RigForeground,
+    learn_model,
+)
 from edgerecon.scene.stream import (
     SceneTracker,
     bootstrap_indices,
@@ -183,7 +188,7 @@ def relearned(
         if not frames[c]:
             logger.warning("scene: no frame of %s to learn its models again from", name)
             continue
-        states[c] = BackgroundModel.learn(frames[c], config.background, camera=name).state
+        states[c] = learn_model(frames[c], config, camera=name, from_stream=True).state
     logger.info(
         "scene: the background models of %s learned again from time %d..%d",
         ", ".join(dataset.rig[c].name for c in cameras),

@@ -6,7 +6,8 @@ serialisable. This model (in the spirit of Horprasert et al.'s brightness/chroma
 distortion model) keeps, per pixel of a working-resolution image:
 
 * a background colour ``mean`` and a noise variance per channel, learned robustly (median and
-  MAD) from a background-only clip or from the first frames of the stream;
+  MAD) from a background-only clip or from the first frames of the stream (where the person
+  model's masks are given, over the frames that show each pixel free of people);
 * a per-frame global gain per channel (robust median ratio over background pixels), so that a
   global illumination change or an exposure drift is not flagged;
 * a shadow test: a pixel darker than the background by a bounded factor with the same
@@ -35,7 +36,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -118,6 +119,13 @@ class BackgroundConfig:
     judge); 0 = off."""
     max_learning_frames: int = 60
     """At most this many frames (evenly spaced) of a learning clip enter the median."""
+    min_free_frames: int = 2
+    """Learning from the stream with the person model's masks (``BackgroundModel.learn``'s
+    ``people``): a pixel's colour is the median of the frames that show it free of people
+    where at least this many do, else of all of them."""
+    people_margin_px: int = 3
+    """The person model's masks grown by this (working pixels) before they leave frames out
+    of a pixel's median."""
     min_gain: float = 0.4
     """Smallest per-channel global gain accepted (an estimate below it is clamped)."""
     max_gain: float = 2.5
@@ -208,6 +216,9 @@ class BackgroundState:
     unsettled: NDArray[np.bool_] | None = None
     """(h, w) pixels whose learning frames disagree (``BackgroundModel.unsettled``; read
     only), computed when the model learns."""
+    seen_people: NDArray[np.bool_] | None = None
+    """(n, h, w) where the person model saw a person in each of ``seen`` (read only; None:
+    no person known): those frames never count as the background seen there."""
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -229,6 +240,45 @@ class Segmentation:
     def slim(self) -> Segmentation:
         """The same segmentation without its working image."""
         return dataclasses.replace(self, image=None)
+
+
+def _covered(
+    people: Sequence[Mask | None], size: tuple[int, int], config: BackgroundConfig
+) -> NDArray[np.bool_] | None:
+    """(n, h, w) the learning frames' person pixels at the working ``size``, grown by
+    ``people_margin_px`` (the network's outline is coarse); None when no frame has any."""
+    if not any(m is not None and m.any() for m in people):
+        return None
+    grow = disk(config.people_margin_px) if config.people_margin_px > 0 else None
+    out = np.zeros((len(people), size[1], size[0]), bool)
+    for i, m in enumerate(people):
+        if m is None or not m.any():
+            continue
+        small = cv2.resize(m.view(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+        if grow is not None:
+            small = cv2.dilate(small, grow)
+        out[i] = small.view(bool)
+    return out
+
+
+def _free_median(
+    stack: NDArray[np.uint8], covered: NDArray[np.bool_], min_free: int
+) -> NDArray[np.float32]:
+    """Per pixel and channel, the median of ``stack`` (n, h, w, 3) over the frames where
+    ``covered`` (n, h, w) is False, where at least ``min_free`` are; elsewhere over all."""
+    free = ~covered
+    k = free.sum(axis=0)
+    vals = stack.astype(np.uint16)
+    vals[covered] = 256  # sorted after every colour
+    vals.sort(axis=0)
+    kk = np.maximum(k, 1)[None, :, :, None]
+    lo = np.take_along_axis(vals, (kk - 1) // 2, axis=0)[0].astype(np.float32)
+    hi = np.take_along_axis(vals, kk // 2, axis=0)[0].astype(np.float32)
+    out = np.asarray(0.5 * (lo + hi), np.float32)
+    few = k < min_free
+    if few.any():
+        out[few] = np.median(stack[:, few], axis=0)
+    return out
 
 
 def _unsettled(
@@ -331,14 +381,23 @@ class BackgroundModel:
         *,
         camera: str = "",
         version: int = 0,
+        people: Sequence[Mask | None] | None = None,
     ) -> BackgroundModel:
         """Learn the model from frames of the empty scene (or the first frames of the stream:
         the per-pixel median ignores actors that move through less than half of them).
+
+        ``people``: per frame, the pixels a person covers (the person model's masks, any
+        size; None: none known): a pixel's median is then over the frames that show it free
+        of people, where at least ``min_free_frames`` do (an actor who walks along a
+        camera's line of sight covers the same pixels in most of the first second's frames,
+        and the plain median there is a smear of their colours).
 
         Raises ``DataError`` when no frame is given or the frames differ in size.
         """
         config = config or BackgroundConfig()
         frames = list(frames)
+        if people is not None and len(people) != len(frames):
+            raise ValueError(f"{len(people)} person masks for {len(frames)} frames")
         if not frames:
             raise DataError(f"camera {camera!r}: no frames to learn the background from")
         size = (frames[0].shape[1], frames[0].shape[0])
@@ -353,11 +412,22 @@ class BackgroundModel:
         if len(frames) > config.max_learning_frames:
             idx = np.linspace(0, len(frames) - 1, config.max_learning_frames).round().astype(int)
             frames = [frames[i] for i in idx]
+            people = None if people is None else [people[i] for i in idx]
         wsize = working_size(size, config.working_pixels)
         stack = np.stack([downscale(f, wsize) for f in frames])
-        mean = np.median(stack, axis=0).astype(np.float32)
+        covered = None if people is None else _covered(people, wsize, config)
+        if covered is None:
+            mean = np.median(stack, axis=0).astype(np.float32)
+        else:
+            mean = _free_median(stack, covered, config.min_free_frames)
         if len(frames) >= 3:
-            mad = np.median(np.abs(stack.astype(np.float32) - mean), axis=0)
+            if covered is None:
+                mad = np.median(np.abs(stack.astype(np.float32) - mean), axis=0)
+            else:
+                dev = np.abs(stack.astype(np.float32) - mean)
+                mad = _free_median(
+                    np.minimum(dev, 255.0).astype(np.uint8), covered, config.min_free_frames
+                )
             std = (1.4826 * mad).astype(np.float32)
         else:
             std = np.zeros_like(mean)
@@ -383,6 +453,7 @@ class BackgroundModel:
             version=version,
             seen=seen,
             unsettled=unsettled,
+            seen_people=None if seen is None else covered,
         )
         logger.debug(
             "camera %s: background learned from %d frames at %s", camera, len(frames), wsize
@@ -692,6 +763,10 @@ class BackgroundModel:
         close = (maha2 <= np.float32(cfg.threshold_sigma**2)) | (
             d2.sum(axis=2) <= np.float32(cfg.min_abs_diff**2)
         )
+        if s.seen_people is not None:
+            # A frame that showed a person here showed no background: a person back where
+            # they stood while the model learned is no ghost.
+            close &= ~s.seen_people[:, ys, xs]
         hit = np.zeros_like(foreground)
         hit[ys, xs] = np.count_nonzero(close, axis=0) >= cfg.ghost_min_matches
         # Isolated matches inside an actor are chance: only regions count.

@@ -346,23 +346,35 @@ class RigForeground:
         rig: Rig,
         clips: Sequence[Iterable[Image]],
         config: ForegroundConfig | None = None,
+        *,
+        from_stream: bool = False,
     ) -> RigForeground:
-        """Learn every camera's model from its background-only clip (or first frames)."""
+        """Learn every camera's model from its background-only clip, or from the stream's
+        first frames (``from_stream``: their medians then leave out the pixels the person
+        model, where ``person_model`` uses it, sees a person in; see
+        ``BackgroundModel.learn``)."""
         config = config or ForegroundConfig()
         if len(clips) != len(rig):
             raise DataError(f"{len(clips)} background clips for a rig of {len(rig)} cameras")
-        models = [
-            BackgroundModel.learn(clip, config.background, camera=cam.name)
-            for cam, clip in zip(rig, clips, strict=True)
-        ]
-        return cls(rig, models, config)
+        models = thread_map(
+            lambda job: learn_model(job[1], config, camera=job[0].name, from_stream=from_stream),
+            list(zip(rig, clips, strict=True)),
+            config.num_threads,
+        )
+        return cls(rig, models, config, from_stream=from_stream)
 
     @classmethod
     def learn_from_framesets(
-        cls, rig: Rig, framesets: Iterable[FrameSet], config: ForegroundConfig | None = None
+        cls,
+        rig: Rig,
+        framesets: Iterable[FrameSet],
+        config: ForegroundConfig | None = None,
+        *,
+        from_stream: bool = False,
     ) -> RigForeground:
-        """Learn from synchronized frame sets (a background clip, or frames of the stream: the
-        per-pixel median ignores actors that cover a pixel in fewer than half of them)."""
+        """Learn from synchronized frame sets (a background clip, or frames of the stream:
+        ``from_stream``; the per-pixel median ignores actors that cover a pixel in fewer than
+        half of them, and the person model's people)."""
         per_cam: list[list[Image]] = [[] for _ in range(len(rig))]
         for fs in framesets:
             if len(fs.images) != len(rig):
@@ -375,7 +387,7 @@ class RigForeground:
         for cam, frames in zip(rig, per_cam, strict=True):
             if not frames:
                 raise DataError(f"camera {cam.name!r}: no frames to learn the background from")
-        return cls.learn(rig, per_cam, config)
+        return cls.learn(rig, per_cam, config, from_stream=from_stream)
 
     @classmethod
     def from_states(
@@ -393,10 +405,7 @@ class RigForeground:
     @property
     def people(self) -> PersonSegmenter | None:
         """The person model ``segment`` uses (``ForegroundConfig.person_model``), or None."""
-        setting = self.config.person_model
-        if setting == "off" or (setting == "auto" and not self.from_stream):
-            return None
-        return person_segmenter(setting)
+        return _people(self.config, self.from_stream)
 
     def copy(self) -> RigForeground:
         """An independent copy: the models' states copied; the static scene, the occluders
@@ -739,6 +748,31 @@ class RigForeground:
             jobs,
             self.config.num_threads,
         )
+
+
+def learn_model(
+    frames: Iterable[Image],
+    config: ForegroundConfig,
+    *,
+    camera: str = "",
+    from_stream: bool = False,
+) -> BackgroundModel:
+    """One camera's background model from a clip of the empty scene, or from frames of the
+    stream (``from_stream``), whose medians leave out the people the person model sees
+    where ``person_model`` uses it (``BackgroundModel.learn``'s ``people``)."""
+    frames = list(frames)
+    people = _people(config, from_stream)
+    masks = None if people is None else [people.mask(f, config.person_threshold) for f in frames]
+    return BackgroundModel.learn(frames, config.background, camera=camera, people=masks)
+
+
+def _people(config: ForegroundConfig, from_stream: bool) -> PersonSegmenter | None:
+    """The person model of models learned from a clip (``from_stream`` False) or from the
+    stream (``ForegroundConfig.person_model``), or None."""
+    setting = config.person_model
+    if setting == "off" or (setting == "auto" and not from_stream):
+        return None
+    return person_segmenter(setting)
 
 
 def people_added(model: Mask, people: Mask, covered_max: float) -> Mask:

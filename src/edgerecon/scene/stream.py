@@ -298,8 +298,7 @@ def bootstrap_scene(
     framesets = [
         source.read(i) for i in (track(indices, "learning the background") if progress else indices)
     ]
-    fg = RigForeground.learn_from_framesets(rig, framesets, config)
-    fg.from_stream = clip is None
+    fg = RigForeground.learn_from_framesets(rig, framesets, config, from_stream=clip is None)
     seconds = time.perf_counter() - t0
     logger.info("scene: background models from the %s in %.1f s", what, seconds)
     people = fg.people
