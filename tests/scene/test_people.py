@@ -202,3 +202,30 @@ def test_a_damaged_model_is_left_out_under_auto_and_refused_when_asked_for(
     assert sum("left out" in r.getMessage() for r in caplog.records) == 1  # said once
     with pytest.raises(EdgereconError, match="SHA-256 differs"):
         person_segmenter("on")
+
+
+@pytest.mark.shared_data
+def test_a_model_learned_from_the_stream_leaves_the_people_out_of_its_median() -> None:
+    """``learn_model`` from the stream runs the person model on the learning frames: their
+    people travel with the model (``seen_people``) and leave those frames out of the
+    median; from a clip of the empty scene, or with the person model off, nothing."""
+    from edgerecon.scene.foreground import learn_model
+    from edgerecon.scene.stream import bootstrap_indices
+
+    _fetched()
+    ds = open_dataset(shared_data("caliscope_charuco"))
+    config = ForegroundConfig()
+    with ds.open_frames() as src:
+        frames = [src.read(t).images[0] for t in bootstrap_indices(src.num_frames, ds.fps, config)]
+    model = learn_model(frames, config, camera="cam_0", from_stream=True)
+    people = model.state.seen_people
+    assert people is not None and people.shape[0] == len(frames)
+    share = people.mean(axis=(1, 2))
+    assert (share > 0.1).all(), share  # the seated person, in every frame
+    # Where every learning frame shows the person, the median is over all of them: the same
+    # as the plain median; elsewhere it may differ.
+    plain = learn_model(frames, ForegroundConfig(person_model="off"), from_stream=True)
+    assert plain.state.seen_people is None
+    always = people.all(axis=0)
+    assert np.array_equal(model.state.mean[always], plain.state.mean[always])
+    assert learn_model(frames, config, from_stream=False).state.seen_people is None

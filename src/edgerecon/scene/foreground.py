@@ -37,6 +37,7 @@ from edgerecon.scene.background import (
     Segmentation,
     UpdateStats,
     downscale,
+    working_size,
 )
 from edgerecon.scene.ghosts import (
     PhotoCheckConfig,
@@ -762,7 +763,18 @@ def learn_model(
     where ``person_model`` uses it (``BackgroundModel.learn``'s ``people``)."""
     frames = list(frames)
     people = _people(config, from_stream)
-    masks = None if people is None else [people.mask(f, config.person_threshold) for f in frames]
+    masks = None
+    if people is not None:
+        # At the working resolution, as ``segment`` runs it.
+        masks = [
+            people.mask(
+                downscale(
+                    f, working_size((f.shape[1], f.shape[0]), config.background.working_pixels)
+                ),
+                config.person_threshold,
+            )
+            for f in frames
+        ]
     return BackgroundModel.learn(frames, config.background, camera=camera, people=masks)
 
 
