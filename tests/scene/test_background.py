@@ -228,6 +228,8 @@ def test_bad_input_raises_data_error(background: np.ndarray) -> None:
         ("shadow_min_brightness", 0.0),
         ("min_gain", 1.5),
         ("working_pixels", 4),
+        ("min_free_frames", 0),
+        ("people_margin_px", -1),
     ],
 )
 def test_config_validation_names_the_field(field: str, value: float) -> None:

@@ -138,7 +138,16 @@ class BackgroundConfig:
             raise ValueError(
                 f"BackgroundConfig.working_pixels must be >= 1024, got {self.working_pixels}"
             )
-        for name in ("ghost_edge_ratio", "ghost_min_edge", "ghost_min_outline_px"):
+        if self.min_free_frames < 1:
+            raise ValueError(
+                f"BackgroundConfig.min_free_frames must be >= 1, got {self.min_free_frames}"
+            )
+        for name in (
+            "ghost_edge_ratio",
+            "ghost_min_edge",
+            "ghost_min_outline_px",
+            "people_margin_px",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"BackgroundConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("threshold_sigma", "min_noise_std", "shadow_max_chroma", "max_gain"):
