@@ -299,6 +299,8 @@ def bootstrap_scene(
         source.read(i) for i in (track(indices, "learning the background") if progress else indices)
     ]
     fg = RigForeground.learn_from_framesets(rig, framesets, config, from_stream=clip is None)
+    if fg.from_stream and fg.people is not None:
+        what += ", the people the person model sees left out"
     seconds = time.perf_counter() - t0
     logger.info("scene: background models from the %s in %.1f s", what, seconds)
     people = fg.people
