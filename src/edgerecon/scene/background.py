@@ -119,13 +119,16 @@ class BackgroundConfig:
     judge); 0 = off."""
     max_learning_frames: int = 60
     """At most this many frames (evenly spaced) of a learning clip enter the median."""
-    min_free_frames: int = 2
+    min_free_frames: int = 3
     """Learning from the stream with the person model's masks (``BackgroundModel.learn``'s
     ``people``): a pixel's colour is the median of the frames that show it free of people
-    where at least this many do, else of all of them."""
-    people_margin_px: int = 3
-    """The person model's masks grown by this (working pixels) before they leave frames out
-    of a pixel's median."""
+    where at least this many do, else of all of them. Fewer trust the network's misses: where
+    people cover a pixel in every learning frame, a person the network misses in the last
+    two is learned as the background there (hd4, 8 frames: 2 lost more of an arriving
+    actor than they gained)."""
+    people_margin_px: int = 0
+    """The person model's masks grown (> 0) or shrunk (< 0) by this (working pixels) before
+    they leave frames out of a pixel's median (hd4 / hd4p masks: 0 better than 3 or -3)."""
     min_gain: float = 0.4
     """Smallest per-channel global gain accepted (an estimate below it is clamped)."""
     max_gain: float = 2.5
@@ -142,12 +145,7 @@ class BackgroundConfig:
             raise ValueError(
                 f"BackgroundConfig.min_free_frames must be >= 1, got {self.min_free_frames}"
             )
-        for name in (
-            "ghost_edge_ratio",
-            "ghost_min_edge",
-            "ghost_min_outline_px",
-            "people_margin_px",
-        ):
+        for name in ("ghost_edge_ratio", "ghost_min_edge", "ghost_min_outline_px"):
             if getattr(self, name) < 0:
                 raise ValueError(f"BackgroundConfig.{name} must be >= 0, got {getattr(self, name)}")
         for name in ("threshold_sigma", "min_noise_std", "shadow_max_chroma", "max_gain"):
@@ -258,14 +256,15 @@ def _covered(
     ``people_margin_px`` (the network's outline is coarse); None when no frame has any."""
     if not any(m is not None and m.any() for m in people):
         return None
-    grow = disk(config.people_margin_px) if config.people_margin_px > 0 else None
+    margin = config.people_margin_px
+    grow = disk(abs(margin)) if margin else None
     out = np.zeros((len(people), size[1], size[0]), bool)
     for i, m in enumerate(people):
         if m is None or not m.any():
             continue
         small = cv2.resize(m.view(np.uint8), size, interpolation=cv2.INTER_NEAREST)
         if grow is not None:
-            small = cv2.dilate(small, grow)
+            small = cv2.dilate(small, grow) if margin > 0 else cv2.erode(small, grow)
         out[i] = small.view(bool)
     return out
 
