@@ -252,8 +252,8 @@ class Segmentation:
 def _covered(
     people: Sequence[Mask | None], size: tuple[int, int], config: BackgroundConfig
 ) -> NDArray[np.bool_] | None:
-    """(n, h, w) the learning frames' person pixels at the working ``size``, grown by
-    ``people_margin_px`` (the network's outline is coarse); None when no frame has any."""
+    """(n, h, w) the learning frames' person pixels at the working ``size``, grown
+    or shrunk by ``people_margin_px``; None when no frame has any."""
     if not any(m is not None and m.any() for m in people):
         return None
     margin = config.people_margin_px
