@@ -6,11 +6,17 @@ import cv2
 import numpy as np
 import pytest
 
+from edgerecon.geometry.camera import Camera
 from edgerecon.quality.frames import FrameCheckConfig, MovedCameras
 from edgerecon.types import FrameSet
 
 H, W = 360, 480
 K = np.array([[400.0, 0.0, W / 2], [0.0, 400.0, H / 2], [0.0, 0.0, 1.0]])
+
+
+def _camera(width: int = W, height: int = H, K: np.ndarray = K) -> Camera:
+    """The calibration the stabiliser is given (a pinhole at the origin)."""
+    return Camera(name="cam", width=width, height=height, K=K, R=np.eye(3), t=np.zeros(3))
 
 
 def _texture(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -130,7 +136,7 @@ def test_a_swaying_camera_is_turned_back_onto_its_view():
     rng = np.random.default_rng(1)
     room = _texture(rng, H, W)
     steady = Stabiliser()
-    steady.start(0, thumbnail(room), K)
+    steady.start(0, thumbnail(room), _camera())
     assert steady.cameras == {0}
     inner = (slice(30, H - 30), slice(30, W - 30))
     for axis, degrees, person in [
@@ -170,7 +176,7 @@ def test_a_real_camera_with_lens_distortion_swaying_is_turned_back():
     steady = Stabiliser()
     before, after = [], []
     with ds.open_frames() as source:
-        steady.start(1, thumbnail(source.read(0).images[1]), cam.K, cam.dist)
+        steady.start(1, thumbnail(source.read(0).images[1]), cam)
         for t in range(3, source.num_frames, 16):
             frames = source.read(t)
             degrees = float(np.sin(2 * np.pi * t / 12 + 0.5))
@@ -196,7 +202,7 @@ def test_the_turn_of_a_camera_that_holds_still_is_its_new_aim_not_a_sway_s():
     axis = np.array([0.8, 0.6, 0.0])
     dR = cv2.Rodrigues(np.radians(1.2) * axis)[0]
     steady = Stabiliser()
-    steady.start(0, thumbnail(room), K)
+    steady.start(0, thumbnail(room), _camera())
     knocked = _turned(room, 1.2, tuple(axis))
     for k in range(4):
         assert (steady.steady_turn(0) is None) == (k < 3)
@@ -221,7 +227,7 @@ def test_the_stabiliser_scales_the_calibration_s_intrinsics_to_the_frames():
     rng = np.random.default_rng(5)
     room = _texture(rng, H, W)
     steady = Stabiliser()
-    steady.start(0, thumbnail(room), np.diag([2.0, 2.0, 1.0]) @ K, width=2 * W)
+    steady.start(0, thumbnail(room), _camera().resized(2 * W, 2 * H))
     image = _turned(room, 1.0, (0.0, 1.0, 0.0))
     _, taken = steady.apply(FrameSet(time_index=0, images=(image,)))
     assert taken[0] == pytest.approx(1.0, abs=0.1)

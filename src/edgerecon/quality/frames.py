@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from edgerecon.geometry.camera import rotation_angle_deg
+from edgerecon.geometry.camera import Camera, rotation_angle_deg
 from edgerecon.types import FrameSet, Image
 
 _EYE = np.eye(3)
@@ -531,11 +531,8 @@ class Stabiliser:
     interpolated (8 for the thumbnail)."""
 
     def __init__(self) -> None:
-        self._ref: dict[
-            int,
-            tuple[NDArray[np.float32], NDArray[np.float64], NDArray[np.float64] | None, int | None],
-        ] = {}
-        """Per camera: its reference thumbnail, intrinsics, distortion, the width they are at."""
+        self._ref: dict[int, tuple[NDArray[np.float32], Camera]] = {}
+        """Per camera: its reference thumbnail, its calibration."""
         self._window: dict[tuple[int, int], NDArray[np.float32]] = {}
         self._grid: dict[Any, tuple[tuple[int, int], NDArray[np.float64]]] = {}
         """Per distorted camera and image kind: the coarse grid's pixels' rays
@@ -551,37 +548,24 @@ class Stabiliser:
     def references(self) -> dict[int, NDArray[np.uint8]]:
         """Each stabilised camera's reference view (rounded to whole grey levels): what a
         run keeps over a stop (``start`` again with it after ``--resume``)."""
-        return {i: _grey_bytes(ref) for i, (ref, *_) in self._ref.items()}
+        return {i: _grey_bytes(ref) for i, (ref, _) in self._ref.items()}
 
-    def start(
-        self,
-        camera: int,
-        reference: NDArray[np.float32],
-        K: NDArray[np.float64],
-        dist: NDArray[np.float64] | None = None,
-        *,
-        width: int | None = None,
-    ) -> None:
+    def start(self, camera: int, reference: NDArray[np.float32], calibration: Camera) -> None:
         """Stabilise ``camera`` from now on onto ``reference`` (a grey thumbnail as
-        :func:`thumbnail` makes them), ``K`` its intrinsics at ``width`` pixels wide (its
-        calibration's; scaled to each frame's width; None: at its frames' size), ``dist``
-        its lens's distortion (OpenCV's coefficients; None: none)."""
-        lens = None if dist is None or not np.any(dist) else np.asarray(dist, np.float64)
-        self._ref[camera] = (
-            np.asarray(reference, np.float32),
-            np.asarray(K, np.float64),
-            lens,
-            width,
-        )
+        :func:`thumbnail` makes them); ``calibration``: its camera of the rig (intrinsics
+        and lens distortion; ``Camera.resized`` to each frame's size)."""
+        self._ref[camera] = (np.asarray(reference, np.float32), calibration)
         for kind in ("thumb", "frame"):
             self._grid.pop((camera, kind), None)
         self.forget(camera)
 
-    def _intrinsics(self, camera: int, image: Image) -> NDArray[np.float64]:
-        """``camera``'s intrinsics at ``image``'s size."""
-        _, K, _, width = self._ref[camera]
-        k = 1.0 if width is None else image.shape[1] / width
-        return K if k == 1.0 else np.diag([k, k, 1.0]) @ K
+    def _lens(
+        self, camera: int, image: Image
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """``camera``'s intrinsics at ``image``'s size and its distortion (None: none)."""
+        cam = self._ref[camera][1]
+        cam = cam.resized(image.shape[1], image.shape[0])
+        return cam.K, (cam.dist if cam.has_distortion else None)
 
     def forget(self, camera: int) -> None:
         """Forget the turns taken off ``camera``'s frames so far (its view moved again)."""
@@ -608,8 +592,8 @@ class Stabiliser:
         None: not measured). Twice: the thumbnail turned back by the first turn gives what
         is left of it (phase correlation's sub-pixel peak leans to whole pixels: a 1-degree
         turn of a real 720p camera measured 0.88 degrees in one pass)."""
-        ref, _, dist, _ = self._ref[camera]
-        K = self._intrinsics(camera, image)
+        ref = self._ref[camera][0]
+        K, dist = self._lens(camera, image)
         now = thumbnail(image, self._THUMB_PX)
         if now.shape != ref.shape:
             return None
@@ -684,7 +668,7 @@ class Stabiliser:
                 continue
             turned[i] = round(rotation_angle_deg(R, _EYE), 3)
             self._turns.setdefault(i, deque(maxlen=self._KEEP_TURNS)).append(R)
-            K, dist = self._intrinsics(i, image), self._ref[i][2]
+            K, dist = self._lens(i, image)
             images[i] = turned_back(image, R, K, dist, self._MAP_STEP, self._grid, (i, "frame"))
         return dataclasses.replace(frames, images=tuple(images)), turned
 

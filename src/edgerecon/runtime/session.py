@@ -956,9 +956,7 @@ class Session:
             if name not in names or name in again or not self.frame_check.stabilise:
                 continue
             cam = self.dataset.rig[names.index(name)]
-            self._stabiliser.start(
-                names.index(name), ref.astype(np.float32), cam.K, cam.dist, width=cam.width
-            )
+            self._stabiliser.start(names.index(name), ref.astype(np.float32), cam)
             # A file from before the counts were kept: as a camera that kept moving.
             said = self._moves_said[name] = moves.get(name, _MOVES_SAID + 1)
             logger.warning(
@@ -986,8 +984,7 @@ class Session:
         if not (due and self.frame_check.stabilise and reference is not None):
             return False
         assert reference is not None
-        cam = self.dataset.rig[camera]
-        self._stabiliser.start(camera, reference, cam.K, cam.dist, width=cam.width)
+        self._stabiliser.start(camera, reference, self.dataset.rig[camera])
         return True
 
     def _note_moved(self, t: int, frames: FrameSet) -> list[dict[str, Any]]:
