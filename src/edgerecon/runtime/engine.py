@@ -164,16 +164,23 @@ def relearned(
     frames before time index ``before`` (the median of ``bootstrap_frames`` over the
     ``bootstrap_span_s`` before it, as a stream's bootstrap): cameras re-posed during a run
     no longer see the scene as their models learned it (a clip of the empty scene, or the
-    frames before the knock). A recorded dataset only (a live stream keeps no frames
-    behind): else ``model`` as it is."""
+    frames before the knock). A live stream keeps no frames behind: its models learn from
+    its next ``bootstrap_frames`` synchronized sets instead, as a live run's bootstrap does
+    (``before`` is then only a label)."""
     config = config or ForegroundConfig()
-    if not cameras or dataset.is_live or before < 1:
+    if not cameras or before < 1:
         return model
-    offsets = bootstrap_indices(before, dataset.fps, config)
-    start = before - (offsets[-1] + 1)
+    if dataset.is_live:
+        times = list(range(before, before + config.bootstrap_frames))
+        what = "the live stream's next frames"
+    else:
+        offsets = bootstrap_indices(before, dataset.fps, config)
+        start = before - (offsets[-1] + 1)
+        times = [start + i for i in offsets]
+        what = f"time {times[0]}..{times[-1]}"
     frames: dict[int, list[Image]] = {c: [] for c in cameras}
     with dataset.open_frames(missing="skip_camera") as source:
-        for t in (start + i for i in offsets):
+        for t in times:
             try:
                 fs = source.read(t)
             except EdgereconError as exc:  # a frame that does not decode: the others serve
@@ -190,10 +197,9 @@ def relearned(
             continue
         states[c] = learn_model(frames[c], config, camera=name, from_stream=True).state
     logger.info(
-        "scene: the background models of %s learned again from time %d..%d",
+        "scene: the background models of %s learned again from %s",
         ", ".join(dataset.rig[c].name for c in cameras),
-        start + offsets[0],
-        start + offsets[-1],
+        what,
     )
     return dataclasses.replace(model, states=tuple(states))
 
