@@ -41,6 +41,44 @@ def test_schedule_known_answers() -> None:
         ForegroundConfig(update_interval_s=0)
 
 
+def test_a_live_stream_s_bootstrap_frames_spread_over_its_first_second(room: Path) -> None:
+    """A live reader gives the next fresh set whatever index it is asked for: the bootstrap
+    reads every set of its span and keeps those of ``bootstrap_indices``, so that they lie
+    as far apart in the stream as a recording's (eight reads in a row would be eight
+    consecutive frames); a recorded reader is read at those indices only."""
+    from edgerecon.io.streams import LIVE_FRAMES
+    from edgerecon.scene.stream import read_spread
+
+    ds = open_dataset(room)
+    with ds.open_frames() as recorded:
+
+        class Live:
+            """Frames as a live stream gives them: in order, whatever ``t``."""
+
+            num_frames = LIVE_FRAMES
+
+            def __init__(self) -> None:
+                self.next = 0
+
+            def read(self, t: int):
+                frames = recorded.read(self.next)
+                self.next += 1
+                return frames
+
+        indices = bootstrap_indices(LIVE_FRAMES, ds.fps, ForegroundConfig())
+        assert len(indices) == 8 and indices[-1] > 8
+        live = Live()
+        sets = list(read_spread(live, indices))
+        assert [fs.time_index for fs in sets] == indices  # the n-th fresh set is frame n
+        assert live.next == indices[-1] + 1
+        assert [fs.time_index for fs in read_spread(recorded, indices)] == indices
+        # The bootstrap: the same models from the live reader as from the recording.
+        spread = bootstrap_scene(ds.rig, Live(), ds.fps)
+        stored = bootstrap_scene(ds.rig, recorded, ds.fps)
+    for a, b in zip(spread.foreground.models, stored.foreground.models, strict=True):
+        assert np.array_equal(a.state.mean, b.state.mean)
+
+
 def test_the_masks_of_a_time_index_do_not_depend_on_the_tasks_before_it(room: Path) -> None:
     """The online front-end's pattern (pending updates, segment, the task frame's own update
     after the critical path) gives the masks of a fresh ``dataset_scene_at`` at every task."""

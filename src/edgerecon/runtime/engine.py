@@ -26,6 +26,7 @@ from edgerecon import progress
 from edgerecon.dense.planes import Plane
 from edgerecon.geometry.camera import Rig
 from edgerecon.io.dataset import Dataset
+from edgerecon.io.streams import LIVE_FRAMES
 from edgerecon.optimize.controller import BisectionController
 from edgerecon.pipeline import warm_up
 from edgerecon.runtime.backend import BackEnd
@@ -165,18 +166,22 @@ def relearned(
     ``bootstrap_span_s`` before it, as a stream's bootstrap): cameras re-posed during a run
     no longer see the scene as their models learned it (a clip of the empty scene, or the
     frames before the knock). A live stream keeps no frames behind: its models learn from
-    its next ``bootstrap_frames`` synchronized sets instead, as a live run's bootstrap does
-    (``before`` is then only a label)."""
+    its next ``bootstrap_span_s`` instead, its sets spread over it as a live run's bootstrap
+    spreads them (``scene.stream.read_spread``; ``before`` is then only a label)."""
     config = config or ForegroundConfig()
     if not cameras or before < 1:
         return model
     if dataset.is_live:
-        times = list(range(before, before + config.bootstrap_frames))
+        # Every set of the span read, those of the offsets kept (``read_spread``).
+        offsets = bootstrap_indices(LIVE_FRAMES, dataset.fps, config)
+        wanted = {before + i for i in offsets}
+        times = list(range(before, before + offsets[-1] + 1))
         what = "the live stream's next frames"
     else:
         offsets = bootstrap_indices(before, dataset.fps, config)
         start = before - (offsets[-1] + 1)
         times = [start + i for i in offsets]
+        wanted = set(times)
         what = f"time {times[0]}..{times[-1]}"
     frames: dict[int, list[Image]] = {c: [] for c in cameras}
     with dataset.open_frames(missing="skip_camera") as source:
@@ -185,6 +190,8 @@ def relearned(
                 fs = source.read(t)
             except EdgereconError as exc:  # a frame that does not decode: the others serve
                 logger.warning("scene: time %d left out of the models learned again: %s", t, exc)
+                continue
+            if t not in wanted:
                 continue
             for c in cameras:
                 if (image := fs.images[c]) is not None:

@@ -44,6 +44,7 @@ import dataclasses
 import functools
 import logging
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -51,6 +52,7 @@ import numpy as np
 
 from edgerecon.dense.planes import Plane
 from edgerecon.geometry.camera import Rig
+from edgerecon.io.streams import LIVE_FRAMES
 from edgerecon.pipeline import reconstruct_static
 from edgerecon.progress import track
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
@@ -91,6 +93,25 @@ def static_step(fps: float | None, config: ForegroundConfig) -> int:
         return 0
     step = update_step(fps, config)
     return step * max(1, round(_rate(fps) * config.static.every_s / step))
+
+
+def read_spread(reader: FrameReader, indices: Sequence[int]) -> Iterator[FrameSet]:
+    """The frame sets of ``indices`` (ascending). A live reader (``io.streams``: unbounded,
+    each read the next fresh set whatever its index) reads every set from the first index
+    to the last and gives those of ``indices``, so that its frames spread over as much of the
+    stream as a recording's (eight reads in a row would take eight consecutive frames: a
+    fraction of a second, in which nobody moves)."""
+    if not indices:
+        return
+    if reader.num_frames < LIVE_FRAMES:
+        for t in indices:
+            yield reader.read(t)
+        return
+    wanted = set(indices)
+    for t in range(indices[0], indices[-1] + 1):
+        frames = reader.read(t)
+        if t in wanted:
+            yield frames
 
 
 def bootstrap_indices(num_frames: int, fps: float | None, config: ForegroundConfig) -> list[int]:
@@ -295,9 +316,10 @@ def bootstrap_scene(
         indices = bootstrap_indices(reader.num_frames, fps, config)
         source = reader
         what = f"median of {len(indices)} frames of the stream (time {indices[0]}..{indices[-1]})"
-    framesets = [
-        source.read(i) for i in (track(indices, "learning the background") if progress else indices)
-    ]
+    reads = read_spread(source, indices)
+    framesets = list(
+        track(reads, "learning the background", total=len(indices)) if progress else reads
+    )
     fg = RigForeground.learn_from_framesets(rig, framesets, config, from_stream=clip is None)
     if fg.from_stream and fg.people is not None:
         what += ", the people the person model sees left out"
