@@ -18,6 +18,7 @@ from edgerecon.scene.stream import (
     dataset_scene_at,
     update_step,
 )
+from edgerecon.types import DataError
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +73,22 @@ def test_a_live_stream_s_bootstrap_frames_spread_over_its_first_second(room: Pat
         assert [fs.time_index for fs in sets] == indices  # the n-th fresh set is frame n
         assert live.next == indices[-1] + 1
         assert [fs.time_index for fs in read_spread(recorded, indices)] == indices
+
+        class Broken:
+            """A recording whose frame set 3 does not decode."""
+
+            num_frames = recorded.num_frames
+
+            def read(self, t: int):
+                if t == 3:
+                    raise DataError("frame 3 does not decode")
+                return recorded.read(t)
+
+        told: list[int] = []
+        kept = read_spread(Broken(), indices, on_error=lambda t, exc: told.append(t))
+        assert [fs.time_index for fs in kept] == [i for i in indices if i != 3] and told == [3]
+        with pytest.raises(DataError, match="does not decode"):
+            list(read_spread(Broken(), indices))
         # The bootstrap: the same models from the live reader as from the recording.
         spread = bootstrap_scene(ds.rig, Live(), ds.fps)
         stored = bootstrap_scene(ds.rig, recorded, ds.fps)

@@ -51,6 +51,7 @@ from edgerecon.scene.stream import (
     bootstrap_indices,
     bootstrap_scene,
     dataset_scene_at,
+    read_spread,
 )
 from edgerecon.types import EdgereconError, FrameSet, Image, PointCloud, Points3D
 
@@ -172,27 +173,21 @@ def relearned(
     if not cameras or before < 1:
         return model
     if dataset.is_live:
-        # Every set of the span read, those of the offsets kept (``read_spread``).
-        offsets = bootstrap_indices(LIVE_FRAMES, dataset.fps, config)
-        wanted = {before + i for i in offsets}
-        times = list(range(before, before + offsets[-1] + 1))
+        # Its next span (``read_spread`` reads every set of it, keeps these).
+        times = [before + i for i in bootstrap_indices(LIVE_FRAMES, dataset.fps, config)]
         what = "the live stream's next frames"
     else:
         offsets = bootstrap_indices(before, dataset.fps, config)
         start = before - (offsets[-1] + 1)
         times = [start + i for i in offsets]
-        wanted = set(times)
         what = f"time {times[0]}..{times[-1]}"
+
+    def left_out(t: int, exc: EdgereconError) -> None:  # the others serve
+        logger.warning("scene: time %d left out of the models learned again: %s", t, exc)
+
     frames: dict[int, list[Image]] = {c: [] for c in cameras}
     with dataset.open_frames(missing="skip_camera") as source:
-        for t in times:
-            try:
-                fs = source.read(t)
-            except EdgereconError as exc:  # a frame that does not decode: the others serve
-                logger.warning("scene: time %d left out of the models learned again: %s", t, exc)
-                continue
-            if t not in wanted:
-                continue
+        for fs in read_spread(source, times, on_error=left_out):
             for c in cameras:
                 if (image := fs.images[c]) is not None:
                     frames[c].append(image)

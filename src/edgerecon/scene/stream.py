@@ -44,7 +44,7 @@ import dataclasses
 import functools
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
@@ -56,7 +56,7 @@ from edgerecon.io.streams import LIVE_FRAMES
 from edgerecon.pipeline import reconstruct_static
 from edgerecon.progress import track
 from edgerecon.scene.foreground import ForegroundConfig, ForegroundResult, RigForeground
-from edgerecon.types import DataError, FrameSet, Mask
+from edgerecon.types import DataError, EdgereconError, FrameSet, Mask
 
 if TYPE_CHECKING:
     from edgerecon.io.dataset import Dataset
@@ -95,21 +95,30 @@ def static_step(fps: float | None, config: ForegroundConfig) -> int:
     return step * max(1, round(_rate(fps) * config.static.every_s / step))
 
 
-def read_spread(reader: FrameReader, indices: Sequence[int]) -> Iterator[FrameSet]:
+def read_spread(
+    reader: FrameReader,
+    indices: Sequence[int],
+    *,
+    on_error: Callable[[int, EdgereconError], None] | None = None,
+) -> Iterator[FrameSet]:
     """The frame sets of ``indices`` (ascending). A live reader (``io.streams``: unbounded,
     each read the next fresh set whatever its index) reads every set from the first index
     to the last and gives those of ``indices``, so that its frames spread over as much of the
     stream as a recording's (eight reads in a row would take eight consecutive frames: a
-    fraction of a second, in which nobody moves)."""
+    fraction of a second, in which nobody moves). ``on_error``: told of a read that raised
+    (``EdgereconError``), which is then left out; without it the error propagates."""
     if not indices:
         return
-    if reader.num_frames < LIVE_FRAMES:
-        for t in indices:
-            yield reader.read(t)
-        return
+    live = reader.num_frames >= LIVE_FRAMES
     wanted = set(indices)
-    for t in range(indices[0], indices[-1] + 1):
-        frames = reader.read(t)
+    for t in range(indices[0], indices[-1] + 1) if live else indices:
+        try:
+            frames = reader.read(t)
+        except EdgereconError as exc:
+            if on_error is None:
+                raise
+            on_error(t, exc)
+            continue
         if t in wanted:
             yield frames
 
